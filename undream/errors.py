@@ -1,0 +1,40 @@
+"""The undream exception hierarchy.
+
+Every error raised on bad input is an :class:`UndreamError`; its message names
+the file or field, the offending value and what would be valid, on one line.
+"""
+from __future__ import annotations
+
+
+class UndreamError(Exception):
+    """Base class of every error undream raises on purpose."""
+
+
+class SpecError(UndreamError, ValueError):
+    """A spec, config or sequence field is missing or invalid."""
+
+
+class AssetError(UndreamError):
+    """A mesh or texture file is missing, unreadable or unusable."""
+
+
+class BridgeError(UndreamError):
+    """A simulator export could not be converted to the canonical form."""
+
+
+class RenderError(UndreamError):
+    """Mitsuba failed to load or render a scene."""
+
+
+class VictimError(UndreamError):
+    """A victim model could not be loaded or was given bad input."""
+
+
+class StoreError(UndreamError):
+    """The run store could not be read or written."""
+
+
+def where(path: str | None, field: str | None) -> str:
+    """Format the 'file: field' prefix used in error messages."""
+    parts = [p for p in (path, field) if p]
+    return ": ".join(parts)
