@@ -1,0 +1,55 @@
+"""The ``undream`` command line. Errors are mapped here: one line, non-zero exit."""
+from __future__ import annotations
+
+import functools
+import sys
+from pathlib import Path
+from typing import Any, Callable
+
+import click
+
+from undream.errors import UndreamError
+
+EXIT_BAD_INPUT = 2
+
+
+def _one_line_errors(fn: Callable[..., Any]) -> Callable[..., Any]:
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return fn(*args, **kwargs)
+        except UndreamError as err:
+            msg = " ".join(str(err).split())
+            click.echo(f"undream: error: {msg}", err=True)
+            sys.exit(EXIT_BAD_INPUT)
+    return wrapper
+
+
+@click.group()
+@click.version_option(package_name="undream")
+def main() -> None:
+    """undream: adversarial textures for 3D objects, judged in the simulator."""
+
+
+@main.command("init")
+@click.argument("spec", type=click.Path(path_type=Path))
+@click.option("--out", "out", required=True, type=click.Path(path_type=Path),
+              help="Scene directory to write.")
+@click.option("--force", is_flag=True, help="Replace OUT if it exists.")
+@click.option("--verify-spp", default=16, show_default=True, type=click.IntRange(1, 4096),
+              help="Samples per pixel of the verification renders.")
+@click.option("--scene-spp", default=64, show_default=True, type=click.IntRange(1, 65536),
+              help="Default samples per pixel written into the scene XML files.")
+@click.option("--progress/--no-progress", default=True, help="Show a progress bar.")
+@_one_line_errors
+def init_cmd(spec: Path, out: Path, force: bool, verify_spp: int, scene_spp: int, progress: bool) -> None:
+    """Write the scene directory of SPEC (trajectory YAML, Unreal export JSON or sequence.json)."""
+    from undream.scene.init import InitOptions, init_scene
+
+    done = init_scene(spec, out, InitOptions(force=force, verify_spp=verify_spp,
+                                             scene_spp=scene_spp, progress=progress))
+    click.echo(f"wrote {done} (contact sheet: {done / 'verify' / 'contact_sheet.png'})")
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

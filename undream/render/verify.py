@@ -1,0 +1,83 @@
+"""Verification renders of a scene directory: white-texture frames and visibility masks."""
+from __future__ import annotations
+
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+from PIL import Image, ImageDraw
+
+from undream.errors import RenderError
+from undream.render.color import linear_to_srgb, to_uint8
+from undream.scene.mitsuba_scene import OBJECT_ID, ScenePaths, scene_dict
+from undream.scene.xml import to_mitsuba
+from undream.spec import Frame, Sequence
+
+
+def texture_key(params: Any) -> str:
+    """The ``mi.traverse`` key of the object's texture data (``object.bsdf...data``)."""
+    keys = [k for k in params.keys() if k.startswith(f"{OBJECT_ID}.") and k.endswith("reflectance.data")]
+    if len(keys) != 1:
+        raise RenderError(f"expected one texture parameter under '{OBJECT_ID}.', found {keys}")
+    return keys[0]
+
+
+def load_scene(mi: ModuleType, xml: Path, spp: int) -> Any:
+    try:
+        return mi.load_file(str(xml), spp=spp)
+    except Exception as err:
+        first = str(err).strip().splitlines()[-1] if str(err).strip() else type(err).__name__
+        raise RenderError(f"{xml}: Mitsuba could not load the scene ({first})") from None
+
+
+def render_white(mi: ModuleType, xml: Path, spp: int, seed: int = 0) -> np.ndarray:
+    """Render a simulation scene with a plain white texture: H×W×3 linear RGB."""
+    scene = load_scene(mi, xml, spp)
+    params = mi.traverse(scene)
+    key = texture_key(params)
+    params[key] = mi.TensorXf(np.ones(params[key].shape, dtype=np.float32))
+    params.update()
+    return np.array(mi.render(scene, seed=seed), dtype=np.float32)
+
+
+def render_mask(mi: ModuleType, seq: Sequence, frame: Frame, scene_dir: Path, spp: int) -> np.ndarray:
+    """Visible pixels of the object (H×W bool): coverage > 0.5 behind all occluders."""
+    d = scene_dict(seq, frame, ScenePaths(str(scene_dir.resolve())), "mask")
+    scene = mi.load_dict(to_mitsuba(d, mi, {"spp": spp}))
+    img = np.array(mi.render(scene, seed=0), dtype=np.float32)
+    return img.mean(axis=2) > 0.5
+
+
+def save_rgb(linear: np.ndarray, path: Path) -> None:
+    Image.fromarray(to_uint8(linear_to_srgb(linear))).save(path)
+
+
+def save_mask(mask: np.ndarray, path: Path) -> None:
+    Image.fromarray((mask.astype(np.uint8) * 255)).save(path)
+
+
+def contact_sheet(tiles: list[tuple[str, np.ndarray, np.ndarray]], path: Path, columns: int = 4) -> None:
+    """A grid of white renders (sRGB uint8) with the mask's outline in red and a label each."""
+    if not tiles:
+        return
+    h, w = tiles[0][1].shape[:2]
+    zoom = max(1, int(np.ceil(160 / max(h, w))))
+    tw, th = w * zoom, h * zoom + 14
+    cols = min(columns, len(tiles))
+    rows = -(-len(tiles) // cols)
+    sheet = Image.new("RGB", (cols * tw, rows * th), (24, 24, 24))
+    for i, (label, rgb, mask) in enumerate(tiles):
+        img = rgb.copy()
+        edge = mask & ~_eroded(mask)
+        img[edge] = (255, 40, 40)
+        tile = Image.fromarray(img).resize((tw, th - 14), Image.NEAREST)
+        x, y = (i % cols) * tw, (i // cols) * th
+        sheet.paste(tile, (x, y + 14))
+        ImageDraw.Draw(sheet).text((x + 3, y + 1), label, fill=(230, 230, 230))
+    sheet.save(path)
+
+
+def _eroded(mask: np.ndarray) -> np.ndarray:
+    m = np.pad(mask, 1, constant_values=False)
+    return m[1:-1, 1:-1] & m[:-2, 1:-1] & m[2:, 1:-1] & m[1:-1, :-2] & m[1:-1, 2:]

@@ -1,0 +1,59 @@
+"""Sun, sky, weather and lamps of an :class:`~undream.spec.Environment` as Mitsuba emitters.
+
+Radiometry is in linear RGB, scaled so that a white diffuse surface in full
+sun renders a little below 1 (no tone mapping is applied downstream).
+"""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from undream.spec import Environment, sun_direction
+
+SUN_IRRADIANCE = 2.0  # clear-sky sun, W/m² in undream's display-referred units
+FOG_ALBEDO = 0.85
+
+
+def _rgb(*v: float) -> dict[str, Any]:
+    return {"type": "rgb", "value": [float(x) for x in v]}
+
+
+def _sun_colour(elev_deg: float) -> np.ndarray:
+    """Warmer near the horizon (longer air mass)."""
+    warm = math.exp(-max(elev_deg, 0.0) / 12.0)
+    return np.array([1.0, 0.95 - 0.25 * warm, 0.88 - 0.5 * warm])
+
+
+def emitters(env: Environment, anchor: np.ndarray) -> dict[str, dict[str, Any]]:
+    """Emitters for one frame: ``sky`` (constant), ``sun`` (directional), ``lamp`` at night.
+
+    ``anchor`` (metres) is where a night lamp stands near: the object's origin.
+    """
+    direction, elev = sun_direction(env)
+    day = float(np.clip(math.sin(math.radians(elev)) * 3.0, 0.0, 1.0))  # fades in at sunrise
+    out: dict[str, dict[str, Any]] = {}
+    if env.weather == "night":
+        out["sky"] = {"type": "constant", "radiance": _rgb(0.010, 0.013, 0.028)}
+        lamp = np.asarray(anchor, float) + np.array([1.5, 4.0, 1.5])
+        out["lamp"] = {"type": "point", "position": lamp.tolist(), "intensity": _rgb(40.0, 33.0, 24.0)}
+        return out
+    sun_scale, sky = {
+        "clear": (1.0, np.array([0.26, 0.34, 0.48])),
+        "cloudy": (0.12, np.array([0.50, 0.52, 0.56])),
+        "fog": (0.45, np.array([0.42, 0.44, 0.47])),
+    }[env.weather]
+    twilight = 0.08 + 0.92 * float(np.clip((elev + 6.0) / 12.0, 0.0, 1.0))
+    out["sky"] = {"type": "constant", "radiance": _rgb(*(sky * twilight))}
+    if day > 0.0:
+        irr = _sun_colour(elev) * SUN_IRRADIANCE * sun_scale * day
+        out["sun"] = {"type": "directional", "direction": [-float(x) for x in direction],
+                      "irradiance": _rgb(*irr)}
+    return out
+
+
+def fog_medium(env: Environment) -> dict[str, Any]:
+    """A homogeneous, grey scattering medium with extinction ``fog_density`` (1/m)."""
+    return {"type": "homogeneous", "id": "fog", "sigma_t": float(env.fog_density),
+            "albedo": _rgb(FOG_ALBEDO, FOG_ALBEDO, FOG_ALBEDO), "scale": 1.0}

@@ -1,0 +1,184 @@
+"""``undream init``: a scene directory from a trajectory spec, an Unreal export or a sequence.json.
+
+Layout written (atomically: into a temporary sibling, renamed at the end)::
+
+    sequence.json            canonical sequence
+    metadata.json            spec, seed, versions, verification settings
+    meshes/object.ply        the adversarial mesh (canonical, metres, UV-mapped)
+    meshes/<actor>.ply       one per extra actor
+    textures/<name>.exr      initial texture, LINEAR float (what the scenes load, raw)
+    textures/<name>.png      the same, sRGB 8-bit (what a person looks at)
+    frames/sim_NNNN.xml      the whole scene of frame NNNN
+    frames/grad_NNNN.xml     the object's appearance only, for prb
+    verify/white_NNNN.png    the simulation scene with a white texture (sRGB)
+    verify/mask_NNNN.png     the object's visible pixels (255) in that frame
+    verify/contact_sheet.png every white render with its mask outlined
+"""
+from __future__ import annotations
+
+import json
+import os
+import platform
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from undream.errors import AssetError, SpecError
+from undream.render.color import linear_to_srgb, srgb_to_linear, to_uint8
+from undream.scene.mitsuba_scene import OBJECT_ID, ScenePaths, scene_dict
+from undream.scene.xml import to_xml
+from undream.spec import Sequence, TextureParam, save_sequence
+
+FRAME_DIGITS = 4
+
+
+@dataclass(frozen=True)
+class InitOptions:
+    """How ``undream init`` writes a scene directory."""
+
+    force: bool = False  # replace an existing directory
+    verify_spp: int = 16  # samples per pixel of the verification renders
+    scene_spp: int = 64  # the default ``$spp`` written into the XML files
+    progress: bool = False  # show a progress bar
+
+
+def frame_name(kind: str, index: int) -> str:
+    return f"{kind}_{index:0{FRAME_DIGITS}d}"
+
+
+def init_scene(source: str | Path | Sequence, out: str | Path, options: InitOptions = InitOptions(),
+               spec_text: str | None = None) -> Path:
+    """Write the scene directory of ``source`` to ``out`` and return its path.
+
+    ``source`` is a spec file (YAML trajectory, Unreal export JSON, canonical
+    sequence.json) or a :class:`Sequence`. Nothing is left behind on error,
+    and an existing ``out`` is only replaced with ``options.force``.
+    """
+    out = Path(out)
+    _check_target(out, options.force)
+    seq, base_dir, spec_text = _resolve_source(source, spec_text)
+    meshes = _load_meshes(seq, base_dir)
+    texture = initial_texture(seq.texture, base_dir)
+    tmp = out.parent / f".{out.name}.tmp-{os.getpid()}-{time.monotonic_ns()}"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        _write(seq, meshes, texture, tmp, options, spec_text)
+        _check_target(out, options.force)
+        _swap_into_place(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out
+
+
+def _check_target(out: Path, force: bool) -> None:
+    if out.exists() and not force:
+        raise SpecError(f"{out}: already exists (use --force to replace it)")
+    if out.exists() and not out.is_dir():
+        raise SpecError(f"{out}: exists and is not a directory")
+
+
+def _resolve_source(source: str | Path | Sequence, spec_text: str | None) -> tuple[Sequence, Path | None, str | None]:
+    if isinstance(source, Sequence):
+        return source, None, spec_text
+    from undream.scene.sources import sequence_from_file
+
+    path = Path(source)
+    seq = sequence_from_file(path)
+    return seq, path.parent, path.read_text()
+
+
+def _load_meshes(seq: Sequence, base_dir: Path | None) -> dict[str, object]:
+    from undream.scene.builtin import asset_mesh
+
+    out = {OBJECT_ID: asset_mesh(seq.asset, base_dir)}
+    for a in seq.actors:
+        out[a.name] = asset_mesh(a, base_dir)
+    return out
+
+
+def initial_texture(tex: TextureParam, base_dir: Path | None) -> np.ndarray:
+    """The starting texture: H×W×3 float32 sRGB in [0, 1]."""
+    h, w = tex.resolution
+    if not isinstance(tex.init, str):
+        return np.broadcast_to(np.array(tex.init, np.float32), (h, w, 3)).copy()
+    path = Path(tex.init)
+    if not path.is_absolute() and base_dir is not None:
+        path = base_dir / path
+    try:
+        img = Image.open(path).convert("RGB").resize((w, h), Image.BILINEAR)
+    except FileNotFoundError:
+        raise AssetError(f"{path}: texture file not found (asset.texture.init)") from None
+    except OSError as err:
+        raise AssetError(f"{path}: cannot read texture image ({err})") from None
+    return np.asarray(img, dtype=np.float32) / 255.0
+
+
+def _write(seq: Sequence, meshes: dict, texture: np.ndarray, root: Path, opt: InitOptions,
+           spec_text: str | None) -> None:
+    from undream.render.variant import mitsuba
+    from undream.render.verify import contact_sheet, render_mask, render_white, save_mask, save_rgb
+    from undream.scene.mesh import write_ply
+
+    mi = mitsuba()
+    for sub in ("meshes", "textures", "frames", "verify"):
+        (root / sub).mkdir(parents=True)
+    save_sequence(seq, root / "sequence.json")
+    for name, mesh in meshes.items():
+        write_ply(mesh, root / "meshes" / f"{name}.ply")
+    tex = seq.texture
+    mi.Bitmap(srgb_to_linear(texture)).write(str(root / "textures" / f"{tex.name}.exr"))
+    Image.fromarray(to_uint8(texture)).save(root / "textures" / f"{tex.name}.png")
+    rel = ScenePaths("..")
+    defaults = {"spp": opt.scene_spp}
+    tiles = []
+    for frame in _progress(seq.frames, opt.progress):
+        for kind in ("sim", "grad"):
+            xml = to_xml(scene_dict(seq, frame, rel, kind), defaults)
+            (root / "frames" / f"{frame_name(kind, frame.index)}.xml").write_text(xml)
+        white = render_white(mi, root / "frames" / f"{frame_name('sim', frame.index)}.xml", opt.verify_spp)
+        mask = render_mask(mi, seq, frame, root, opt.verify_spp)
+        save_rgb(white, root / "verify" / f"{frame_name('white', frame.index)}.png")
+        save_mask(mask, root / "verify" / f"{frame_name('mask', frame.index)}.png")
+        tiles.append((f"frame {frame.index}", to_uint8(linear_to_srgb(white)), mask))
+    contact_sheet(tiles, root / "verify" / "contact_sheet.png")
+    _write_metadata(seq, root, opt, spec_text, mi)
+
+
+def _progress(frames, enabled: bool):
+    if not enabled:
+        return frames
+    from tqdm import tqdm
+    return tqdm(frames, desc="init frames", unit="frame")
+
+
+def _write_metadata(seq: Sequence, root: Path, opt: InitOptions, spec_text: str | None, mi) -> None:
+    import drjit
+    import scipy
+
+    from undream import __version__
+
+    meta = {
+        "undream": __version__, "created_unix": time.time(), "seed": seq.seed, "source": seq.source,
+        "spec": spec_text, "frames": len(seq.frames), "object_id": OBJECT_ID,
+        "texture": {"name": seq.texture.name, "file": f"textures/{seq.texture.name}.exr",
+                    "space": "linear (raw)", "srgb_preview": f"textures/{seq.texture.name}.png"},
+        "verify_spp": opt.verify_spp, "scene_spp": opt.scene_spp, "variant": mi.variant(),
+        "versions": {"python": platform.python_version(), "numpy": np.__version__,
+                     "scipy": scipy.__version__, "mitsuba": mi.__version__, "drjit": drjit.__version__},
+    }
+    (root / "metadata.json").write_text(json.dumps(meta, indent=1) + "\n")
+
+
+def _swap_into_place(tmp: Path, out: Path) -> None:
+    if out.exists():
+        trash = out.parent / f".{out.name}.old-{os.getpid()}-{time.monotonic_ns()}"
+        out.rename(trash)
+        tmp.rename(out)
+        shutil.rmtree(trash, ignore_errors=True)
+    else:
+        tmp.rename(out)
