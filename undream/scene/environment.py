@@ -36,8 +36,8 @@ def emitters(env: Environment, anchor: np.ndarray) -> dict[str, dict[str, Any]]:
     out: dict[str, dict[str, Any]] = {}
     if env.weather == "night":
         out["sky"] = {"type": "constant", "radiance": _rgb(0.010, 0.013, 0.028)}
-        lamp = np.asarray(anchor, float) + np.array([1.5, 4.0, 1.5])
-        out["lamp"] = {"type": "point", "position": lamp.tolist(), "intensity": _rgb(40.0, 33.0, 24.0)}
+        lamp = np.asarray(anchor, float) + np.array([2.5, 6.0, 2.5])
+        out["lamp"] = {"type": "point", "position": lamp.tolist(), "intensity": _rgb(30.0, 25.0, 18.0)}
         return out
     sun_scale, sky = {
         "clear": (1.0, np.array([0.26, 0.34, 0.48])),

@@ -1,0 +1,24 @@
+"""Shared fixtures: scene directories of every example, initialised once per session."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLES = sorted((ROOT / "examples").glob("*.yaml")) + sorted((ROOT / "examples" / "unreal").glob("*.json"))
+
+
+@pytest.fixture(scope="session")
+def mi():
+    from undream.render.variant import mitsuba
+    return mitsuba()
+
+
+@pytest.fixture(scope="session")
+def example_scenes(tmp_path_factory, mi) -> dict[str, Path]:
+    """Every example in examples/, initialised with 16-spp verification renders."""
+    from undream.scene.init import InitOptions, init_scene
+
+    base = tmp_path_factory.mktemp("examples")
+    return {p.stem: init_scene(p, base / p.stem, InitOptions(verify_spp=16)) for p in EXAMPLES}

@@ -1,0 +1,89 @@
+"""``undream init``: the scene directory, its agreement with the sequence, and bad input."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from PIL import Image
+
+from conftest import EXAMPLES
+from projection import centroid, load, visible_mask
+from undream.cli import main
+from undream.scene.init import InitOptions, init_scene
+from undream.spec import load_sequence
+
+MIN_PIXELS = 12  # frames where the object covers fewer pixels say little about a centroid
+
+
+def test_examples_are_enough():
+    assert len([p for p in EXAMPLES if p.suffix == ".yaml"]) >= 4
+    assert any(p.suffix == ".json" for p in EXAMPLES)
+
+
+def test_layout_of_every_example(example_scenes):
+    for name, d in example_scenes.items():
+        seq = load_sequence(d / "sequence.json")
+        assert len(seq.frames) >= 8, name
+        meta = json.loads((d / "metadata.json").read_text())
+        assert meta["seed"] == seq.seed and meta["versions"]["mitsuba"] and meta["spec"]
+        for f in seq.frames:
+            for rel in (f"frames/sim_{f.index:04d}.xml", f"frames/grad_{f.index:04d}.xml",
+                        f"verify/white_{f.index:04d}.png", f"verify/mask_{f.index:04d}.png"):
+                assert (d / rel).is_file(), f"{name}: {rel}"
+        assert (d / "verify" / "contact_sheet.png").is_file()
+        assert (d / "meshes" / "object.ply").is_file()
+        assert not list(d.parent.glob(f".{name}.tmp-*")), "temporary directory left behind"
+
+
+def test_mask_centroid_agrees_with_independent_projection(example_scenes):
+    checked = 0
+    for name, d in example_scenes.items():
+        seq = load(d)
+        for f in seq["frames"]:
+            mask = np.asarray(Image.open(d / "verify" / f"mask_{f['index']:04d}.png")) > 127
+            expect = visible_mask(d, f, seq)
+            assert (mask.sum() >= MIN_PIXELS) == (expect.sum() >= MIN_PIXELS) or abs(
+                int(mask.sum()) - int(expect.sum())) < 6, f"{name} frame {f['index']}"
+            if expect.sum() < MIN_PIXELS:
+                continue
+            err = np.linalg.norm(centroid(mask) - centroid(expect))
+            assert err <= 1.5, f"{name} frame {f['index']}: mask centroid off by {err:.2f} px"
+            checked += 1
+    assert checked >= 30
+
+
+def test_every_xml_loads(example_scenes, mi):
+    for name, d in example_scenes.items():
+        for xml in sorted((d / "frames").glob("*.xml")):
+            scene = mi.load_file(str(xml), spp=1)
+            assert any(s.id() == "object" for s in scene.shapes()), xml
+
+
+def test_refuses_to_overwrite_without_force(example_scenes, tmp_path):
+    out = tmp_path / "scene"
+    src = EXAMPLES[0]
+    init_scene(src, out, InitOptions(verify_spp=1))
+    marker = out / "marker"
+    marker.write_text("mine")
+    res = CliRunner().invoke(main, ["init", str(src), "--out", str(out), "--no-progress", "--verify-spp", "1"])
+    assert res.exit_code == 2 and "already exists" in res.output and marker.exists()
+    res = CliRunner().invoke(main, ["init", str(src), "--out", str(out), "--force", "--no-progress",
+                                    "--verify-spp", "1"])
+    assert res.exit_code == 0, res.output
+    assert not marker.exists() and (out / "sequence.json").is_file()
+    assert not list(tmp_path.glob(".scene.*"))
+
+
+def test_failure_midway_leaves_nothing(tmp_path, monkeypatch):
+    import undream.render.verify as verify
+
+    def boom(*a, **k):
+        raise RuntimeError("renderer died")
+
+    monkeypatch.setattr(verify, "render_mask", boom)
+    with pytest.raises(RuntimeError):
+        init_scene(EXAMPLES[0], tmp_path / "scene", InitOptions(verify_spp=1))
+    assert list(tmp_path.iterdir()) == []
