@@ -5,7 +5,9 @@ Three views of a frame share one sensor and one object node:
 - ``sim``: everything the simulator shows (environment, fog, ground, props,
   object, actors), path traced (``volpath`` in fog);
 - ``grad``: no more than the object's appearance needs: the object, the
-  emitters, and what can shadow or hide it (ground, actors), for ``prb``;
+  emitters, and what can shadow or hide it (ground, actors), for ``prb``
+  with direct light only (``max_depth`` 2), so a texel reaches the image only
+  where the camera sees it;
 - ``mask``: the object as the only (unit) emitter behind every occluder of
   the simulation scene, for its visible pixels.
 
@@ -27,7 +29,7 @@ from undream.spec import Frame, Sequence
 OBJECT_ID = "object"
 KINDS = ("sim", "grad", "mask")
 SIM_MAX_DEPTH = 6
-GRAD_MAX_DEPTH = 3
+GRAD_MAX_DEPTH = 2  # direct light only: the texture reaches the image through visible texels alone
 
 
 @dataclass(frozen=True)
