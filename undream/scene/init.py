@@ -61,8 +61,11 @@ def init_scene(source: str | Path | Sequence, out: str | Path, options: InitOpti
     out = Path(out)
     _check_target(out, options.force)
     seq, base_dir, spec_text = _resolve_source(source, spec_text)
-    meshes = _load_meshes(seq, base_dir)
-    texture = initial_texture(seq.texture, base_dir)
+    try:
+        meshes = _load_meshes(seq, base_dir)
+        texture = initial_texture(seq.texture, base_dir)
+    except AssetError as err:
+        raise AssetError(f"{source}: {err}" if not isinstance(source, Sequence) else str(err)) from None
     tmp = out.parent / f".{out.name}.tmp-{os.getpid()}-{time.monotonic_ns()}"
     out.parent.mkdir(parents=True, exist_ok=True)
     try:
@@ -95,9 +98,12 @@ def _resolve_source(source: str | Path | Sequence, spec_text: str | None) -> tup
 def _load_meshes(seq: Sequence, base_dir: Path | None) -> dict[str, object]:
     from undream.scene.builtin import asset_mesh
 
-    out = {OBJECT_ID: asset_mesh(seq.asset, base_dir)}
-    for a in seq.actors:
-        out[a.name] = asset_mesh(a, base_dir)
+    out = {}
+    for field, asset in [("asset", seq.asset)] + [(f"actors[{i}]", a) for i, a in enumerate(seq.actors)]:
+        try:
+            out[OBJECT_ID if field == "asset" else asset.name] = asset_mesh(asset, base_dir)
+        except AssetError as err:
+            raise AssetError(f"{field}.mesh ({asset.name!r}): {err}") from None
     return out
 
 
