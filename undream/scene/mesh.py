@@ -43,6 +43,24 @@ def _array(name: str, value: object, dtype: type, cols: int) -> np.ndarray:
     return arr
 
 
+def _faces(value: object, n: int) -> np.ndarray:
+    raw = np.asarray(value)
+    if raw.size and raw.dtype.kind not in "iu":
+        raise AssetError(f"faces: must be integer vertex indices, got dtype {raw.dtype}")
+    f = _array("faces", raw, np.int64, 3)
+    if len(f) and (f.min() < 0 or f.max() >= n):
+        raise AssetError(f"faces: vertex indices must be in [0, {n}), got "
+                         f"[{int(f.min())}, {int(f.max())}]")
+    return _array("faces", f, np.int32, 3)
+
+
+def _per_vertex(name: str, value: object, cols: int, n: int, what: str) -> np.ndarray:
+    arr = _array(name, value, np.float32, cols)
+    if len(arr) != n:
+        raise AssetError(f"{name}: expected one {what} per vertex ({n}), got {len(arr)}")
+    return arr
+
+
 @dataclass(frozen=True, eq=False)
 class Mesh:
     """An indexed triangle mesh with one UV per vertex.
@@ -60,23 +78,11 @@ class Mesh:
 
     def __post_init__(self) -> None:
         v = _array("vertices", self.vertices, np.float32, 3)
-        n = len(v)
-        if np.asarray(self.faces).dtype.kind not in "iu" and np.asarray(self.faces).size:
-            raise AssetError(f"faces: must be integer vertex indices, got dtype {np.asarray(self.faces).dtype}")
-        f = _array("faces", self.faces, np.int64, 3)
-        if len(f) and (f.min() < 0 or f.max() >= n):
-            raise AssetError(f"faces: vertex indices must be in [0, {n}), got "
-                             f"[{int(f.min())}, {int(f.max())}]")
-        uv = _array("uvs", self.uvs, np.float32, 2)
-        if len(uv) != n:
-            raise AssetError(f"uvs: expected one UV per vertex ({n}), got {len(uv)}")
         object.__setattr__(self, "vertices", v)
-        object.__setattr__(self, "faces", _array("faces", f, np.int32, 3))
-        object.__setattr__(self, "uvs", uv)
+        object.__setattr__(self, "faces", _faces(self.faces, len(v)))
+        object.__setattr__(self, "uvs", _per_vertex("uvs", self.uvs, 2, len(v), "UV"))
         if self.normals is not None:
-            nrm = _array("normals", self.normals, np.float32, 3)
-            if len(nrm) != n:
-                raise AssetError(f"normals: expected one normal per vertex ({n}), got {len(nrm)}")
+            nrm = _per_vertex("normals", self.normals, 3, len(v), "normal")
             object.__setattr__(self, "normals", nrm)
 
     def __eq__(self, other: object) -> bool:
