@@ -1,9 +1,14 @@
 """Shared fixtures: scene directories of every example, initialised once per session."""
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
+
+# No network here: Hugging Face must never try the hub (it retries for ~30 s).
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = sorted((ROOT / "examples").glob("*.yaml")) + sorted((ROOT / "examples" / "unreal").glob("*.json"))

@@ -30,6 +30,10 @@ class VictimError(UndreamError):
     """A victim model could not be loaded or was given bad input."""
 
 
+class MetricsError(UndreamError, ValueError):
+    """Metric inputs are malformed (shapes, labels, empty where not allowed)."""
+
+
 class StoreError(UndreamError):
     """The run store could not be read or written."""
 

@@ -1,0 +1,62 @@
+"""One entry point for every victim: :func:`load_victim`.
+
+A spec is one of
+
+- ``bundled:classifier`` / ``bundled:detector``: the small models shipped in
+  ``undream/victims/bundled/<name>/`` (a ``save_pretrained`` folder),
+  trained on undream's own renders so that everything runs offline;
+- ``hf:<id or path>`` or just ``<id or path>``: a Hugging Face hub id (found
+  in the local cache, or over the network where allowed) or the path of a
+  ``save_pretrained`` folder.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from undream.errors import VictimError
+from undream.victims.base import TASKS, Victim
+
+BUNDLED_DIR = Path(__file__).resolve().parent / "bundled"
+BUNDLED = {"classifier": "classification", "detector": "detection"}
+
+
+def bundled_path(name: str) -> Path:
+    """The folder of the bundled victim ``name`` (it may not exist)."""
+    if name not in BUNDLED:
+        raise VictimError(f"bundled victim {name!r}: unknown; valid names are "
+                          f"{', '.join('bundled:' + n for n in BUNDLED)}")
+    return BUNDLED_DIR / name
+
+
+def _load_bundled(name: str, task: str | None, device: str | torch.device) -> Victim:
+    path = bundled_path(name)
+    if not path.is_dir():
+        raise VictimError(f"bundled victim {name!r}: its weights are not present (expected the "
+                          f"folder {path}); install a build of undream that ships them, or pass a "
+                          f"Hugging Face id or save_pretrained folder instead")
+    if not (path / "config.json").is_file():
+        raise VictimError(f"bundled victim {name!r}: {path} has no config.json (expected a "
+                          f"save_pretrained folder)")
+    own = BUNDLED[name]
+    if task is not None and task != own:
+        raise VictimError(f"bundled victim {name!r}: does {own}, cannot do {task}")
+    from undream.victims.hf import load_hf_victim
+    return load_hf_victim(str(path), task=own, device=device)
+
+
+def load_victim(spec: str, device: str | torch.device = "cpu", task: str | None = None) -> Victim:
+    """Load the victim named by ``spec`` (see the module docstring) on ``device``.
+
+    ``task`` (``classification`` or ``detection``), when given, must be one the
+    model can do; by default the model's own task is used.
+    """
+    if not isinstance(spec, str) or not spec.strip():
+        raise VictimError(f"victim: must be a hub id, a folder or bundled:<name>, got {spec!r}")
+    if task is not None and task not in TASKS:
+        raise VictimError(f"task: must be one of {', '.join(TASKS)}, got {task!r}")
+    if spec.startswith("bundled:"):
+        return _load_bundled(spec[len("bundled:"):], task, device)
+    from undream.victims.hf import load_hf_victim
+    return load_hf_victim(spec[len("hf:"):] if spec.startswith("hf:") else spec, task, device)
