@@ -29,6 +29,17 @@ def project(points_world: np.ndarray, cam: dict) -> tuple[np.ndarray, np.ndarray
     return np.c_[col, row], z
 
 
+def barycentric(tri: np.ndarray, xs: np.ndarray, ys: np.ndarray):
+    """Barycentric coordinates (l0, l1, l2) of points (xs, ys) in a 2-D triangle (3,2); None if degenerate."""
+    a, b, c = tri
+    den = (b[1] - c[1]) * (a[0] - c[0]) + (c[0] - b[0]) * (a[1] - c[1])
+    if abs(den) < 1e-15:
+        return None
+    l0 = ((b[1] - c[1]) * (xs - c[0]) + (c[0] - b[0]) * (ys - c[1])) / den
+    l1 = ((c[1] - a[1]) * (xs - c[0]) + (a[0] - c[0]) * (ys - c[1])) / den
+    return l0, l1, 1 - l0 - l1
+
+
 def rasterise(tris_px: np.ndarray, tris_z: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     """Z-buffer (H,W) of triangles given in pixel coordinates (T,3,2) with depths (T,3)."""
     w, h = size
@@ -42,13 +53,10 @@ def rasterise(tris_px: np.ndarray, tris_z: np.ndarray, size: tuple[int, int]) ->
         if x0 > x1 or y0 > y1:
             continue
         xs, ys = np.meshgrid(np.arange(x0, x1 + 1) + 0.5, np.arange(y0, y1 + 1) + 0.5)
-        a, b, c = tri
-        den = (b[1] - c[1]) * (a[0] - c[0]) + (c[0] - b[0]) * (a[1] - c[1])
-        if abs(den) < 1e-12:
+        bary = barycentric(tri, xs, ys)
+        if bary is None:
             continue
-        l0 = ((b[1] - c[1]) * (xs - c[0]) + (c[0] - b[0]) * (ys - c[1])) / den
-        l1 = ((c[1] - a[1]) * (xs - c[0]) + (a[0] - c[0]) * (ys - c[1])) / den
-        l2 = 1 - l0 - l1
+        l0, l1, l2 = bary
         inside = (l0 >= 0) & (l1 >= 0) & (l2 >= 0)
         depth = 1.0 / (l0 / z[0] + l1 / z[1] + l2 / z[2])  # perspective-correct
         sub = zbuf[y0:y1 + 1, x0:x1 + 1]

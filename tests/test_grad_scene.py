@@ -4,6 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from projection import barycentric
 from undream.scene.init import InitOptions, init_scene
 from undream.scene.mesh import read_ply
 from undream.scene.poses import look_at
@@ -27,18 +28,13 @@ def _texel_points(mesh, h: int, w: int) -> np.ndarray:
     """World point (H,W,3) under each texel centre (NaN where no triangle maps there)."""
     out = np.full((h, w, 3), np.nan)
     uv = mesh.uvs.astype(float)
+    cs, rs = np.meshgrid(np.arange(w), np.arange(h))
+    px, py = (cs + 0.5) / w, (rs + 0.5) / h
     for f in mesh.faces:
-        a, b, c = uv[f]
-        cols = np.arange(w)[(np.arange(w) + 0.5) / w >= min(a[0], b[0], c[0]) - 1e-9]
-        rows = np.arange(h)
-        cs, rs = np.meshgrid(cols, rows)
-        px, py = (cs + 0.5) / w, (rs + 0.5) / h
-        den = (b[1] - c[1]) * (a[0] - c[0]) + (c[0] - b[0]) * (a[1] - c[1])
-        if abs(den) < 1e-15:
+        bary = barycentric(uv[f], px, py)
+        if bary is None:
             continue
-        l0 = ((b[1] - c[1]) * (px - c[0]) + (c[0] - b[0]) * (py - c[1])) / den
-        l1 = ((c[1] - a[1]) * (px - c[0]) + (a[0] - c[0]) * (py - c[1])) / den
-        l2 = 1 - l0 - l1
+        l0, l1, l2 = bary
         inside = (l0 >= -1e-9) & (l1 >= -1e-9) & (l2 >= -1e-9)
         p = l0[..., None] * mesh.vertices[f[0]] + l1[..., None] * mesh.vertices[f[1]] + l2[..., None] * mesh.vertices[f[2]]
         out[rs[inside], cs[inside]] = p[inside]

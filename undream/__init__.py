@@ -21,6 +21,7 @@ __version__ = "0.1.0"
 
 _LAZY = {
     "init_scene": "undream.scene.init",
+    "load_victim": "undream.victims",
     "load_sequence": "undream.spec",
     "save_sequence": "undream.spec",
     "sequence_from_file": "undream.scene.sources",
