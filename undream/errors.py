@@ -34,6 +34,10 @@ class MetricsError(UndreamError, ValueError):
     """Metric inputs are malformed (shapes, labels, empty where not allowed)."""
 
 
+class AttackError(UndreamError, ValueError):
+    """An attack was given a bad texture, gradient, loss or state."""
+
+
 class StoreError(UndreamError):
     """The run store could not be read or written."""
 

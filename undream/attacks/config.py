@@ -1,0 +1,109 @@
+"""The attack config: which attack, its budget and its knobs, as plain data.
+
+This module imports no torch, so the run config, the store and the scheduler
+can hold and validate an :class:`AttackConfig` without it. Turning a config
+into a step function is :func:`undream.attacks.make_attack`, which also checks
+the name against the registry.
+
+Units: ``eps``, ``step_size`` and ``lr`` are in **0–255 units of the sRGB
+texture** (``eps=8`` is the usual 8/255). ``eps >= 255`` leaves only the
+[0, 1] box: every texel may take any value.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+from undream.errors import AttackError, SpecError
+
+
+def _fail(field: str, value: Any, expected: str) -> SpecError:
+    return SpecError(f"attack.{field}: {expected}, got {value!r}")
+
+
+def _number(field: str, value: Any, minimum: float, inclusive: bool) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise _fail(field, value, "must be a finite number")
+    if value < minimum or (value == minimum and not inclusive):
+        raise _fail(field, value, f"must be {'>=' if inclusive else '>'} {minimum:g}")
+    return float(value)
+
+
+def _integer(field: str, value: Any, minimum: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise _fail(field, value, f"must be an integer >= {minimum}")
+    return value
+
+
+@dataclass(frozen=True)
+class AttackConfig:
+    """One attack, chosen by ``name`` among the registered ones.
+
+    - ``name``: ``pgd``, ``apgd``, ``mifgsm``, ``adam`` or any registered name.
+    - ``eps``: L∞ budget around the starting texture, 0–255 units; ``>= 255``
+      means unbounded within [0, 1].
+    - ``steps``: iterations N. APGD's checkpoint schedule is derived from it;
+      PGD and MI-FGSM derive their default step size from it.
+    - ``step_size``: sign-step size for PGD and MI-FGSM, 0–255 units. None:
+      ``2.5·eps/steps`` for PGD (the robustness library's rule), ``eps/steps``
+      for MI-FGSM (Dong et al. 2018). APGD ignores it (it starts at 2·eps).
+    - ``random_start``: start from a random point of the ε ball (visible
+      texels only).
+    - ``momentum``: MI-FGSM's decay μ.
+    - ``lr``: Adam's learning rate, 0–255 units (Adam's first steps move each
+      texel by about ``lr``/255).
+    - ``rho``: APGD's oscillation threshold ρ (Croce & Hein use 0.75).
+    - ``seed``: seeds the random start and the frame minibatches.
+    - ``frames_per_step``: frames averaged per iteration; None: all frames.
+    """
+
+    name: str = "pgd"
+    eps: float = 8.0
+    steps: int = 100
+    step_size: float | None = None
+    random_start: bool = False
+    momentum: float = 1.0
+    lr: float = 2.0
+    rho: float = 0.75
+    seed: int = 0
+    frames_per_step: int | None = None
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.name, str) or not self.name.strip():
+            raise _fail("name", self.name, "must be a non-empty attack name")
+        checked = {
+            "eps": _number("eps", self.eps, 0.0, inclusive=False),
+            "steps": _integer("steps", self.steps, 1),
+            "step_size": None if self.step_size is None
+            else _number("step_size", self.step_size, 0.0, inclusive=False),
+            "momentum": _number("momentum", self.momentum, 0.0, inclusive=True),
+            "lr": _number("lr", self.lr, 0.0, inclusive=False),
+            "rho": _number("rho", self.rho, 0.0, inclusive=False),
+            "seed": _integer("seed", self.seed, 0),
+            "frames_per_step": None if self.frames_per_step is None
+            else _integer("frames_per_step", self.frames_per_step, 1),
+        }
+        if not isinstance(self.random_start, bool):
+            raise _fail("random_start", self.random_start, "must be true or false")
+        if checked["rho"] > 1.0:
+            raise _fail("rho", self.rho, "must be in (0, 1]")
+        for key, value in checked.items():
+            object.__setattr__(self, key, value)
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> "AttackConfig":
+        """Build from a JSON/YAML mapping; unknown keys are an error."""
+        if not isinstance(data, Mapping):
+            raise SpecError(f"attack: must be a mapping of fields, got {data!r}")
+        valid = [f.name for f in dataclasses.fields(cls)]
+        unknown = sorted(set(data) - set(valid))
+        if unknown:
+            raise SpecError(f"attack: unknown field(s) {', '.join(map(str, unknown))}; "
+                            f"valid fields are {', '.join(valid)}")
+        return cls(**dict(data))
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-able fields; ``from_dict(to_dict())`` is the identity."""
+        return dataclasses.asdict(self)

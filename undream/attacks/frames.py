@@ -1,0 +1,50 @@
+"""Expectation over frames: which frames an iteration uses, and their mean.
+
+Each iteration averages the loss and the texture gradient over its frames:
+all of them, or a minibatch drawn from the run's seed and the iteration
+number only, so that a retried or resumed iteration draws the same frames.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+
+from undream.attacks.config import AttackError
+
+
+def frame_batch(n_frames: int, batch_size: int | None, iteration: int, seed: int) -> list[int]:
+    """Sorted frame indices for ``iteration``: all frames when ``batch_size`` is
+    None or ``>= n_frames``, else ``batch_size`` distinct ones drawn from
+    ``(seed, iteration)``."""
+    for field, value, least in (("n_frames", n_frames, 1), ("iteration", iteration, 0),
+                                ("seed", seed, 0)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < least:
+            raise AttackError(f"frame_batch: {field} must be an integer >= {least}, got {value!r}")
+    if batch_size is not None and (isinstance(batch_size, bool) or not isinstance(batch_size, int)
+                                   or batch_size < 1):
+        raise AttackError(f"frame_batch: batch_size must be None or an integer >= 1, "
+                          f"got {batch_size!r}")
+    if batch_size is None or batch_size >= n_frames:
+        return list(range(n_frames))
+    rng = np.random.default_rng([seed, iteration])
+    return sorted(int(i) for i in rng.choice(n_frames, size=batch_size, replace=False))
+
+
+def average_frames(grads: Sequence[torch.Tensor],
+                   losses: Sequence[Any]) -> tuple[torch.Tensor, float, list[int]]:
+    """Mean gradient and mean loss over the frames whose gradient and loss are
+    finite, and the positions of those frames. No finite frame: AttackError."""
+    if len(grads) != len(losses) or not grads:
+        raise AttackError(f"average_frames: need one loss per gradient and at least one frame, "
+                          f"got {len(grads)} gradients and {len(losses)} losses")
+    values = [float(v) for v in losses]
+    kept = [i for i, (g, v) in enumerate(zip(grads, values))
+            if math.isfinite(v) and bool(torch.isfinite(g).all())]
+    if not kept:
+        raise AttackError(f"average_frames: all {len(grads)} frames have a non-finite "
+                          "gradient or loss")
+    G = torch.stack([grads[i] for i in kept]).mean(dim=0)
+    return G, sum(values[i] for i in kept) / len(kept), kept
