@@ -1,28 +1,11 @@
 """The ``undream`` command line. Errors are mapped here: one line, non-zero exit."""
 from __future__ import annotations
 
-import functools
-import sys
 from pathlib import Path
-from typing import Any, Callable
 
 import click
 
-from undream.errors import UndreamError
-
-EXIT_BAD_INPUT = 2
-
-
-def _one_line_errors(fn: Callable[..., Any]) -> Callable[..., Any]:
-    @functools.wraps(fn)
-    def wrapper(*args: Any, **kwargs: Any) -> Any:
-        try:
-            return fn(*args, **kwargs)
-        except UndreamError as err:
-            msg = " ".join(str(err).split())
-            click.echo(f"undream: error: {msg}", err=True)
-            sys.exit(EXIT_BAD_INPUT)
-    return wrapper
+from undream.cli_errors import one_line_errors
 
 
 @click.group()
@@ -41,7 +24,7 @@ def main() -> None:
 @click.option("--scene-spp", default=64, show_default=True, type=click.IntRange(1, 65536),
               help="Default samples per pixel written into the scene XML files.")
 @click.option("--progress/--no-progress", default=True, help="Show a progress bar.")
-@_one_line_errors
+@one_line_errors
 def init_cmd(spec: Path, out: Path, force: bool, verify_spp: int, scene_spp: int, progress: bool) -> None:
     """Write the scene directory of SPEC (trajectory YAML, Unreal export JSON or sequence.json)."""
     from undream.scene.init import InitOptions, init_scene
