@@ -34,5 +34,27 @@ def init_cmd(spec: Path, out: Path, force: bool, verify_spp: int, scene_spp: int
     click.echo(f"wrote {done} (contact sheet: {done / 'verify' / 'contact_sheet.png'})")
 
 
+@main.command("run")
+@click.argument("run_yaml", type=click.Path(path_type=Path))
+@click.option("--out", "out", required=True, type=click.Path(path_type=Path), help="Output directory.")
+@click.option("--force", is_flag=True, help="Replace OUT if it exists.")
+@click.option("--progress/--no-progress", default=True, help="Show a progress bar.")
+@one_line_errors
+def run_cmd(run_yaml: Path, out: Path, force: bool, progress: bool) -> None:
+    """Run the attack of RUN_YAML in this process (embedded defaults: Mitsuba, SQLite)."""
+    from scheduler.local import run_local
+    from undream.spec.run import load_run_config
+
+    config = load_run_config(run_yaml)
+    res = run_local(config, out, base_dir=run_yaml.parent, progress=progress, force=force)
+    b, a = res["benign"], res["adversarial"]
+    click.echo(f"{b['metric']}: benign {_fmt(b['value'])} → adversarial {_fmt(a['value'])}; "
+               f"results in {out / 'results.json'}")
+
+
+def _fmt(v: float | None) -> str:
+    return "n/a" if v is None else f"{v:.3f}"
+
+
 if __name__ == "__main__":  # pragma: no cover
     main()

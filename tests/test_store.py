@@ -1,0 +1,393 @@
+"""The run store on SQLite and PostgreSQL: round trips, compare-and-set, transitions, blobs.
+
+PostgreSQL tests use a fresh database per test, created and dropped through
+``UNDREAM_TEST_POSTGRES_URL`` (default: the local server's ``test`` database as
+user ``postgres``); they are skipped, saying why, when that server is unreachable.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+import re
+import subprocess
+import sys
+import threading
+import uuid
+from pathlib import Path
+
+import numpy as np
+import pytest
+from sqlalchemy import create_engine, text
+from sqlalchemy.engine import make_url
+from sqlalchemy.exc import SQLAlchemyError
+
+from undream.errors import StoreError
+from undream.store import (
+    BlobStore, Store, attack_state_key, grad_key, open_store, texture_key,
+)
+from undream.store import blobs as blobs_module
+
+PG_ADMIN_URL = os.environ.get("UNDREAM_TEST_POSTGRES_URL",
+                              "postgresql+psycopg://postgres@127.0.0.1:5432/test")
+
+
+def _texture(value: float = 0.25, shape: tuple[int, int] = (4, 5)) -> np.ndarray:
+    return np.full((*shape, 3), value, dtype=np.float32)
+
+
+# -- fixtures -----------------------------------------------------------------
+
+
+@pytest.fixture(scope="session")
+def pg_admin():
+    """An autocommit engine on the PostgreSQL server, or a skip saying why there is none."""
+    pytest.importorskip("psycopg", reason="psycopg not installed (pip install 'undream[postgres]')")
+    engine = create_engine(PG_ADMIN_URL, isolation_level="AUTOCOMMIT",
+                           connect_args={"connect_timeout": 3})
+    try:
+        with engine.connect() as conn:
+            conn.execute(text("SELECT 1"))
+    except SQLAlchemyError as exc:
+        engine.dispose()
+        pytest.skip(f"PostgreSQL unreachable at {make_url(PG_ADMIN_URL).render_as_string()}: "
+                    f"{str(exc.orig or exc).splitlines()[0]}")
+    yield engine
+    engine.dispose()
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def db_url(request, tmp_path: Path):
+    """A database URL for an empty store: SQLite in tmp_path, or a fresh PostgreSQL database."""
+    if request.param == "sqlite":
+        yield f"sqlite:///{tmp_path / 'runs.db'}"
+        return
+    admin = request.getfixturevalue("pg_admin")
+    name = f"undream_test_{uuid.uuid4().hex[:12]}"
+    with admin.connect() as conn:
+        conn.execute(text(f'CREATE DATABASE "{name}"'))
+    try:
+        yield admin.url.set(database=name).render_as_string(hide_password=False)
+    finally:
+        with admin.connect() as conn:
+            conn.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+
+
+@pytest.fixture
+def store(db_url: str, tmp_path: Path):
+    with open_store(db_url, tmp_path / "blobs") as s:
+        yield s
+
+
+@pytest.fixture
+def run_id(store: Store) -> str:
+    return store.create_run("demo", {"attack": {"name": "pgd", "eps": 8.0}}, n_frames=4,
+                            seed=123, texture0=_texture(), attack_state0={"step": 0})
+
+
+def _advance(store: Store, run_id: str, k: int, value: float = 0.5) -> bool:
+    return store.advance(run_id, k, _texture(value), {"step": k + 1},
+                         {"loss_mean": 1.5, "n_ok": 3, "n_bad": 1, "dropped_frames": [2],
+                          "grad_norm": 2.0,
+                          "step_seconds": 0.1, "per_frame": [1.0, 2.0, float("nan"), 1.5]})
+
+
+# -- runs -----------------------------------------------------------------------
+
+
+def test_run_round_trip(store: Store, run_id: str):
+    run = store.get_run(run_id)
+    assert (run.name, run.status, run.iteration, run.n_frames, run.seed) == ("demo", "queued", 0, 4, 123)
+    assert run.config == {"attack": {"name": "pgd", "eps": 8.0}}
+    assert run.error is None and run.results is None
+    assert run.attack_state_ref == attack_state_key(run_id, 0)
+    assert run.created.tzinfo is not None
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        run.status = "done"  # type: ignore[misc]
+    got = store.texture(run_id, 0)
+    assert got.dtype == np.float32 and np.array_equal(got, _texture())
+    assert store.attack_state(run_id, 0) == {"step": 0}
+    assert [r.id for r in store.runs()] == [run_id]
+    assert store.runs(status="running") == []
+
+
+def test_reopen_keeps_runs(db_url: str, tmp_path: Path):
+    with open_store(db_url, tmp_path / "blobs") as first:
+        rid = first.create_run("kept", {}, 1, 0, _texture())
+    with open_store(db_url, tmp_path / "blobs") as second:
+        assert second.get_run(rid).name == "kept"
+        assert second.attack_state(rid, 0) is None  # created without a starting state
+        assert np.array_equal(second.texture(rid, 0), _texture())
+
+
+@pytest.mark.parametrize("kwargs, field", [
+    ({"texture0": np.zeros((4, 4), np.float32)}, "texture0"),
+    ({"texture0": np.full((4, 4, 3), 1.5, np.float32)}, "texture0"),
+    ({"texture0": np.zeros((4, 4, 3), np.uint8)}, "texture0"),
+    ({"n_frames": 0}, "n_frames"),
+    ({"seed": -1}, "seed"),
+    ({"name": ""}, "name"),
+    ({"config": {"bad": object()}}, "config"),
+    ({"attack_state0": {"m": float("nan")}}, "attack_state/000000.json"),
+])
+def test_create_run_rejects_bad_input(store: Store, kwargs: dict, field: str):
+    args = {"name": "x", "config": {}, "n_frames": 2, "seed": 0, "texture0": _texture(), **kwargs}
+    with pytest.raises(StoreError, match=field):
+        store.create_run(**args)
+    assert store.runs() == []
+    assert not (store.blobs.root / "runs").exists() or not any((store.blobs.root / "runs").iterdir())
+
+
+def test_unknown_run_is_named(store: Store):
+    for call in (lambda: store.get_run("nope"), lambda: store.set_status("nope", "running"),
+                 lambda: store.job_started("nope", 0, 0), lambda: store.iterations("nope"),
+                 lambda: store.attack_state("nope", 1)):
+        with pytest.raises(StoreError, match="run 'nope': not found"):
+            call()
+
+
+def test_status_transitions(store: Store, run_id: str):
+    before = store.get_run(run_id).updated
+    store.set_status(run_id, "running")
+    assert store.get_run(run_id).updated > before
+    store.set_status(run_id, "running")  # the callback may run twice
+    store.set_status(run_id, "failed", error="frame 3 failed 3 times")
+    assert store.get_run(run_id).error == "frame 3 failed 3 times"
+    store.set_status(run_id, "queued")  # resume clears the error
+    assert store.get_run(run_id).error is None
+    for status in ("running", "evaluating", "done"):
+        store.set_status(run_id, status)
+    with pytest.raises(StoreError, match="done → running is not allowed"):
+        store.set_status(run_id, "running")
+    with pytest.raises(StoreError, match="'paused' is not a run status"):
+        store.set_status(run_id, "paused")
+    assert store.get_run(run_id).status == "done"
+
+
+def test_results_and_delete(store: Store, run_id: str):
+    store.set_results(run_id, {"asr": 0.75, "undefined": float("nan")})
+    assert store.get_run(run_id).results == {"asr": 0.75, "undefined": None}
+    store.job_started(run_id, 0, 1)
+    assert _advance(store, run_id, 0)
+    store.delete_run(run_id)
+    assert store.runs() == []
+    assert not (store.blobs.root / "runs" / run_id).exists()
+
+
+# -- frame jobs ---------------------------------------------------------------
+
+
+def test_jobs_round_trip(store: Store, run_id: str):
+    store.queue_jobs(run_id, 0, range(4))
+    store.job_started(run_id, 0, 0)
+    store.job_started(run_id, 0, 0)  # redelivered
+    grad = np.random.default_rng(0).normal(size=(4, 5, 3)).astype(np.float32)
+    store.job_succeeded(run_id, 0, 0, grad, loss=0.5, finite=True, timings={"render_s": 1.25})
+    store.job_started(run_id, 0, 1)
+    store.job_failed(run_id, 0, 1, "CUDA out of memory", will_retry=True)
+    store.job_started(run_id, 0, 1)
+    store.job_failed(run_id, 0, 1, "CUDA out of memory")
+    store.job_started(run_id, 0, 2)
+    store.job_succeeded(run_id, 0, 2, np.full((4, 5, 3), np.nan, np.float32),
+                        loss=float("inf"), finite=False, timings={})
+
+    jobs = {j.frame: j for j in store.jobs(run_id, 0)}
+    assert [(jobs[f].status, jobs[f].attempts) for f in range(4)] == [
+        ("succeeded", 2), ("failed", 2), ("succeeded", 1), ("queued", 0)]
+    assert jobs[0].loss == 0.5 and jobs[0].finite and jobs[0].timings == {"render_s": 1.25}
+    assert jobs[0].grad_ref == grad_key(run_id, 0, 0) and jobs[0].finished is not None
+    assert jobs[1].error == "CUDA out of memory" and jobs[1].grad_ref is None
+    assert jobs[2].loss is None and not jobs[2].finite
+    assert store.jobs(run_id, 1) == []
+
+    grads = store.frame_grads(run_id, 0)
+    assert [(g.frame, g.loss, g.finite) for g in grads] == [
+        (0, 0.5, True), (1, None, False), (2, None, False), (3, None, False)]
+    assert np.array_equal(grads[0].grad, grad) and grads[1].grad is None
+    assert np.isnan(grads[2].grad).all() and grads[3].grad is None
+
+
+def test_job_rejects_bad_frame(store: Store, run_id: str):
+    with pytest.raises(StoreError, match=r"frame: must be an integer in \[0, 3\], got 4"):
+        store.job_started(run_id, 0, 4)
+    with pytest.raises(StoreError, match="timings"):
+        store.job_succeeded(run_id, 0, 0, np.zeros((4, 5, 3), np.float32), 0.1, True,
+                            {"t": object()})
+
+
+def test_concurrent_job_starts_count_every_attempt(store: Store, run_id: str):
+    barrier = threading.Barrier(6)
+
+    def start() -> None:
+        barrier.wait()
+        store.job_started(run_id, 0, 3)
+
+    threads = [threading.Thread(target=start) for _ in range(6)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    (job,) = store.jobs(run_id, 0)
+    assert (job.status, job.attempts) == ("started", 6)
+
+
+# -- compare-and-set --------------------------------------------------------------
+
+
+def test_advance_is_compare_and_set(store: Store, run_id: str):
+    assert [_advance(store, run_id, 0), _advance(store, run_id, 0, value=0.9)] == [True, False]
+    run = store.get_run(run_id)
+    assert run.iteration == 1 and run.attack_state_ref == attack_state_key(run_id, 1)
+    assert np.array_equal(store.texture(run_id, 1), _texture(0.5))  # the loser wrote nothing
+    assert store.attack_state(run_id, 1) == {"step": 1}
+    (rec,) = store.iterations(run_id)
+    assert (rec.k, rec.loss_mean, rec.n_ok, rec.n_bad, rec.grad_norm) == (0, 1.5, 3, 1, 2.0)
+    assert rec.dropped_frames == [2]
+    assert rec.per_frame == [1.0, 2.0, None, 1.5]
+    with pytest.raises(StoreError, match="cannot advance from iteration 3; the run is at iteration 1"):
+        _advance(store, run_id, 3)
+    assert _advance(store, run_id, 1)
+    assert [r.k for r in store.iterations(run_id)] == [0, 1]
+
+
+def test_advance_rejects_bad_record(store: Store, run_id: str):
+    with pytest.raises(StoreError, match="unknown field.*loss_mena"):
+        store.advance(run_id, 0, _texture(), {}, {"loss_mena": 1.0})
+    assert store.get_run(run_id).iteration == 0
+
+
+def test_advance_commits_nothing_when_a_blob_write_fails(store: Store, run_id: str, monkeypatch):
+    def broken(key, data):
+        raise StoreError(f"blob {key!r}: disk full")
+
+    monkeypatch.setattr(store.blobs, "put_json", broken)
+    with pytest.raises(StoreError, match="disk full"):
+        _advance(store, run_id, 0)
+    assert store.get_run(run_id).iteration == 0 and store.iterations(run_id) == []
+    monkeypatch.undo()
+    assert _advance(store, run_id, 0)  # the retried callback wins
+
+
+def test_concurrent_advance_has_one_winner(db_url: str, tmp_path: Path, run_id: str):
+    """Workers with their own engines (as separate processes would have) race on each k."""
+    contenders = [open_store(db_url, tmp_path / "blobs") for _ in range(4)]
+    try:
+        for k in range(3):
+            barrier = threading.Barrier(len(contenders))
+            wins: list[bool] = []
+            errors: list[BaseException] = []
+
+            def race(s: Store, value: float, k: int = k) -> None:
+                barrier.wait()
+                try:
+                    wins.append(_advance(s, run_id, k, value))
+                except BaseException as exc:  # surfaced by the assert below
+                    errors.append(exc)
+
+            threads = [threading.Thread(target=race, args=(s, 0.1 * (i + 1)))
+                       for i, s in enumerate(contenders)]
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join()
+            assert errors == [] and sorted(wins) == [False, False, False, True]
+        assert contenders[0].get_run(run_id).iteration == 3
+        assert [r.k for r in contenders[0].iterations(run_id)] == [0, 1, 2]
+    finally:
+        for s in contenders:
+            s.close()
+
+
+# -- blobs ------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("key", ["../escape.npy", "/etc/passwd.npy", "runs/../../x.npy",
+                                 "runs//x.npy", "", ".hidden.npy", "runs/a\\b.npy",
+                                 "runs/x/.x.npy.abc.tmp", "runs/x/texture.txt"])
+def test_blob_key_validation_names_the_key(tmp_path: Path, key: str):
+    blobs = BlobStore(tmp_path)
+    with pytest.raises(StoreError, match=re.escape(f"blob key {key!r}")):
+        blobs.put_array(key, np.zeros(3))
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_blob_round_trip(tmp_path: Path):
+    blobs = BlobStore(tmp_path)
+    arr = np.arange(24, dtype=np.float64).reshape(2, 3, 4)
+    key = blobs.put_array(texture_key("r1", 12), arr)
+    assert key == "runs/r1/texture/000012.npy" and blobs.exists(key)
+    assert np.array_equal(blobs.get_array(key), arr)
+    blobs.put_json(attack_state_key("r1", 12), {"m": [1, 2], "x": None})
+    assert blobs.get_json("runs/r1/attack_state/000012.json") == {"m": [1, 2], "x": None}
+    with pytest.raises(StoreError, match="not strict JSON"):
+        blobs.put_json("runs/r1/bad.json", {"v": float("nan")})
+    with pytest.raises(StoreError, match="'runs/r2/texture/000000.npy': not found"):
+        blobs.get_array(texture_key("r2", 0))
+    assert blobs.delete_prefix("runs/r1") == 2 and not blobs.exists(key)
+    assert blobs.delete_prefix("runs/r1") == 0
+
+
+def test_crash_before_replace_leaves_no_partial_blob(tmp_path: Path, monkeypatch):
+    blobs = BlobStore(tmp_path)
+    key = grad_key("r1", 3, 1)
+    blobs.put_array(key, np.ones(8))
+
+    def crash(src, dst):
+        raise OSError("killed before rename")
+
+    monkeypatch.setattr(blobs_module.os, "replace", crash)
+    with pytest.raises(StoreError, match="'runs/r1/grad/000003/0001.npy': cannot write"):
+        blobs.put_array(key, np.zeros(8))
+    with pytest.raises(StoreError):
+        blobs.put_array(grad_key("r1", 3, 2), np.zeros(8))
+    monkeypatch.undo()
+    assert np.array_equal(blobs.get_array(key), np.ones(8))  # the old content, whole
+    assert not blobs.exists(grad_key("r1", 3, 2))
+    assert [p.name for p in blobs.path(key).parent.iterdir()] == ["0001.npy"]  # no temp files
+
+
+def test_crash_mid_write_leaves_no_partial_blob(tmp_path: Path, monkeypatch):
+    blobs = BlobStore(tmp_path)
+
+    def half_save(f, arr, allow_pickle=False):
+        f.write(b"\x93NUMPY half a header")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(blobs_module.np, "save", half_save)
+    with pytest.raises(KeyboardInterrupt):
+        blobs.put_array("runs/r1/texture/000001.npy", np.zeros(8))
+    assert list((tmp_path / "runs" / "r1" / "texture").iterdir()) == []
+
+
+# -- opening --------------------------------------------------------------------
+
+
+def test_default_store_is_sqlite_in_wal_mode(tmp_path: Path):
+    with open_store(None, tmp_path / "farm") as s:
+        assert (tmp_path / "farm" / "undream.db").is_file()
+        with s.engine.connect() as conn:
+            assert conn.exec_driver_sql("PRAGMA journal_mode").scalar() == "wal"
+            assert conn.exec_driver_sql("PRAGMA foreign_keys").scalar() == 1
+
+
+@pytest.mark.parametrize("url, shown", [
+    ("postgresql://alice:s3cret@127.0.0.1:1/farm", "postgresql://alice:***@127.0.0.1:1/farm"),
+    ("postgresql://alice:s3cret@127.0.0.1:notaport/farm", "alice:***@127.0.0.1:notaport"),
+    ("mysql://alice:s3cret@127.0.0.1/farm", "mysql://alice:***@127.0.0.1/farm"),
+    ("not a url", "not a url"),
+])
+def test_bad_url_error_names_url_without_password(tmp_path: Path, url: str, shown: str):
+    with pytest.raises(StoreError) as info:
+        open_store(url, tmp_path)
+    message = str(info.value)
+    assert shown in message and "s3cret" not in message
+
+
+def test_unopenable_sqlite_path_names_url(tmp_path: Path):
+    url = f"sqlite:///{tmp_path / 'missing' / 'dir' / 'runs.db'}"
+    with pytest.raises(StoreError, match="cannot open the run database at .*missing/dir/runs.db"):
+        open_store(url, tmp_path / "blobs")
+
+
+def test_store_imports_no_torch():
+    code = "import sys, undream.store; assert 'torch' not in sys.modules, 'torch imported'"
+    subprocess.run([sys.executable, "-c", code], check=True)

@@ -1,0 +1,67 @@
+"""Everything a process needs to run frame jobs of one run, loaded once and cached."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from PIL import Image
+
+from undream.errors import VictimError
+from undream.render.frames import FrameScenes
+from undream.scene.init import frame_name
+from undream.spec import Sequence, load_sequence
+from undream.spec.run import TASK_LOSSES, RunConfig
+
+
+@dataclass
+class RunContext:
+    """A run's scene, victim, per-frame targets and attack (one per process)."""
+
+    config: RunConfig
+    scene_dir: Path
+    sequence: Sequence
+    scenes: FrameScenes
+    victim: Any
+    targets: list[Any]  # undream.victims.Target, one per frame position
+    attack: Any
+
+    @property
+    def frame_indices(self) -> list[int]:
+        return [f.index for f in self.sequence.frames]
+
+
+def class_id(victim: Any, name: str, field: str) -> int:
+    """The victim's class id of ``name`` (case-insensitive); errors name the field and the classes."""
+    labels = [str(x).lower() for x in victim.labels]
+    if name.lower() not in labels:
+        shown = ", ".join(victim.labels[:20]) + (" ..." if len(victim.labels) > 20 else "")
+        raise VictimError(f"{field}: {name!r} is not one of {victim.name}'s classes ({shown})")
+    return labels.index(name.lower())
+
+
+def mask_box(scene_dir: Path, index: int) -> tuple[float, float, float, float] | None:
+    """The object's box (x0, y0, x1, y1, pixels) from ``verify/mask_NNNN.png``; None if unseen."""
+    mask = np.asarray(Image.open(scene_dir / "verify" / f"{frame_name('mask', index)}.png")) > 127
+    rows, cols = np.nonzero(mask)
+    if rows.size == 0:
+        return None
+    return float(cols.min()), float(rows.min()), float(cols.max() + 1), float(rows.max() + 1)
+
+
+def build_context(config: RunConfig, scene_dir: Path) -> RunContext:
+    """Load the sequence, scenes, victim and attack of a run."""
+    from undream.attacks import AttackConfig, make_attack
+    from undream.victims import Target, load_victim
+
+    seq = load_sequence(scene_dir / "sequence.json")
+    task = next(t for t, kinds in TASK_LOSSES.items() if config.loss in kinds)
+    victim = load_victim(config.victim, device=config.device, task=task)
+    label = class_id(victim, config.label or seq.asset.builtin or seq.asset.name, "label")
+    target = class_id(victim, config.target_label, "target_label") if config.target_label else None
+    targets = [Target(label=label, target_label=target,
+                      box=mask_box(scene_dir, f.index) if task == "detection" else None)
+               for f in seq.frames]
+    attack = make_attack(AttackConfig.from_dict({**config.attack, "seed": config.attack.get("seed", config.seed)}))
+    return RunContext(config, scene_dir, seq, FrameScenes(scene_dir), victim, targets, attack)

@@ -1,0 +1,68 @@
+"""Benign and adversarial evaluation: re-render every frame in the simulator and judge it."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from PIL import Image
+
+from undream.engine.context import RunContext
+from undream.engine.job import frame_seed
+from undream.render.color import to_uint8
+from undream.render.frames import render_srgb
+
+EVAL_ITERATION = 10**6  # seeds of evaluation renders never coincide with the attack's
+
+
+def quantise(texture: np.ndarray) -> np.ndarray:
+    """The 8-bit texture a user would print or import into a simulator, back in [0, 1]."""
+    return to_uint8(texture).astype(np.float32) / 255.0
+
+
+def render_frames(ctx: RunContext, texture: np.ndarray, out_dir: Path | None) -> list[np.ndarray]:
+    """Every frame at ``eval_spp`` with ``texture`` (sRGB H×W×3); saved as PNGs when ``out_dir`` is set."""
+    images = []
+    for f in ctx.sequence.frames:
+        img = render_srgb(ctx.scenes, f.index, texture, ctx.config.eval_spp,
+                          frame_seed(ctx.config.seed, EVAL_ITERATION, f.index))
+        if out_dir is not None:
+            out_dir.mkdir(parents=True, exist_ok=True)
+            Image.fromarray(to_uint8(img)).save(out_dir / f"frame_{f.index:04d}.png")
+        images.append(img)
+    return images
+
+
+def _batch(images: list[np.ndarray]):
+    import torch
+    return torch.from_numpy(np.stack([im.transpose(2, 0, 1) for im in images]).astype(np.float32))
+
+
+def predict(ctx: RunContext, images: list[np.ndarray]) -> list[Any]:
+    import torch
+    with torch.no_grad():
+        return [ctx.victim.predict(_batch([im]))[0] for im in images]
+
+
+def losses(ctx: RunContext, images: list[np.ndarray]) -> list[float]:
+    """The attack loss of each frame (what the attack maximises)."""
+    import torch
+    with torch.no_grad():
+        return [float(ctx.victim.loss(_batch([im]), ctx.targets[i], ctx.config.loss)) for i, im in enumerate(images)]
+
+
+def judge(ctx: RunContext, preds: list[Any]) -> dict[str, Any]:
+    """Per-frame correctness and the overall measure: accuracy, or AP@0.5 of the object's class."""
+    from undream.metrics import GroundTruth, accuracy, average_precision, correct, is_detected
+
+    label = ctx.targets[0].label
+    if ctx.victim.task == "classification":
+        ok = correct(preds, label)
+        rows = [{"frame": f.index, "prediction": int(p.label), "class": ctx.victim.labels[int(p.label)],
+                 "correct": bool(c)} for f, p, c in zip(ctx.sequence.frames, preds, ok)]
+        return {"metric": "accuracy", "value": accuracy(preds, label), "per_frame": rows}
+    truths = [GroundTruth.of({"boxes": [t.box] if t.box else np.zeros((0, 4)), "labels": [label] if t.box else []})
+              for t in ctx.targets]
+    rows = [{"frame": f.index, "detected": bool(is_detected(p, gt, label)), "n_detections": int(len(p.scores))}
+            for f, p, gt in zip(ctx.sequence.frames, preds, truths)]
+    return {"metric": "ap50", "value": average_precision(preds, truths, label), "per_frame": rows}

@@ -1,0 +1,71 @@
+"""The per-frame job: simulator render → victim loss → Mitsuba backward → texture gradient."""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from undream.engine.context import RunContext
+from undream.render.color import linear_to_srgb
+from undream.render.frames import render_linear, srgb_encode_grad, texture_gradient
+
+
+def frame_seed(run_seed: int, iteration: int, frame: int) -> int:
+    """A render seed unique to (run, iteration, frame); ``seed + 1`` is its ``seed_grad``."""
+    return (run_seed * 1_000_003 + iteration * 10_007 + frame * 2) % (2**31 - 2)
+
+
+@dataclass
+class FrameResult:
+    """One frame's texture gradient (H×W×3, d loss / d sRGB texture) and its summary."""
+
+    grad: np.ndarray
+    loss: float
+    finite: bool
+    prediction: Any
+    timings: dict[str, float] = field(default_factory=dict)
+
+    def summary(self) -> dict[str, Any]:
+        return {"loss": self.loss if math.isfinite(self.loss) else None, "finite": self.finite,
+                "prediction": self.prediction, "timings": self.timings}
+
+
+def victim_loss_and_grad(ctx: RunContext, position: int, image_srgb: np.ndarray) -> tuple[float, np.ndarray, Any]:
+    """The victim's loss on one H×W×3 sRGB frame, d loss / d image (H×W×3), and its prediction."""
+    import torch
+
+    x = torch.from_numpy(np.ascontiguousarray(image_srgb.transpose(2, 0, 1)))[None].requires_grad_(True)
+    loss = ctx.victim.loss(x, ctx.targets[position], ctx.config.loss)
+    (g,) = torch.autograd.grad(loss, x)
+    with torch.no_grad():
+        pred = ctx.victim.predict(x.detach())[0]
+    return float(loss.detach()), g[0].permute(1, 2, 0).numpy().astype(np.float32), _jsonable(pred)
+
+
+def _jsonable(pred: Any) -> Any:
+    if hasattr(pred, "to_dict"):
+        d = pred.to_dict()
+        d.pop("probs", None)
+        return d
+    return pred
+
+
+def render_and_grad(ctx: RunContext, position: int, texture: np.ndarray, iteration: int) -> FrameResult:
+    """Algorithm 1's inner body for the frame at ``position`` with texture ``texture`` (sRGB H×W×3)."""
+    cfg = ctx.config
+    index = ctx.frame_indices[position]
+    seed = frame_seed(cfg.seed, iteration, index)
+    t0 = time.perf_counter()
+    linear = render_linear(ctx.scenes, index, texture, cfg.sim_spp, seed)
+    t1 = time.perf_counter()
+    loss, g_image, pred = victim_loss_and_grad(ctx, position, linear_to_srgb(linear))
+    t2 = time.perf_counter()
+    g_linear = srgb_encode_grad(linear, g_image)
+    grad = texture_gradient(ctx.scenes, index, texture, g_linear, cfg.grad_spp, seed, seed + 1)
+    t3 = time.perf_counter()
+    finite = bool(np.isfinite(grad).all()) and math.isfinite(loss)
+    timings = {"sim_render": t1 - t0, "victim": t2 - t1, "grad_render": t3 - t2, "total": t3 - t0}
+    return FrameResult(grad, loss, finite, pred, timings)

@@ -1,0 +1,96 @@
+"""The attack run configuration (``RUN.yaml``): frozen, validated, JSON round trip.
+
+No heavy imports: the attack block is kept as a plain mapping here and
+validated by :mod:`undream.attacks.config` where attacks are built.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+from undream.errors import SpecError
+
+from undream.spec import _check as c
+
+TASK_LOSSES = {"classification": ("ce", "targeted_ce", "dlr"), "detection": ("vanish", "mislabel", "box")}
+ALL_LOSSES = tuple(k for kinds in TASK_LOSSES.values() for k in kinds)
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """One attack run.
+
+    ``scene`` is a scene directory written by ``undream init`` or a spec file
+    (YAML, Unreal export, sequence.json) that the run initialises first.
+    ``label`` is the object's true class name in the victim's labels (default:
+    the name of the built-in asset); ``target_label`` the class a targeted
+    loss pushes towards. Samples per pixel: ``sim_spp`` for the simulator's
+    frames during the attack, ``grad_spp`` for the gradient renders,
+    ``eval_spp`` for the benign and adversarial evaluations.
+    """
+
+    scene: str
+    name: str = "run"
+    victim: str = "bundled:classifier"
+    loss: str = "ce"
+    label: str | None = None
+    target_label: str | None = None
+    attack: Mapping[str, Any] = field(default_factory=lambda: {"name": "pgd", "eps": 8.0, "steps": 10})
+    sim_spp: int = 16
+    grad_spp: int = 8
+    eval_spp: int = 32
+    seed: int = 0
+    device: str = "cpu"
+    store: str | None = None  # SQLAlchemy URL; default: SQLite in the output directory
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.scene, str) or not self.scene:
+            raise c.fail("scene", self.scene, "must be a scene directory or a spec file")
+        c.name("name", self.name)
+        if not isinstance(self.victim, str) or not self.victim:
+            raise c.fail("victim", self.victim, "must be a hub id, a folder or bundled:NAME")
+        c.choice("loss", self.loss, ALL_LOSSES)
+        for f in ("label", "target_label"):
+            v = getattr(self, f)
+            if v is not None and not isinstance(v, str):
+                raise c.fail(f, v, "must be a class name")
+        if self.loss in ("targeted_ce", "mislabel") and self.target_label is None:
+            raise c.fail("target_label", None, f"is required by the targeted loss {self.loss!r}")
+        attack = c.mapping("attack", self.attack)
+        if "name" not in attack:
+            raise c.fail("attack.name", None, "is required")
+        object.__setattr__(self, "attack", dict(attack))
+        for f in ("sim_spp", "grad_spp", "eval_spp"):
+            c.integer(f, getattr(self, f), 1, 65536)
+        c.integer("seed", self.seed, 0, 2**31 - 1)
+        if not isinstance(self.device, str):
+            raise c.fail("device", self.device, "must be a torch device string such as 'cpu'")
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_json(cls, d: Any) -> "RunConfig":
+        d = c.mapping("run", d)
+        c.no_extra(d, set(cls.__dataclass_fields__))
+        c.require(d, "scene")
+        return cls(**d)
+
+
+def load_run_config(path: str | Path) -> RunConfig:
+    """Parse ``RUN.yaml``; errors name the file and the field."""
+    import yaml
+
+    path = Path(path)
+    if not path.is_file():
+        raise SpecError(f"{path}: file not found")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        raise SpecError(f"{path}: not valid YAML" + (f" at line {mark.line + 1}" if mark else "")) from None
+    try:
+        return RunConfig.from_json(data)
+    except SpecError as err:
+        raise SpecError(f"{path}: {err}") from None

@@ -1,0 +1,148 @@
+"""Texture, gradient and attack-state blobs: files under one root, written atomically.
+
+A key is a relative, ``/``-separated path of plain segments (letters, digits,
+``_``, ``-``, ``.``; no segment starts with ``.``, so ``..`` and the writer's
+temporary files can never be named). Arrays are ``.npy`` files, JSON
+documents ``.json`` files. The layout of one run::
+
+    runs/<run_id>/texture/000012.npy         texture k=12, H×W×3 float, sRGB 0–1
+    runs/<run_id>/grad/000012/0003.npy       dL/dT of frame 3 at iteration 12
+    runs/<run_id>/attack_state/000012.json   attack state after step 11 → 12
+
+Every write goes to a temporary file in the key's directory, is flushed to
+disk, then renamed over the key (``os.replace``): a reader sees the old content
+or the new, never a partial file, even when the writer dies mid-write.
+"""
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Any, Callable, IO
+
+import numpy as np
+
+from undream.errors import StoreError
+
+_SEGMENT = re.compile(r"^[A-Za-z0-9_-][A-Za-z0-9._-]*$")
+_TEMP_SUFFIX = ".tmp"
+
+
+def texture_key(run_id: str, k: int) -> str:
+    """Key of texture ``k`` of a run (``k = 0`` is the starting texture)."""
+    return f"runs/{run_id}/texture/{k:06d}.npy"
+
+
+def grad_key(run_id: str, k: int, frame: int) -> str:
+    """Key of frame ``frame``'s texture gradient at iteration ``k``."""
+    return f"runs/{run_id}/grad/{k:06d}/{frame:04d}.npy"
+
+
+def attack_state_key(run_id: str, k: int) -> str:
+    """Key of the attack state that goes with texture ``k``."""
+    return f"runs/{run_id}/attack_state/{k:06d}.json"
+
+
+def run_prefix(run_id: str) -> str:
+    """Prefix of every blob of a run."""
+    return f"runs/{run_id}"
+
+
+def check_key(key: Any, suffix: str | None = None) -> str:
+    """``key`` if it is a valid relative blob key (ending in ``suffix``), else StoreError."""
+    if not isinstance(key, str) or not key:
+        raise StoreError(f"blob key {key!r}: must be a non-empty string")
+    segments = key.split("/")
+    bad = [s for s in segments if not _SEGMENT.match(s)]
+    if bad:
+        raise StoreError(f"blob key {key!r}: invalid segment {bad[0]!r}; a key is a relative "
+                         "path of segments made of letters, digits, '_', '-' and '.', "
+                         "not starting with '.' (no '..', no absolute paths)")
+    if suffix is not None and not key.endswith(suffix):
+        raise StoreError(f"blob key {key!r}: must end in {suffix!r}")
+    return key
+
+
+class BlobStore:
+    """Arrays and JSON documents under ``root``, addressed by key."""
+
+    def __init__(self, root: Path | str) -> None:
+        self.root = Path(root)
+
+    def path(self, key: str) -> Path:
+        """The file that holds ``key`` (which need not exist)."""
+        return self.root.joinpath(*check_key(key).split("/"))
+
+    def exists(self, key: str) -> bool:
+        return self.path(key).is_file()
+
+    def put_array(self, key: str, array: np.ndarray) -> str:
+        """Store ``array`` (any shape and numeric dtype) as ``.npy``; returns the key."""
+        check_key(key, ".npy")
+        arr = np.asarray(array)
+        if arr.dtype.hasobject:
+            raise StoreError(f"blob {key!r}: cannot store an object array; give a numeric array")
+        self._write(key, lambda f: np.save(f, arr, allow_pickle=False))
+        return key
+
+    def get_array(self, key: str) -> np.ndarray:
+        check_key(key, ".npy")
+        try:
+            return np.load(self.path(key), allow_pickle=False)
+        except FileNotFoundError:
+            raise StoreError(f"blob {key!r}: not found under {self.root}") from None
+        except (OSError, ValueError) as exc:
+            raise StoreError(f"blob {key!r}: unreadable .npy file: {exc}") from exc
+
+    def put_json(self, key: str, data: Any) -> str:
+        """Store ``data`` as strict JSON (NaN and infinities are an error); returns the key."""
+        check_key(key, ".json")
+        try:
+            text = json.dumps(data, allow_nan=False, sort_keys=True)
+        except (TypeError, ValueError) as exc:
+            raise StoreError(f"blob {key!r}: not strict JSON-able: {exc}") from exc
+        self._write(key, lambda f: f.write(text.encode("utf-8")))
+        return key
+
+    def get_json(self, key: str) -> Any:
+        check_key(key, ".json")
+        try:
+            return json.loads(self.path(key).read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise StoreError(f"blob {key!r}: not found under {self.root}") from None
+        except (OSError, ValueError) as exc:
+            raise StoreError(f"blob {key!r}: unreadable JSON file: {exc}") from exc
+
+    def delete_prefix(self, prefix: str) -> int:
+        """Delete the blob ``prefix`` or every blob under the folder ``prefix``; returns the count."""
+        target = self.path(prefix)
+        if target.is_file():
+            target.unlink()
+            return 1
+        if not target.is_dir():
+            return 0
+        count = sum(1 for p in target.rglob("*") if p.is_file())
+        shutil.rmtree(target)
+        return count
+
+    def _write(self, key: str, write: Callable[[IO[bytes]], Any]) -> None:
+        final = self.path(key)
+        tmp: str | None = None
+        try:
+            final.parent.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(prefix=f".{final.name}.", suffix=_TEMP_SUFFIX,
+                                       dir=final.parent)
+            with os.fdopen(fd, "wb") as f:
+                write(f)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, final)
+            tmp = None
+        except OSError as exc:
+            raise StoreError(f"blob {key!r}: cannot write under {self.root}: {exc}") from exc
+        finally:
+            if tmp is not None:
+                Path(tmp).unlink(missing_ok=True)

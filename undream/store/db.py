@@ -1,0 +1,133 @@
+"""Opening the run store: database engine (SQLite or PostgreSQL) plus blob folder.
+
+- ``None`` → SQLite at ``<blob_dir>/undream.db`` (the embedded default).
+- ``sqlite:///path/to.db`` → SQLite in WAL mode with foreign keys on, a 30 s
+  busy timeout, and ``BEGIN IMMEDIATE`` for write transactions so that
+  concurrent writers queue instead of failing.
+- ``postgresql://user:password@host:port/db`` (or ``postgres://``,
+  ``postgresql+psycopg://``) → PostgreSQL through psycopg 3 (install the
+  ``postgres`` extra), with pre-ping and a connect timeout.
+
+Engines hold connections: open the store in each worker process after the
+fork, never before.
+"""
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import Engine, create_engine, event, text
+from sqlalchemy.engine import URL, make_url
+from sqlalchemy.exc import ArgumentError, NoSuchModuleError, SQLAlchemyError
+from sqlalchemy.pool import StaticPool
+
+from undream.errors import StoreError
+from undream.store.blobs import BlobStore
+from undream.store.models import Base
+from undream.store.store import WRITE_OPTION, Store
+
+SQLITE_FILENAME = "undream.db"
+CONNECT_TIMEOUT_S = 10
+_VALID = "valid URLs are sqlite:///path/to/undream.db or postgresql://user:password@host:port/database"
+_CREATE_LOCK = 0x756E6472  # PostgreSQL advisory lock id held while creating tables ("undr")
+
+
+def mask_url(url: str) -> str:
+    """``url`` with its password replaced by ``***``, parseable or not."""
+    try:
+        return make_url(url).render_as_string(hide_password=True)
+    except (ArgumentError, ValueError):
+        return re.sub(r"(://[^:/@]*:)[^@]*@", r"\1***@", url)
+
+
+def _parse(url: str) -> URL:
+    try:
+        parsed = make_url(url)
+        _ = parsed.port  # a non-numeric port fails here, not later
+    except (ArgumentError, ValueError) as exc:
+        raise StoreError(f"database URL {mask_url(url)!r} is malformed ({exc}); {_VALID}") from None
+    backend = parsed.get_backend_name()
+    if backend == "postgres":
+        backend = "postgresql"
+    if backend == "postgresql":
+        return parsed.set(drivername="postgresql+psycopg")
+    if backend == "sqlite":
+        return parsed
+    raise StoreError(f"database URL {mask_url(url)!r}: unsupported backend {backend!r}; {_VALID}")
+
+
+def _sqlite_engine(url: URL) -> Engine:
+    memory = url.database in (None, "", ":memory:")
+    kwargs: dict[str, Any] = {"connect_args": {"check_same_thread": False, "timeout": 30}}
+    if memory:
+        kwargs["poolclass"] = StaticPool
+    engine = create_engine(url, **kwargs)
+
+    @event.listens_for(engine, "connect")
+    def _on_connect(dbapi_conn: Any, _record: Any) -> None:
+        dbapi_conn.isolation_level = None  # we emit BEGIN ourselves (below)
+        cur = dbapi_conn.cursor()
+        if not memory:
+            cur.execute("PRAGMA journal_mode=WAL")
+            cur.execute("PRAGMA synchronous=NORMAL")
+        cur.execute("PRAGMA foreign_keys=ON")
+        cur.execute("PRAGMA busy_timeout=30000")
+        cur.close()
+
+    @event.listens_for(engine, "begin")
+    def _on_begin(conn: Any) -> None:
+        conn.exec_driver_sql(conn.get_execution_options().get(WRITE_OPTION, "BEGIN"))
+
+    return engine
+
+
+def make_engine(url: str) -> Engine:
+    """An engine for ``url`` with undream's settings (see the module docstring)."""
+    parsed = _parse(url)
+    try:
+        if parsed.get_backend_name() == "sqlite":
+            return _sqlite_engine(parsed)
+        return create_engine(parsed, pool_pre_ping=True,
+                             connect_args={"connect_timeout": CONNECT_TIMEOUT_S})
+    except (NoSuchModuleError, ModuleNotFoundError) as exc:
+        raise StoreError(f"database URL {mask_url(url)!r}: driver missing ({exc}); "
+                         "install undream[postgres] for PostgreSQL") from None
+
+
+def create_tables(engine: Engine, url: str) -> None:
+    """Create the store's tables if missing; StoreError naming the URL when unreachable."""
+    try:
+        with engine.begin() as conn:
+            if engine.dialect.name == "postgresql":
+                conn.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": _CREATE_LOCK})
+            Base.metadata.create_all(conn)
+    except SQLAlchemyError as exc:
+        reason = str(getattr(exc, "orig", None) or exc).strip().splitlines()[0]
+        password = make_url(url).password
+        if password:
+            reason = reason.replace(str(password), "***")
+        raise StoreError(f"cannot open the run database at {mask_url(url)!r}: {reason}") from None
+
+
+def open_store(url: str | None, blob_dir: Path | str) -> Store:
+    """Open (creating tables and folders as needed) the run store.
+
+    ``url``: database URL, or None for SQLite at ``<blob_dir>/undream.db``.
+    ``blob_dir``: folder of texture, gradient and attack-state blobs, shared by
+    every process of the farm.
+    """
+    blob_root = Path(blob_dir)
+    try:
+        blob_root.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise StoreError(f"blob folder {str(blob_root)!r}: cannot create it: {exc}") from exc
+    if url is None:
+        url = f"sqlite:///{(blob_root / SQLITE_FILENAME).resolve()}"
+    engine = make_engine(url)
+    try:
+        create_tables(engine, url)
+    except StoreError:
+        engine.dispose()
+        raise
+    return Store(engine, BlobStore(blob_root))

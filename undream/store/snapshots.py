@@ -1,0 +1,141 @@
+"""Read-only snapshots of store rows, and the JSON text those rows hold.
+
+Callers never get live ORM objects: each read returns frozen dataclasses built
+inside the transaction, safe to keep, pass between threads or serialize.
+"""
+from __future__ import annotations
+
+import datetime as dt
+import json
+import math
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from undream.errors import StoreError
+from undream.store.models import FrameJob, IterationRecord, Run
+
+
+def finite_or_none(value: float | None) -> float | None:
+    """``float(value)`` when finite, else None (what the database stores)."""
+    if value is None:
+        return None
+    number = float(value)
+    return number if math.isfinite(number) else None
+
+
+def _strict(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _strict(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_strict(v) for v in value]
+    if isinstance(value, np.generic):
+        return _strict(value.item())
+    return value
+
+
+def dumps(field: str, data: Any) -> str:
+    """``data`` as strict JSON text; non-finite floats become null."""
+    try:
+        return json.dumps(_strict(data), allow_nan=False, sort_keys=True)
+    except (TypeError, ValueError) as exc:
+        raise StoreError(f"{field}: not JSON-able ({exc}); give dicts, lists, strings, "
+                         "numbers, booleans or None") from None
+
+
+def loads(text: str | None) -> Any:
+    return None if text is None else json.loads(text)
+
+
+def _utc(stamp: dt.datetime | None) -> dt.datetime | None:
+    """SQLite returns naive datetimes; every stored time is UTC."""
+    if stamp is None or stamp.tzinfo is not None:
+        return stamp
+    return stamp.replace(tzinfo=dt.timezone.utc)
+
+
+@dataclass(frozen=True)
+class RunSnapshot:
+    """A run as stored. ``iteration``: completed steps (texture ``iteration`` is the latest)."""
+
+    id: str
+    name: str
+    config: dict[str, Any]
+    status: str
+    iteration: int
+    n_frames: int
+    seed: int
+    created: dt.datetime
+    updated: dt.datetime
+    error: str | None
+    attack_state_ref: str | None
+    results: dict[str, Any] | None
+
+    @classmethod
+    def of(cls, row: Run) -> "RunSnapshot":
+        return cls(id=row.id, name=row.name, config=loads(row.config_json), status=row.status,
+                   iteration=row.iteration, n_frames=row.n_frames, seed=row.seed,
+                   created=_utc(row.created), updated=_utc(row.updated),  # type: ignore[arg-type]
+                   error=row.error, attack_state_ref=row.attack_state_ref,
+                   results=loads(row.results_json))
+
+
+@dataclass(frozen=True)
+class JobSnapshot:
+    """One frame job. ``loss`` is None until it succeeds, or when not finite."""
+
+    run_id: str
+    k: int
+    frame: int
+    status: str
+    attempts: int
+    loss: float | None
+    finite: bool
+    grad_ref: str | None
+    timings: dict[str, Any]
+    error: str | None
+    started: dt.datetime | None
+    finished: dt.datetime | None
+
+    @classmethod
+    def of(cls, row: FrameJob) -> "JobSnapshot":
+        return cls(run_id=row.run_id, k=row.k, frame=row.frame, status=row.status,
+                   attempts=row.attempts, loss=row.loss, finite=bool(row.finite),
+                   grad_ref=row.grad_ref, timings=loads(row.timings_json) or {},
+                   error=row.error, started=_utc(row.started), finished=_utc(row.finished))
+
+
+@dataclass(frozen=True)
+class IterationSnapshot:
+    """Metrics of step ``k`` → ``k+1``; non-finite values read back as None."""
+
+    run_id: str
+    k: int
+    loss_mean: float | None
+    n_ok: int
+    n_bad: int
+    dropped_frames: list[int]
+    grad_norm: float | None
+    step_seconds: float | None
+    per_frame: Any
+    created: dt.datetime
+
+    @classmethod
+    def of(cls, row: IterationRecord) -> "IterationSnapshot":
+        return cls(run_id=row.run_id, k=row.k, loss_mean=row.loss_mean, n_ok=row.n_ok,
+                   n_bad=row.n_bad, dropped_frames=loads(row.dropped_json) or [],
+                   grad_norm=row.grad_norm, step_seconds=row.step_seconds,
+                   per_frame=loads(row.per_frame_json),
+                   created=_utc(row.created))  # type: ignore[arg-type]
+
+
+class FrameGrad(NamedTuple):
+    """One frame's contribution at iteration ``k``; ``grad`` is None unless the job succeeded."""
+
+    frame: int
+    grad: np.ndarray | None
+    loss: float | None
+    finite: bool
