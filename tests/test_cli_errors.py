@@ -48,6 +48,25 @@ CASES = {
 }
 
 
+@pytest.mark.parametrize("content, needles", [
+    ("scene: x\nloss: hinge\n", ["run.yaml", "loss", "hinge"]),
+    ("scene: nowhere/scene\n", ["run.yaml", "scene", "neither a scene directory nor a spec file"]),
+    ("scene: x\nattack: {steps: 3}\n", ["run.yaml", "attack.name", "required"]),
+    ("scene: x\nloss: targeted_ce\n", ["run.yaml", "target_label", "required"]),
+    ("scene: x\nepsilon: 3\n", ["run.yaml", "epsilon", "unknown field"]),
+])
+def test_bad_run_config_is_one_line(content, needles, tmp_path):
+    spec = _write(tmp_path, "run.yaml", content)
+    res = subprocess.run([sys.executable, "-m", "undream.cli", "run", str(spec), "--out", str(tmp_path / "out"),
+                          "--no-progress"], capture_output=True, text=True, cwd=ROOT)
+    assert res.returncode == 2, res.stderr
+    line = res.stderr.strip()
+    assert "\n" not in line
+    for needle in needles:
+        assert needle in line, (needle, line)
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+
+
 @pytest.mark.parametrize("case", sorted(CASES))
 def test_bad_input_is_one_line_and_writes_nothing(case, tmp_path):
     make, needles = CASES[case]

@@ -91,6 +91,10 @@ def load_run_config(path: str | Path) -> RunConfig:
         mark = getattr(err, "problem_mark", None)
         raise SpecError(f"{path}: not valid YAML" + (f" at line {mark.line + 1}" if mark else "")) from None
     try:
-        return RunConfig.from_json(data)
+        config = RunConfig.from_json(data)
     except SpecError as err:
         raise SpecError(f"{path}: {err}") from None
+    scene = Path(config.scene) if Path(config.scene).is_absolute() else path.parent / config.scene
+    if not ((scene / "sequence.json").is_file() or scene.is_file()):
+        raise SpecError(f"{path}: scene: {scene} is neither a scene directory nor a spec file")
+    return config
