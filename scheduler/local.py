@@ -185,7 +185,7 @@ def _loss_plot(values: list[float], path: Path, config: RunConfig) -> None:
     fig, ax = plt.subplots(figsize=(5, 3), dpi=100)
     ax.plot(range(1, len(values) + 1), values, marker=".")
     ax.set_xlabel("iteration")
-    ax.set_ylabel(f"{config.loss} loss (maximised), mean over frames")
+    ax.set_ylabel(f"mean {config.loss} loss (maximised)")
     ax.set_title(f"{config.name}: {config.attack.get('name')} ε={config.attack.get('eps')}")
     ax.grid(alpha=0.3)
     fig.tight_layout()
