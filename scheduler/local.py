@@ -19,8 +19,7 @@ import numpy as np
 
 from undream.engine.context import RunContext, build_context
 from undream.engine.evaluate import judge, losses, predict, quantise, render_frames
-from undream.engine.job import render_and_grad
-from undream.engine.step import reduce_and_step
+from scheduler.iteration import frame_job, reduce_and_step
 from undream.errors import SpecError
 from undream.render.color import linear_to_srgb, to_uint8
 from undream.spec.run import RunConfig
@@ -99,13 +98,10 @@ def run_local(config: RunConfig, out: str | Path, base_dir: Path | None = None, 
     steps = ctx.attack.config.steps
     bar = _progress(steps, progress)
     for k in range(steps):
-        texture = store.texture(run_id, k)
         for pos in frame_batch(len(ctx.sequence.frames), ctx.attack.config.frames_per_step, k, config.seed):
-            store.job_started(run_id, k, pos)
-            res = render_and_grad(ctx, pos, texture, k)
-            store.job_succeeded(run_id, k, pos, res.grad, res.loss, res.finite, res.timings)
+            summary = frame_job(store, ctx, run_id, k, pos)
             for key in ("sim_render", "victim", "grad_render"):
-                times[key] += res.timings[key]
+                times[key] += summary["timings"][key]
         t = time.perf_counter()
         reduce_and_step(store, ctx.attack, run_id, k)
         times["reduce_step"] += time.perf_counter() - t

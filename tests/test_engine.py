@@ -11,7 +11,7 @@ import torch
 from undream.engine.context import build_context
 from undream.engine.evaluate import quantise
 from undream.engine.job import FrameResult
-from undream.engine.step import AllFramesFailed, reduce_and_step
+from scheduler.iteration import AllFramesFailed, reduce_and_step
 from undream.scene.init import InitOptions, init_scene
 from undream.scene.poses import look_at
 from undream.spec import Asset, Camera, Environment, Frame, Sequence, TextureParam, Transform
@@ -107,9 +107,9 @@ def _fake_job(bad_positions):
 
 
 def test_a_nan_frame_is_dropped_with_a_warning(scene_dir, victim_dir, tmp_path, monkeypatch, caplog):
-    import scheduler.local as local
+    from undream.engine import job
 
-    monkeypatch.setattr(local, "render_and_grad", _fake_job({1}))
+    monkeypatch.setattr(job, "render_and_grad", _fake_job({1}))
     with caplog.at_level(logging.WARNING):
         res = _run(_config(scene_dir, victim_dir), tmp_path / "n")
     assert res["frames_dropped_per_iteration"] == [1, 1, 1]
@@ -118,10 +118,10 @@ def test_a_nan_frame_is_dropped_with_a_warning(scene_dir, victim_dir, tmp_path, 
 
 
 def test_all_frames_bad_fails_the_run_clearly(scene_dir, victim_dir, tmp_path, monkeypatch):
-    import scheduler.local as local
+    from undream.engine import job
     from undream.store import open_store
 
-    monkeypatch.setattr(local, "render_and_grad", _fake_job({0, 1, 2}))
+    monkeypatch.setattr(job, "render_and_grad", _fake_job({0, 1, 2}))
     with pytest.raises(AllFramesFailed, match="all 3 frames gave a non-finite gradient"):
         _run(_config(scene_dir, victim_dir), tmp_path / "f")
     store = open_store(None, tmp_path / "f" / "store")

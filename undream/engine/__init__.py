@@ -1,6 +1,7 @@
-"""Algorithm 1 as plain functions: the per-frame job and reduce-and-step.
+"""Algorithm 1's library side: a run's context, the per-frame job, and evaluation.
 
-They read and write run state only through :mod:`undream.store`, so the farm
-wraps them in Celery tasks and a chord without changing them; the in-process
-runner (:mod:`scheduler.local`) calls them in a loop.
+Plain functions without Celery, a database or a broker. :mod:`scheduler.iteration`
+reads and writes run state around them through :mod:`undream.store`; the farm
+wraps those in Celery tasks, the in-process runner (:mod:`scheduler.local`)
+calls them in a loop.
 """

@@ -1,4 +1,10 @@
-"""Reduce-and-step: the completion callback of one iteration, idempotent by compare-and-set."""
+"""One iteration through the store: the per-frame job's task body and the completion callback.
+
+These are what the farm wraps in Celery tasks (a chord of :func:`frame_job`
+with :func:`reduce_and_step` as its callback); the in-process runner calls
+them in a loop. The math lives in the library (:mod:`undream.engine`,
+:mod:`undream.attacks`); here is only reading and writing run state.
+"""
 from __future__ import annotations
 
 import logging
@@ -10,6 +16,23 @@ import numpy as np
 from undream.errors import AttackError, UndreamError
 
 log = logging.getLogger(__name__)
+
+
+def frame_job(store: Any, ctx: Any, run_id: str, k: int, position: int) -> dict[str, Any]:
+    """Render-and-grad frame ``position`` of iteration ``k`` with the stored texture; store the result.
+
+    Returns the job's small JSON summary (the gradient goes to the blob store).
+    """
+    from undream.engine.job import render_and_grad
+
+    store.job_started(run_id, k, position)
+    try:
+        res = render_and_grad(ctx, position, store.texture(run_id, k), k)
+    except UndreamError as err:
+        store.job_failed(run_id, k, position, str(err))
+        raise
+    store.job_succeeded(run_id, k, position, res.grad, res.loss, res.finite, res.timings)
+    return res.summary()
 
 
 class AllFramesFailed(UndreamError):
