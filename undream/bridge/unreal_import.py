@@ -44,10 +44,9 @@ from __future__ import annotations
 import json
 import math
 import re
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator, Mapping
+from typing import Any, Mapping
 
 from undream.bridge.unreal import (
     ue_camera_optics,
@@ -66,6 +65,7 @@ from undream.spec import (
     TextureParam,
     Transform,
 )
+from undream.spec import _check
 from undream.spec.model import BUILTIN_PREFIX
 
 FORMAT = "undream-unreal-export"
@@ -138,14 +138,9 @@ def _fail(where: str, expected: str, value: Any) -> BridgeError:
     return BridgeError(f"{where}: {expected}, got {_show(value)}")
 
 
-@contextmanager
-def _at(where: str) -> Iterator[None]:
+def _at(where: str):
     """Prefix errors from the spec and bridge functions with the field path ``where``."""
-    try:
-        yield
-    except (BridgeError, SpecError) as err:
-        msg = str(err)
-        raise BridgeError(f"{where}{'' if msg.startswith('[') else '.'}{msg}") from None
+    return _check.at(where, catch=(BridgeError, SpecError), raise_as=BridgeError)
 
 
 def _fields(value: Any, where: str, required: tuple[str, ...], optional: tuple[str, ...]) -> Mapping[str, Any]:

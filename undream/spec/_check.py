@@ -18,14 +18,15 @@ def fail(field: str, value: Any, expected: str) -> SpecError:
 
 
 @contextmanager
-def at(prefix: str) -> Iterator[None]:
-    """Prefix the field path of any SpecError raised inside the block."""
+def at(prefix: str, catch: tuple[type[Exception], ...] = (SpecError,),
+       raise_as: type[Exception] = SpecError) -> Iterator[None]:
+    """Prefix the field path of any ``catch`` error raised inside the block (re-raised as ``raise_as``)."""
     try:
         yield
-    except SpecError as err:
+    except catch as err:
         msg = str(err)
         sep = "" if msg.startswith("[") else "."
-        raise SpecError(f"{prefix}{sep}{msg}") from None
+        raise raise_as(f"{prefix}{sep}{msg}") from None
 
 
 def finite(field: str, value: Any) -> float:
