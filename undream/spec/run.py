@@ -42,6 +42,7 @@ class RunConfig:
     eval_spp: int = 32
     seed: int = 0
     device: str = "cpu"
+    torch_threads: int = 1  # the victim's CPU threads; Dr.Jit renders on the rest
     store: str | None = None  # SQLAlchemy URL; default: SQLite in the output directory
 
     def __post_init__(self) -> None:
@@ -64,6 +65,7 @@ class RunConfig:
         for f in ("sim_spp", "grad_spp", "eval_spp"):
             c.integer(f, getattr(self, f), 1, 65536)
         c.integer("seed", self.seed, 0, 2**31 - 1)
+        c.integer("torch_threads", self.torch_threads, 1, 1024)
         if not isinstance(self.device, str):
             raise c.fail("device", self.device, "must be a torch device string such as 'cpu'")
 
