@@ -56,5 +56,14 @@ def _fmt(v: float | None) -> str:
     return "n/a" if v is None else f"{v:.3f}"
 
 
+def _register_subgroups() -> None:
+    from undream.victims.cli import victims
+
+    main.add_command(victims)
+
+
+_register_subgroups()
+
+
 if __name__ == "__main__":  # pragma: no cover
     main()

@@ -1,0 +1,184 @@
+"""The bundled victims: what ships in ``undream/victims/bundled/<name>/`` and its model card.
+
+Each folder is a Hugging Face ``save_pretrained`` checkpoint (``config.json``,
+``model.safetensors``, ``preprocessor_config.json``) plus ``training.json``
+(the run's config, data, timings and held-out numbers, written by
+:func:`undream.victims.train.train`) and ``MODEL_CARD.md`` (made from it by
+:func:`model_card`). They load offline with
+``undream.victims.load_victim("bundled:classifier")`` /
+``("bundled:detector")``, through the same Hugging Face adapters as any user
+model (see :mod:`undream.victims.registry`).
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from undream.errors import VictimError
+from undream.victims.dataset import BANDS, CLASSES, WEATHER_WEIGHTS
+from undream.victims.registry import BUNDLED, bundled_path
+from undream.victims.train import DETR_ARCH, RESNET_ARCH
+
+MAX_WEIGHTS_BYTES = 10 * 1024 * 1024
+WEIGHTS_FILE = "model.safetensors"
+CARD_FILE = "MODEL_CARD.md"
+REPRODUCE = "scripts/make_bundled_victims.sh"
+
+
+def weights_bytes(folder: str | Path) -> int:
+    """Size of the folder's weights file in bytes."""
+    path = Path(folder) / WEIGHTS_FILE
+    if not path.is_file():
+        raise VictimError(f"{folder}: has no {WEIGHTS_FILE}")
+    return path.stat().st_size
+
+
+def training_record(folder: str | Path) -> dict[str, Any]:
+    """The ``training.json`` of a trained model folder."""
+    path = Path(folder) / "training.json"
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as err:
+        raise VictimError(f"{path}: cannot read the training record ({err})") from None
+
+
+def bundled_record(name: str) -> dict[str, Any]:
+    """The training record of the bundled victim ``name`` (``classifier`` or ``detector``)."""
+    return training_record(bundled_path(name))
+
+
+def _split_table() -> str:
+    rows = ["| parameter | range | band width | train bands | test bands |", "|---|---|---|---|---|"]
+    for name, (lo, hi, width) in BANDS.items():
+        edges = [lo + k * width for k in range(int(round((hi - lo) / width)) + 1)]
+        bands = [f"[{a:g}, {b:g})" for a, b in zip(edges, edges[1:])]
+        rows.append(f"| {name} | [{lo:g}, {hi:g}) | {width:g} | {' '.join(bands[0::2])} | "
+                    f"{' '.join(bands[1::2])} |")
+    return "\n".join(rows)
+
+
+def _fmt(v: Any) -> str:
+    return "n/a" if v is None else f"{v:.3f}" if isinstance(v, float) else str(v)
+
+
+def model_card(folder: str | Path, commands: list[str] | None = None) -> str:
+    """The Markdown model card of a model folder, from its ``training.json``."""
+    folder = Path(folder)
+    rec = training_record(folder)
+    task, test = rec["task"], rec["test"]
+    size = weights_bytes(folder)
+    tr, te = rec["train_data"], rec["test_data"]
+    if task == "classification":
+        title = "bundled:classifier — ResNet image classifier"
+        arch = (f"`transformers` `ResNetForImageClassification` ({RESNET_ARCH['layer_type']} "
+                f"blocks, depths {RESNET_ARCH['depths']}, widths {RESNET_ARCH['hidden_sizes']}, "
+                f"stem {RESNET_ARCH['embedding_size']}), trained from scratch.")
+        numbers = [f"- **accuracy: {_fmt(test['accuracy'])}** ({test['n_correct']}/{test['n_images']})",
+                   "- per class: " + ", ".join(f"{k} {_fmt(v)}" for k, v in test["per_class"].items()),
+                   "- per weather: " + ", ".join(f"{k} {_fmt(v)}" for k, v in test["per_weather"].items())]
+    else:
+        d = DETR_ARCH
+        title = "bundled:detector — DETR object detector"
+        arch = ("`transformers` `DetrForObjectDetection`: the classifier's ResNet as backbone "
+                "(stage 4, stride 32; frozen batch norm, stem and first stage, as DETR does), "
+                f"d_model {d['d_model']}, {d['encoder_layers']} encoder and {d['decoder_layers']} "
+                f"decoder layers, {d['encoder_attention_heads']} heads, FFN {d['encoder_ffn_dim']}, "
+                f"{d['num_queries']} object quer{'y' if d['num_queries'] == 1 else 'ies'}, softmax "
+                f"over the {len(CLASSES)} classes + no-object; trained with DETR's own loss "
+                "(cross-entropy, L1 and GIoU box terms, auxiliary decoder losses). One query "
+                "because every image holds one object: with six, all queries kept predicting the "
+                "same box at a hedged score and the duplicates sank AP@0.5 to 0.18 after 40 "
+                "epochs (see `undream/victims/train.py`).")
+        numbers = [f"- **AP@0.5: {_fmt(test['ap50'])}** (mean over the 6 classes of COCO AP at IoU 0.5, "
+                   f"pycocotools; every query's best class and score, as COCO scores DETR)",
+                   "- per class: " + ", ".join(f"{k} {_fmt(v)}" for k, v in test["ap50_per_class"].items()),
+                   f"- AP@0.5 counting only detections scoring ≥ 0.5 (the victim's default "
+                   f"threshold): {_fmt(test['ap50_thr05'])}",
+                   f"- top detection has the right class and IoU ≥ 0.5: {_fmt(test['top1_correct'])} "
+                   "(per weather: " + ", ".join(f"{k} {_fmt(v)}" for k, v in
+                                               test["top1_per_weather"].items()) + ")"]
+    cfg = rec["config"]
+    px = cfg.get("input_size")
+    cmds = commands or _commands(rec)
+    lines = [
+        f"# {title}", "",
+        f"Classes (id: name): {', '.join(f'{i}: {c}' for i, c in enumerate(CLASSES))} — the "
+        "built-in assets of `undream.scene.builtin`.", "",
+        "## Data", "",
+        "undream's own renders (`undream victims make-dataset`, module "
+        f"`undream.victims.dataset`): {tr['config']['size']}×{tr['config']['size']} sRGB images, "
+        f"{tr['config']['spp']} spp, path traced by the project's scene adapter (`volpath` in "
+        "fog), each with ONE built-in object at a random yaw, with a "
+        "random texture (solid, stripes, checker, smooth noise or a mix, random colours) so that "
+        "the model learns shape rather than a texture, on a random background (plain, park with "
+        "trees, street with buildings), under a random environment (weather "
+        + ", ".join(f"{k} {v:.0%}" for k, v in WEATHER_WEIGHTS.items())
+        + "; time of day; sun height; fog density), seen by a random camera (azimuth and "
+        "elevation about the object, field of view, object size in the frame, off-centre "
+        "look-at). Boxes are the tight box of the object's visible pixels (the `mask` view).", "",
+        f"- training set: {tr['n']} images (seed {tr['config']['seed']}, split `train`)",
+        f"- held-out set: {te['n']} images (seed {te['config']['seed']}, split `test`)",
+        f"- rendered with Mitsuba variant `{tr.get('mitsuba_variant')}`", "",
+        "Held-out split: train and test draw environments and camera poses from DISJOINT sets. "
+        "Each parameter below is cut into equal bands that alternate between the splits, an "
+        "odd number of them (azimuth is cyclic), so every held-out band lies between two "
+        "training bands: the held-out set interpolates, it never extrapolates. No held-out "
+        "image shares a time of day, fog density, camera azimuth, elevation, field of view or "
+        "object size in the frame with any training image. Weather kinds, backgrounds and "
+        "texture kinds occur in both; object yaw, sun height, look-at offset and textures are "
+        "drawn the same way in both.", "",
+        _split_table(), "",
+        "## Model", "",
+        arch, "",
+        f"- parameters: {rec['parameters']:,}",
+        f"- weights: `{WEIGHTS_FILE}`, {size / 1e6:.2f} MB (float32)",
+        f"- input: sRGB in [0, 1], resized to {px}×{px} (bilinear) and normalised with the "
+        "ImageNet mean/std (`preprocessor_config.json`; undream redoes this differentiably).", "",
+        "## Held-out results", "",
+        *numbers, "",
+        "## Training", "",
+        f"- seed {cfg['seed']}, {rec['defaults']['epochs'] if cfg['epochs'] is None else cfg['epochs']} "
+        f"epochs, AdamW, cosine schedule, batch {rec['defaults']['batch_size']}; augmentation: "
+        "horizontal flip, ±6 px shift, brightness/saturation/contrast jitter, pixel noise",
+        f"- {rec['train_seconds'] / 60:.1f} min on {rec['threads']} CPU threads; "
+        f"torch {rec['versions']['torch']}, transformers {rec['versions']['transformers']}", "",
+        "## Reproduce", "",
+        f"`{REPRODUCE}` runs the whole pipeline with the seeds used here; this model came from:", "",
+        "```", *cmds, "```", "",
+        "## Limits", "",
+        "- Only the six built-in assets, one object per image, 64-pixel renders of undream's "
+        "own scenes: not a general-purpose model.",
+        f"- Trained on square images; other aspect ratios are squashed to {px}×{px}.", ""]
+    return "\n".join(lines)
+
+
+def _commands(rec: dict[str, Any]) -> list[str]:
+    """The commands that made a model: its datasets, its backbone (if any), its training."""
+    cmds = [rec["train_data"].get("command"), rec["test_data"].get("command")]
+    backbone = rec["config"].get("backbone")
+    if backbone and (Path(backbone) / "training.json").is_file():
+        cmds.append(training_record(backbone).get("command"))
+    cmds.append(rec.get("command"))
+    return [c for c in cmds if c]
+
+
+def write_model_card(folder: str | Path, commands: list[str] | None = None) -> Path:
+    """Write ``MODEL_CARD.md`` into ``folder`` from its ``training.json``; returns its path."""
+    path = Path(folder) / CARD_FILE
+    path.write_text(model_card(folder, commands), encoding="utf-8")
+    return path
+
+
+def check_bundled(name: str) -> dict[str, Any]:
+    """Sizes and presence of the bundled victim ``name``'s files (raises when incomplete)."""
+    folder = bundled_path(name)
+    missing = [f for f in ("config.json", WEIGHTS_FILE, "preprocessor_config.json", CARD_FILE)
+               if not (folder / f).is_file()]
+    if missing:
+        raise VictimError(f"bundled victim {name!r}: {folder} lacks {', '.join(missing)}")
+    size = weights_bytes(folder)
+    if size > MAX_WEIGHTS_BYTES:
+        raise VictimError(f"bundled victim {name!r}: weights are {size} bytes, more than "
+                          f"{MAX_WEIGHTS_BYTES}")
+    return {"name": name, "task": BUNDLED[name], "folder": str(folder), "weights_bytes": size}

@@ -1,0 +1,103 @@
+"""``undream victims``: make the bundled victims' datasets, train and evaluate them.
+
+Register with ``main.add_command(victims)`` in :mod:`undream.cli`. Heavy
+imports (Mitsuba, torch, transformers) happen inside the commands. Errors
+are one line on stderr and exit status 2.
+"""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import click
+
+from undream.cli_errors import one_line_errors
+
+
+def _command() -> str:
+    """This command line as ``undream victims ...`` (for metadata and model cards)."""
+    args = sys.argv[1:]
+    if "victims" in args:
+        args = args[args.index("victims") + 1:]
+    return " ".join(["undream", "victims", *args])
+
+
+@click.group("victims")
+def victims() -> None:
+    """Datasets, training and evaluation of the bundled victims."""
+
+
+@victims.command("make-dataset")
+@click.option("--out", "out", required=True, type=click.Path(path_type=Path),
+              help="Folder to write (images/, labels.jsonl, metadata.json).")
+@click.option("--n", "n", required=True, type=click.IntRange(1, 10**6), help="Number of images.")
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(0, 2**32 - 1))
+@click.option("--split", default="train", show_default=True, type=click.Choice(["train", "test"]),
+              help="Which disjoint set of environments and camera poses to draw from.")
+@click.option("--size", default=64, show_default=True, type=click.IntRange(16, 1024),
+              help="Image width and height in pixels.")
+@click.option("--spp", default=16, show_default=True, type=click.IntRange(1, 4096),
+              help="Samples per pixel.")
+@click.option("--progress/--no-progress", default=True, help="Show a progress bar.")
+@one_line_errors
+def make_dataset_cmd(out: Path, n: int, seed: int, split: str, size: int, spp: int,
+                     progress: bool) -> None:
+    """Render N images of the built-in assets with their classes and boxes."""
+    from undream.victims.dataset import DatasetConfig, make_dataset
+
+    done = make_dataset(out, DatasetConfig(n=n, seed=seed, split=split, size=size, spp=spp),
+                        progress=progress, command=_command())
+    click.echo(f"wrote {n} images to {done}")
+
+
+@victims.command("train")
+@click.option("--task", required=True, type=click.Choice(["classification", "detection"]))
+@click.option("--data", required=True, type=click.Path(path_type=Path), help="Training dataset.")
+@click.option("--test", "test", required=True, type=click.Path(path_type=Path),
+              help="Held-out dataset, evaluated after training.")
+@click.option("--out", "out", required=True, type=click.Path(path_type=Path),
+              help="Folder to write the model to (save_pretrained layout).")
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(0, 2**32 - 1))
+@click.option("--epochs", default=None, type=click.IntRange(1, 10000),
+              help="Training epochs (default: the task's own, see undream.victims.train).")
+@click.option("--backbone", default=None, type=click.Path(path_type=Path),
+              help="Detection: start the backbone from this trained classifier folder.")
+@click.option("--threads", default=None, type=click.IntRange(1, 1024),
+              help="torch CPU threads (default: torch's choice).")
+@one_line_errors
+def train_cmd(task: str, data: Path, test: Path, out: Path, seed: int, epochs: int | None,
+              backbone: Path | None, threads: int | None) -> None:
+    """Train a bundled-style victim on DATA and evaluate it on TEST."""
+    from undream.victims.train import TrainConfig, train
+
+    cfg = TrainConfig(task=task, seed=seed, epochs=epochs, backbone=backbone, threads=threads)
+    result = train(data, test, out, cfg, command=_command())
+    click.echo(json.dumps(result["test"], indent=2))
+    click.echo(f"wrote {out}")
+
+
+@victims.command("evaluate")
+@click.option("--victim", "victim", required=True,
+              help="bundled:classifier, bundled:detector, a save_pretrained folder or a hub id.")
+@click.option("--data", required=True, type=click.Path(path_type=Path), help="Dataset to score.")
+@click.option("--json", "json_out", default=None, type=click.Path(path_type=Path),
+              help="Also write the numbers to this JSON file.")
+@one_line_errors
+def evaluate_cmd(victim: str, data: Path, json_out: Path | None) -> None:
+    """Accuracy (classifier) or AP@0.5 (detector) of VICTIM on a dataset."""
+    from undream.victims import load_victim
+    from undream.victims.dataset import load_dataset
+    from undream.victims.train import evaluate
+
+    ds = load_dataset(data)  # the cheaper check first
+    result = evaluate(load_victim(victim), ds)
+    text = json.dumps(result, indent=2)
+    click.echo(text)
+    if json_out is not None:
+        json_out.write_text(text + "\n", encoding="utf-8")
+
+
+if __name__ == "__main__":  # pragma: no cover
+    victims()

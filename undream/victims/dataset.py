@@ -1,0 +1,453 @@
+"""Datasets for the bundled victims: undream's own renders of the built-in assets.
+
+Each image shows ONE built-in object (class = its name, uniform over
+:data:`CLASSES`) with a random texture, at a random yaw, on a random
+background under a random environment, seen by a random camera. It is
+rendered by the project's own scene adapter
+(:func:`undream.scene.mitsuba_scene.scene_dict`, ``sim`` view, path traced,
+``volpath`` in fog) and its box comes from the ``mask`` view (the object's
+visible pixels behind every occluder).
+
+Held-out split: ``train`` and ``test`` draw the environment and the camera
+from DISJOINT parameter sets. Every banded parameter (:data:`BANDS`) is cut
+into an odd number of equal bands that alternate between the splits (even
+bands: train, odd bands: test), so each test band lies between two training
+bands (the held-out set interpolates, it never extrapolates). No test image
+shares a time of day, fog density, camera azimuth, elevation, field of view
+or object size in the frame with any training image. Weather, background and
+texture kinds occur in both.
+
+Output of :func:`make_dataset` (sRGB PNGs, 8 bit)::
+
+    OUT/images/00000.png ...
+    OUT/labels.jsonl      one JSON object per image (see :func:`render_sample`)
+    OUT/metadata.json     the config, classes, split rules, variant, undream version, command
+
+Reproducible: sample ``i`` of ``(seed, split)`` depends on those three only
+(its generator is ``default_rng([seed, split_id, i])``), so a dataset can be
+regenerated or extended bit for bit on the same machine.
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import tempfile
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from types import ModuleType
+from typing import Any, Iterator
+
+import numpy as np
+
+from undream.errors import UndreamError
+from undream.render.color import linear_to_srgb, srgb_to_linear, to_uint8
+from undream.scene.builtin import BUILTINS, builtin_mesh
+from undream.scene.mesh import write_ply
+from undream.scene.mitsuba_scene import OBJECT_ID, ScenePaths, scene_dict
+from undream.scene.poses import look_at, object_pose, yaw_rotation
+from undream.scene.xml import to_mitsuba
+from undream.spec import Asset, Camera, Environment, Frame, Sequence, TextureParam, Transform
+from undream.spec.model import BACKGROUNDS
+
+CLASSES: tuple[str, ...] = tuple(sorted(BUILTINS))
+SPLITS = ("train", "test")
+DATASET_VERSION = 1
+LABELS_FILE = "labels.jsonl"
+METADATA_FILE = "metadata.json"
+TEXTURE_KINDS = ("solid", "stripes", "checker", "noise", "mix")
+
+# Banded parameters: (low, high, band width); band k = floor((v - low) / width) belongs to
+# train when k is even, to test when k is odd.
+BANDS: dict[str, tuple[float, float, float]] = {
+    "azimuth_deg": (0.0, 360.0, 30.0),  # camera around the object, 0 = in front of it (cyclic)
+    "elevation_deg": (2.0, 44.0, 6.0),  # camera above the object's centre
+    "fov_deg": (30.0, 60.0, 6.0),  # horizontal field of view
+    "coverage": (0.35, 0.85, 0.1),  # bounding-sphere diameter / frame width
+    "fog_density": (0.01, 0.06, 0.01),  # 1/m (used in fog only)
+    "day_time_h": (7.5, 16.5, 1.0),  # time_of_day, weathers other than night
+    "night_time_h": (20.0, 29.0, 1.0),  # time_of_day at night; hours after midnight count from 24
+}
+WEATHER_WEIGHTS = {"clear": 0.35, "cloudy": 0.25, "night": 0.2, "fog": 0.2}
+MIN_VISIBLE_PIXELS = 60  # pixels at least half covered by the object
+BOX_COVERAGE = 0.1  # a pixel joins the box when the object covers more than this share of it
+MAX_TRIES = 20
+RENDER_VARIANT = "scalar_rgb"  # no JIT: each small scene renders without compiling kernels
+
+
+class DatasetError(UndreamError, ValueError):
+    """A dataset could not be made or read (bad config, missing or corrupt files)."""
+
+
+@dataclass(frozen=True)
+class DatasetConfig:
+    """What :func:`make_dataset` renders: ``n`` images of ``split`` from ``seed``.
+
+    size: image width = height in pixels; spp: samples per pixel of the image
+    (the mask uses the same count).
+    """
+
+    n: int
+    seed: int
+    split: str = "train"
+    size: int = 64
+    spp: int = 16
+
+    def __post_init__(self) -> None:
+        if self.split not in SPLITS:
+            raise DatasetError(f"split: must be one of {', '.join(SPLITS)}, got {self.split!r}")
+        for name, lo in (("n", 1), ("size", 16), ("spp", 1)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+                raise DatasetError(f"{name}: must be an integer >= {lo}, got {v!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or not 0 <= self.seed < 2**32:
+            raise DatasetError(f"seed: must be an integer in [0, 2^32), got {self.seed!r}")
+
+
+@dataclass(frozen=True)
+class SampleParams:
+    """Everything random about one image (angles in degrees, lengths in metres)."""
+
+    label: int
+    yaw_deg: float  # object yaw in the world
+    azimuth_deg: float  # camera azimuth relative to the object's front (+Z), in [0, 360)
+    elevation_deg: float
+    fov_deg: float
+    coverage: float
+    shift: tuple[float, float]  # look-at offset, fractions of the half frame (x, y)
+    environment: Environment
+    texture: dict[str, Any] = field(default_factory=dict)  # kind and its parameters
+
+    @property
+    def name(self) -> str:
+        return CLASSES[self.label]
+
+
+# --------------------------------------------------------------------------- the split
+
+def band_index(param: str, value: float) -> int:
+    """The band of ``value`` for the banded parameter ``param`` (see :data:`BANDS`)."""
+    lo, _, width = BANDS[param]
+    return int(math.floor((value - lo) / width + 1e-9))
+
+
+def split_of(param: str, value: float) -> str:
+    """Which split a value of the banded parameter ``param`` belongs to."""
+    return SPLITS[band_index(param, value) % 2]
+
+
+def banded_values(params: dict[str, Any]) -> dict[str, float]:
+    """The :data:`BANDS` values of one image's parameters (a label record's ``params``)."""
+    env = params["environment"]
+    t = env["time_of_day"]
+    out = {k: float(params[k]) for k in ("azimuth_deg", "elevation_deg", "fov_deg", "coverage")}
+    out["fog_density"] = float(env["fog_density"])
+    if env["weather"] == "night":
+        out["night_time_h"] = t + 24.0 if t < 12.0 else t
+    else:
+        out["day_time_h"] = t
+    return out
+
+
+def splits_of(params: dict[str, Any]) -> set[str]:
+    """The splits that the banded values of ``params`` belong to (one for a valid image)."""
+    return {split_of(k, v) for k, v in banded_values(params).items()}
+
+
+def _banded(rng: np.random.Generator, param: str, split: str) -> float:
+    lo, hi, width = BANDS[param]
+    bands = [k for k in range(int(round((hi - lo) / width))) if k % 2 == SPLITS.index(split)]
+    k = int(rng.choice(bands))
+    # stay clear of the band edges so that float rounding cannot move a value across
+    return lo + (k + rng.uniform(0.001, 0.999)) * width
+
+
+def _time_of_day(rng: np.random.Generator, weather: str, split: str) -> float:
+    if weather == "night":
+        return _banded(rng, "night_time_h", split) % 24.0
+    return _banded(rng, "day_time_h", split)
+
+
+def sample_params(rng: np.random.Generator, split: str, label: int | None = None) -> SampleParams:
+    """Draw one image's parameters for ``split`` (see the module docstring); the
+    class is ``label`` when given, else drawn uniformly."""
+    if split not in SPLITS:
+        raise DatasetError(f"split: must be one of {', '.join(SPLITS)}, got {split!r}")
+    if label is None:
+        label = int(rng.integers(len(CLASSES)))
+    weather = str(rng.choice(list(WEATHER_WEIGHTS), p=list(WEATHER_WEIGHTS.values())))
+    env = Environment(weather=weather, time_of_day=_time_of_day(rng, weather, split),
+                      background=str(rng.choice(BACKGROUNDS)),
+                      sun_max_elevation_deg=float(rng.uniform(35.0, 75.0)),
+                      fog_density=_banded(rng, "fog_density", split))
+    coverage = _banded(rng, "coverage", split)
+    room = 1.0 - coverage  # keeps the bounding sphere about inside the frame
+    return SampleParams(
+        label=label, yaw_deg=float(rng.uniform(0.0, 360.0)),
+        azimuth_deg=_banded(rng, "azimuth_deg", split),
+        elevation_deg=_banded(rng, "elevation_deg", split),
+        fov_deg=_banded(rng, "fov_deg", split), coverage=coverage,
+        shift=(float(rng.uniform(-room, room)), float(rng.uniform(-room, room))),
+        environment=env, texture=texture_recipe(rng))
+
+
+# --------------------------------------------------------------------------- textures
+
+def _colour(rng: np.random.Generator) -> list[float]:
+    return [float(v) for v in rng.uniform(0.0, 1.0, 3)]
+
+
+def texture_recipe(rng: np.random.Generator) -> dict[str, Any]:
+    """A random texture as a small JSON-able recipe (see :func:`make_texture`)."""
+    kind = str(rng.choice(TEXTURE_KINDS))
+    r: dict[str, Any] = {"kind": kind, "colours": [_colour(rng) for _ in range(3)]}
+    if kind in ("stripes", "checker", "mix"):
+        r["period"] = float(rng.uniform(4.0, 32.0))
+        r["angle_deg"] = float(rng.uniform(0.0, 180.0))
+    if kind in ("noise", "mix"):
+        r["cells"] = int(rng.integers(2, 9))
+        r["noise_seed"] = int(rng.integers(2**31))
+    return r
+
+
+def make_texture(recipe: dict[str, Any], size: int = 64) -> np.ndarray:
+    """The ``size×size×3`` sRGB [0, 1] texture of a :func:`texture_recipe` (float32)."""
+    c = np.asarray(recipe["colours"], dtype=np.float32)
+    kind = recipe["kind"]
+    if kind == "solid":
+        return np.broadcast_to(c[0], (size, size, 3)).astype(np.float32)
+    yy, xx = np.mgrid[0:size, 0:size].astype(np.float32)
+    if kind in ("stripes", "checker", "mix"):
+        a = math.radians(recipe["angle_deg"])
+        u = (xx * math.cos(a) + yy * math.sin(a)) / recipe["period"]
+        v = (-xx * math.sin(a) + yy * math.cos(a)) / recipe["period"]
+        pat = (np.floor(u) % 2) if kind != "checker" else ((np.floor(u) + np.floor(v)) % 2)
+        two = np.where(pat[..., None] > 0, c[0], c[1])
+        if kind != "mix":
+            return two.astype(np.float32)
+    noise = _smooth_noise(np.random.default_rng(recipe["noise_seed"]), recipe["cells"], size)
+    if kind == "noise":
+        return noise
+    w = noise.mean(-1, keepdims=True)  # mix: stripes of two colours, blended into a third by noise
+    return ((1 - w) * two + w * c[2]).astype(np.float32)
+
+
+def _smooth_noise(rng: np.random.Generator, cells: int, size: int) -> np.ndarray:
+    """Random colours on a ``cells×cells`` grid, bilinearly upsampled (periodic), sRGB [0, 1]."""
+    grid = rng.uniform(0.0, 1.0, (cells, cells, 3)).astype(np.float32)
+    t = (np.arange(size, dtype=np.float32) + 0.5) / size * cells - 0.5
+    i0 = np.floor(t).astype(int)
+    f = (t - i0)[:, None]
+    rows = (1 - f[:, :, None]) * grid[i0 % cells] + f[:, :, None] * grid[(i0 + 1) % cells]
+    cols = (1 - f.T[:, :, None]) * rows[:, i0 % cells] + f.T[:, :, None] * rows[:, (i0 + 1) % cells]
+    return cols.astype(np.float32)
+
+
+# --------------------------------------------------------------------------- scenes
+
+def _object_sphere(name: str) -> tuple[np.ndarray, float]:
+    """Centre (object frame, metres) and radius of the mesh's bounding-box sphere."""
+    lo, hi = builtin_mesh(name).bounds()
+    return (lo + hi) / 2.0, float(np.linalg.norm(hi - lo)) / 2.0
+
+
+class _Meshes:
+    """The built-in meshes written once as PLY files, and their bounding spheres."""
+
+    def __init__(self, root: Path) -> None:
+        self.root = root
+        self.spheres: dict[str, tuple[np.ndarray, float]] = {}
+        for name in CLASSES:
+            (root / name / "meshes").mkdir(parents=True, exist_ok=True)
+            write_ply(builtin_mesh(name), ScenePaths(str(root / name)).mesh(OBJECT_ID))
+            self.spheres[name] = _object_sphere(name)
+
+    def paths(self, name: str) -> ScenePaths:
+        return ScenePaths(str(self.root / name))
+
+
+def sample_frame(p: SampleParams, sphere: tuple[np.ndarray, float], size: int, seed: int) -> Sequence:
+    """A one-frame :class:`Sequence` of the sample (object at the origin, yawed)."""
+    centre_obj, radius = sphere
+    rot = yaw_rotation(p.yaw_deg)
+    obj = object_pose((0.0, 0.0, 0.0), rot)
+    centre = rot.apply(centre_obj)
+    half = math.radians(p.fov_deg) / 2.0
+    dist = radius / math.sin(p.coverage * half)
+    az, el = math.radians(p.yaw_deg + p.azimuth_deg), math.radians(p.elevation_deg)
+    eye = centre + dist * np.array([math.cos(el) * math.sin(az), math.sin(el), math.cos(el) * math.cos(az)])
+    base = look_at(eye, centre)
+    # move the look-at point so the object sits off-centre by `shift` (fractions of the half frame)
+    span = dist * math.tan(half)
+    target = centre + span * (p.shift[0] * base[:3, 0] + p.shift[1] * base[:3, 1])
+    cam = Camera(Transform.from_rows(look_at(eye, target)), p.fov_deg, (size, size))
+    env = p.environment
+    frame = Frame(index=0, camera=cam, object_to_world=Transform.from_rows(obj), environment=env)
+    asset = Asset(name="object", mesh=f"builtin:{p.name}",
+                  texture=TextureParam(resolution=(size, size)))
+    return Sequence(name="sample", asset=asset, frames=(frame,), seed=seed)
+
+
+def _scene(mi: ModuleType, seq: Sequence, paths: ScenePaths, kind: str, spp: int,
+           texture_srgb: np.ndarray | None) -> Any:
+    d = to_mitsuba(scene_dict(seq, seq.frames[0], paths, kind), mi, {"spp": spp})
+    if texture_srgb is not None:
+        d[OBJECT_ID]["bsdf"]["bsdf"]["reflectance"] = {
+            "type": "bitmap", "data": mi.TensorXf(srgb_to_linear(texture_srgb)), "raw": True,
+            "filter_type": "bilinear", "wrap_mode": "repeat"}
+    return mi.load_dict(d)
+
+
+def mask_box(mask: np.ndarray) -> tuple[float, float, float, float] | None:
+    """``(x0, y0, x1, y1)`` pixel box (edges, x1/y1 exclusive) of a boolean H×W mask, or None."""
+    rows, cols = np.nonzero(mask)
+    if rows.size == 0:
+        return None
+    return float(cols.min()), float(rows.min()), float(cols.max() + 1), float(rows.max() + 1)
+
+
+def render_sample(mi: ModuleType, meshes: _Meshes, cfg: DatasetConfig, index: int
+                  ) -> tuple[np.ndarray, dict[str, Any]]:
+    """Render sample ``index``: the H×W×3 uint8 sRGB image and its label record.
+
+    The record holds ``label``, ``name``, ``box`` (xyxy pixels: every pixel
+    the object visibly covers by more than :data:`BOX_COVERAGE`, so thin
+    poles count whenever they show), ``visible_pixels`` (pixels covered by
+    more than half), the drawn parameters (``params``), the
+    camera's ``to_world`` and the environment. The class is drawn once; the
+    rest is redrawn (up to :data:`MAX_TRIES` times) while the object shows
+    fewer than :data:`MIN_VISIBLE_PIXELS` pixels, so classes stay uniform.
+    """
+    rng = np.random.default_rng([cfg.seed, SPLITS.index(cfg.split), index])
+    label = int(rng.integers(len(CLASSES)))
+    for attempt in range(MAX_TRIES):
+        p = sample_params(rng, cfg.split, label)
+        seq = sample_frame(p, meshes.spheres[p.name], cfg.size, seed=int(rng.integers(2**31)))
+        paths = meshes.paths(p.name)
+        mask_img = np.array(mi.render(_scene(mi, seq, paths, "mask", cfg.spp, None), seed=index))
+        coverage = mask_img.mean(axis=2)
+        mask, box = coverage > 0.5, mask_box(coverage > BOX_COVERAGE)
+        if box is not None and int(mask.sum()) >= MIN_VISIBLE_PIXELS:
+            break
+    else:
+        raise DatasetError(f"sample {index}: the object stayed hidden in {MAX_TRIES} draws")
+    texture = make_texture(p.texture, cfg.size)
+    lin = np.array(mi.render(_scene(mi, seq, paths, "sim", cfg.spp, texture), seed=index))
+    image = to_uint8(linear_to_srgb(lin))
+    params = asdict(p)
+    params["environment"] = p.environment.to_json()
+    record = {"file": f"images/{index:05d}.png", "index": index, "label": p.label, "name": p.name,
+              "box": list(box), "visible_pixels": int(mask.sum()), "redraws": attempt,
+              "params": params, "camera_to_world": seq.frames[0].camera.to_world.to_json()}
+    return image, record
+
+
+# --------------------------------------------------------------------------- datasets
+
+@contextlib.contextmanager
+def _mitsuba_variant(name: str) -> Iterator[ModuleType]:
+    """Mitsuba with variant ``name`` for the block; the process's own variant (the
+    one :func:`undream.render.variant.mitsuba` picks) is set again after it."""
+    from undream.render.variant import mitsuba
+
+    before = mitsuba().variant()
+    mi = mitsuba(name)
+    try:
+        yield mi
+    finally:
+        if mi.variant() != before:
+            mi.set_variant(before)
+
+
+def make_dataset(out: str | Path, cfg: DatasetConfig, progress: bool = True,
+                 variant: str = RENDER_VARIANT, command: str = "") -> Path:
+    """Render ``cfg.n`` images into ``out`` (see the module docstring); returns ``out``.
+
+    ``variant`` is the Mitsuba variant to render with: by default the scalar
+    CPU one, several times faster than the JIT variants for many small,
+    differently shaped scenes (each would compile its own kernels); the
+    process's variant is restored afterwards. Refuses a folder that already
+    holds a dataset. ``command`` (the command line that asked) goes into the
+    metadata.
+    """
+    from PIL import Image
+    from tqdm import tqdm
+
+    out = Path(out)
+    if (out / LABELS_FILE).exists():
+        raise DatasetError(f"{out}: already holds a dataset ({LABELS_FILE}); choose another folder")
+    (out / "images").mkdir(parents=True, exist_ok=True)
+    partial = out / (LABELS_FILE + ".partial")  # renamed when complete
+    with tempfile.TemporaryDirectory(prefix="undream-meshes-") as tmp, \
+            _mitsuba_variant(variant) as mi, open(partial, "w", encoding="utf-8") as fh:
+        meshes = _Meshes(Path(tmp))
+        for i in tqdm(range(cfg.n), desc=f"render {cfg.split}", disable=not progress):
+            image, rec = render_sample(mi, meshes, cfg, i)
+            Image.fromarray(image).save(out / rec["file"])
+            fh.write(json.dumps(rec) + "\n")
+    partial.replace(out / LABELS_FILE)
+    meta = {"version": DATASET_VERSION, "config": asdict(cfg), "classes": list(CLASSES),
+            "bands": {k: list(v) for k, v in BANDS.items()},
+            "band_rule": "band k = floor((value - low) / width); even k: train, odd k: test",
+            "weather_weights": WEATHER_WEIGHTS, "mitsuba_variant": variant,
+            "undream_version": _version(), "command": command}
+    (out / METADATA_FILE).write_text(json.dumps(meta, indent=2) + "\n", encoding="utf-8")
+    return out
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+    try:
+        return version("undream")
+    except PackageNotFoundError:
+        return "unknown (not installed)"
+
+
+@dataclass(frozen=True)
+class Dataset:
+    """A dataset in memory: ``images`` N×H×W×3 uint8 sRGB, ``labels`` N (int64),
+    ``boxes`` N×4 xyxy pixels (float32), the label ``records`` and ``metadata``."""
+
+    images: np.ndarray
+    labels: np.ndarray
+    boxes: np.ndarray
+    records: list[dict[str, Any]]
+    metadata: dict[str, Any]
+
+    def __len__(self) -> int:
+        return len(self.labels)
+
+
+def read_records(folder: str | Path) -> Iterator[dict[str, Any]]:
+    path = Path(folder) / LABELS_FILE
+    if not path.is_file():
+        raise DatasetError(f"{folder}: not a dataset (no {LABELS_FILE}); make one with "
+                           f"'undream victims make-dataset'")
+    with open(path, encoding="utf-8") as fh:
+        for n, line in enumerate(fh, 1):
+            try:
+                yield json.loads(line)
+            except json.JSONDecodeError as err:
+                raise DatasetError(f"{path}: line {n} is not JSON ({err.msg})") from None
+
+
+def load_dataset(folder: str | Path) -> Dataset:
+    """Read a folder written by :func:`make_dataset`."""
+    from PIL import Image
+
+    folder = Path(folder)
+    records = list(read_records(folder))
+    meta_path = folder / METADATA_FILE
+    meta = json.loads(meta_path.read_text(encoding="utf-8")) if meta_path.is_file() else {}
+    if meta.get("classes", list(CLASSES)) != list(CLASSES):
+        raise DatasetError(f"{folder}: classes {meta.get('classes')} differ from {list(CLASSES)}")
+    images = []
+    for rec in records:
+        try:
+            images.append(np.asarray(Image.open(folder / rec["file"]).convert("RGB")))
+        except (OSError, KeyError) as err:
+            raise DatasetError(f"{folder}: cannot read image of record {rec.get('index')} ({err})") from None
+    if not records:
+        raise DatasetError(f"{folder}: {LABELS_FILE} is empty")
+    return Dataset(np.stack(images), np.array([r["label"] for r in records], dtype=np.int64),
+                   np.array([r["box"] for r in records], dtype=np.float32), records, meta)

@@ -1,0 +1,363 @@
+"""Training and evaluating the bundled victims on undream's own renders.
+
+Both are Hugging Face ``transformers`` models, saved with ``save_pretrained``
+so that bundled and user victims share one loading path
+(:func:`undream.victims.load_victim`):
+
+- classifier: ``ResNetForImageClassification``, a small ResNet
+  (:data:`RESNET_ARCH`) trained from scratch;
+- detector: ``DetrForObjectDetection`` (:data:`DETR_ARCH`) whose ResNet
+  backbone starts from the trained classifier (as DETR starts from an
+  ImageNet ResNet: DETR freezes the backbone's batch-norm statistics, its stem
+  and first stage), trained with DETR's own loss (cross-entropy with a
+  no-object class, L1 and GIoU box terms, auxiliary decoder losses). Every
+  image holds one object, and the detector has ONE query: with several, all
+  queries learned the same box at a hedged score (about 2/3, the symmetric
+  optimum of the no-object weighting), and the duplicates sank AP@0.5 to
+  0.18 after 40 epochs; DETR breaks that symmetry only after far longer
+  training than a CPU allows.
+
+Images are 64×64 sRGB renders; the model input is the image resized to
+:data:`INPUT_SIZE` and normalised, by the same differentiable preprocessing
+(:func:`undream.victims.preprocess.preprocess_images`) that the victim
+adapters apply at attack time. The preprocessing is written as the folder's
+``preprocessor_config.json``.
+
+Training is seeded: the initial weights, the batch order and the
+augmentations come from ``TrainConfig.seed`` (same seed, data, thread count
+and library versions → same weights).
+"""
+from __future__ import annotations
+
+import json
+import math
+import platform
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from undream.errors import VictimError
+from undream.victims.dataset import CLASSES, Dataset, load_dataset
+from undream.victims.preprocess import PreprocessConfig, preprocess_images
+
+INPUT_SIZE = 64  # model input width = height in pixels (the renders' own size)
+MEAN = (0.485, 0.456, 0.406)  # the usual ImageNet statistics, kept for familiarity
+STD = (0.229, 0.224, 0.225)
+RESNET_ARCH: dict[str, Any] = {"embedding_size": 32, "hidden_sizes": [32, 64, 128, 256],
+                               "depths": [1, 1, 1, 1], "layer_type": "basic"}
+DETR_ARCH: dict[str, Any] = {"num_queries": 1, "d_model": 128,  # one query: see above "encoder_layers": 1,
+                             "decoder_layers": 2, "encoder_attention_heads": 4,
+                             "decoder_attention_heads": 4, "encoder_ffn_dim": 256,
+                             "decoder_ffn_dim": 256, "auxiliary_loss": True}
+DEFAULTS: dict[str, dict[str, Any]] = {
+    "classification": {"epochs": 30, "lr": 2e-3, "weight_decay": 5e-4, "batch_size": 64},
+    "detection": {"epochs": 40, "lr": 4e-4, "weight_decay": 1e-4, "batch_size": 32},
+}
+BACKBONE_LR_FACTOR = 0.1  # detector backbone (from the classifier) learns 10x slower
+TRAINING_FILE = "training.json"
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """How to train. ``None`` fields take the task's :data:`DEFAULTS`.
+
+    backbone: for detection, a trained classifier folder whose ResNet starts
+    the detector's backbone (recommended; without it the backbone starts
+    random and DETR keeps its stem frozen).
+    """
+
+    task: str
+    seed: int = 0
+    epochs: int | None = None
+    lr: float | None = None
+    batch_size: int | None = None
+    backbone: Path | None = None
+    threads: int | None = None
+    input_size: int = INPUT_SIZE
+
+    def __post_init__(self) -> None:
+        if self.task not in DEFAULTS:
+            raise VictimError(f"train.task: must be one of {', '.join(DEFAULTS)}, got {self.task!r}")
+
+    def get(self, name: str) -> Any:
+        value = getattr(self, name)
+        return DEFAULTS[self.task][name] if value is None else value
+
+
+def preprocess_config(size: int = INPUT_SIZE) -> PreprocessConfig:
+    """Resize to ``size``×``size`` (bilinear) and normalise with :data:`MEAN`, :data:`STD`."""
+    return PreprocessConfig(size=(size, size), mean=MEAN, std=STD)
+
+
+def processor_json(task: str, size: int = INPUT_SIZE) -> dict[str, Any]:
+    """The ``preprocessor_config.json`` of a bundled model (Hugging Face keys)."""
+    d: dict[str, Any] = {
+        "image_processor_type": "DetrImageProcessor" if task == "detection" else "ViTImageProcessor",
+        "do_resize": True, "size": {"height": size, "width": size}, "resample": 2,
+        "do_rescale": True, "rescale_factor": 1 / 255, "do_normalize": True,
+        "image_mean": list(MEAN), "image_std": list(STD)}
+    if task == "detection":
+        d.update(do_pad=False, format="coco_detection")
+    return d
+
+
+# --------------------------------------------------------------------------- models
+
+def _label_maps() -> dict[str, Any]:
+    return {"num_labels": len(CLASSES), "id2label": dict(enumerate(CLASSES)),
+            "label2id": {c: i for i, c in enumerate(CLASSES)}}
+
+
+def build_classifier() -> torch.nn.Module:
+    """A fresh ResNet classifier over :data:`CLASSES` (random weights)."""
+    from transformers import ResNetConfig, ResNetForImageClassification
+    return ResNetForImageClassification(ResNetConfig(**RESNET_ARCH, **_label_maps()))
+
+
+def build_detector(backbone: Path | None = None) -> torch.nn.Module:
+    """A fresh DETR over :data:`CLASSES`; its backbone copied from the classifier
+    folder ``backbone`` when given (same :data:`RESNET_ARCH`)."""
+    from transformers import DetrConfig, DetrForObjectDetection, ResNetConfig
+    bb = ResNetConfig(**RESNET_ARCH, out_features=["stage4"])
+    model = DetrForObjectDetection(DetrConfig(backbone_config=bb, **DETR_ARCH, **_label_maps()))
+    if backbone is not None:
+        _copy_backbone(Path(backbone), model)
+    # DETR means to train all but the backbone's stem and first stage, but matches timm's
+    # parameter names ("stage.1"), so a transformers ResNet would stay frozen whole: say it here.
+    for name, p in model.model.backbone.model.named_parameters():  # type: ignore[union-attr]
+        p.requires_grad_(not name.startswith(("embedder.", "encoder.stages.0.")))
+    return model
+
+
+def _copy_backbone(folder: Path, detr: torch.nn.Module) -> None:
+    from transformers import ResNetForImageClassification
+    try:
+        cls = ResNetForImageClassification.from_pretrained(str(folder), local_files_only=True)
+    except (OSError, ValueError) as err:
+        raise VictimError(f"train.backbone: {folder} is not a saved ResNet classifier ({err})") from None
+    src = {k[len("resnet."):]: v for k, v in cls.state_dict().items() if k.startswith("resnet.")}
+    dst = detr.model.backbone.model  # type: ignore[union-attr]
+    own = dst.state_dict()
+    missing = [k for k in own if k not in src and not k.endswith("num_batches_tracked")]
+    shape = [k for k in own if k in src and own[k].shape != src[k].shape]
+    if missing or shape:
+        raise VictimError(f"train.backbone: {folder} does not fit the detector's backbone "
+                          f"(missing {missing[:3]}, wrong shape {shape[:3]})")
+    dst.load_state_dict({k: src[k] for k in own if k in src}, strict=False)
+
+
+# --------------------------------------------------------------------------- augmentation
+
+def augment(images: torch.Tensor, boxes: torch.Tensor, gen: torch.Generator,
+            max_shift: int = 6) -> tuple[torch.Tensor, torch.Tensor]:
+    """Random flip, shift, colour jitter and noise of ``B×3×H×W`` sRGB [0, 1] images.
+
+    ``boxes`` ``B×4`` xyxy pixels follow the flip and the shift (clipped to
+    the image). Returns new tensors.
+    """
+    b, _, h, w = images.shape
+    x, bx = images.clone(), boxes.clone()
+    flip = torch.rand(b, generator=gen) < 0.5
+    x[flip] = x[flip].flip(-1)
+    bx[flip] = torch.stack([w - boxes[flip, 2], boxes[flip, 1], w - boxes[flip, 0], boxes[flip, 3]], 1)
+    pad = torch.nn.functional.pad(x, (max_shift,) * 4, mode="replicate")
+    dx = torch.randint(-max_shift, max_shift + 1, (b,), generator=gen)
+    dy = torch.randint(-max_shift, max_shift + 1, (b,), generator=gen)
+    for i in range(b):  # the content moves by (dx, dy)
+        x[i] = pad[i, :, max_shift - dy[i]:max_shift - dy[i] + h, max_shift - dx[i]:max_shift - dx[i] + w]
+    bx += torch.stack([dx, dy, dx, dy], 1).to(bx.dtype)
+    bx[:, 0::2] = bx[:, 0::2].clamp(0, w)
+    bx[:, 1::2] = bx[:, 1::2].clamp(0, h)
+    gain = 0.7 + 0.6 * torch.rand(b, 1, 1, 1, generator=gen)
+    grey = x.mean(1, keepdim=True)
+    sat = 0.6 + 0.8 * torch.rand(b, 1, 1, 1, generator=gen)
+    x = (grey + sat * (x - grey)) * gain
+    mean = x.mean((1, 2, 3), keepdim=True)
+    x = mean + (0.75 + 0.5 * torch.rand(b, 1, 1, 1, generator=gen)) * (x - mean)
+    x = x + 0.03 * torch.rand(b, 1, 1, 1, generator=gen) * torch.randn(x.shape, generator=gen)
+    return x.clamp(0, 1), bx
+
+
+def _tensors(ds: Dataset) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    images = torch.from_numpy(ds.images).permute(0, 3, 1, 2).contiguous()  # uint8 B×3×H×W
+    return images, torch.from_numpy(ds.labels), torch.from_numpy(ds.boxes)
+
+
+def _detr_targets(labels: torch.Tensor, boxes: torch.Tensor, h: int, w: int) -> list[dict[str, Any]]:
+    """DETR labels: one object per image, boxes normalised cxcywh."""
+    scale = torch.tensor([w, h, w, h], dtype=torch.float32)
+    xyxy = boxes / scale
+    cxcywh = torch.stack([(xyxy[:, 0] + xyxy[:, 2]) / 2, (xyxy[:, 1] + xyxy[:, 3]) / 2,
+                          xyxy[:, 2] - xyxy[:, 0], xyxy[:, 3] - xyxy[:, 1]], 1)
+    return [{"class_labels": lab[None], "boxes": box[None]} for lab, box in zip(labels, cxcywh)]
+
+
+# --------------------------------------------------------------------------- training
+
+def _schedule(total: int, warmup: int) -> Callable[[int], float]:
+    def f(step: int) -> float:
+        if step < warmup:
+            return (step + 1) / warmup
+        return 0.5 * (1 + math.cos(math.pi * (step - warmup) / max(1, total - warmup)))
+    return f
+
+
+def fit(model: torch.nn.Module, ds: Dataset, cfg: TrainConfig, log: Callable[[str], None]) -> float:
+    """Train ``model`` in place on ``ds``; returns the seconds spent."""
+    torch.manual_seed(cfg.seed)
+    gen = torch.Generator().manual_seed(cfg.seed)
+    images, labels, boxes = _tensors(ds)
+    n, (h, w) = len(labels), images.shape[-2:]
+    bs, epochs = cfg.get("batch_size"), cfg.get("epochs")
+    lr, wd = cfg.get("lr"), DEFAULTS[cfg.task]["weight_decay"]
+    detection = cfg.task == "detection"
+    if detection:
+        backbone = [p for name, p in model.named_parameters() if ".backbone." in name and p.requires_grad]
+        rest = [p for name, p in model.named_parameters() if ".backbone." not in name and p.requires_grad]
+        groups = [{"params": backbone, "lr": lr * BACKBONE_LR_FACTOR}, {"params": rest, "lr": lr}]
+    else:
+        groups = [{"params": [p for p in model.parameters() if p.requires_grad], "lr": lr}]
+    opt = torch.optim.AdamW(groups, weight_decay=wd)
+    steps = epochs * math.ceil(n / bs)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, _schedule(steps, max(1, steps // 30)))
+    pre = preprocess_config(cfg.input_size)
+    start = time.perf_counter()
+    model.train()
+    for epoch in range(epochs):
+        order = torch.randperm(n, generator=gen)
+        total, seen = 0.0, 0
+        for k in range(0, n, bs):
+            idx = order[k:k + bs]
+            x, bx = augment(images[idx].float() / 255.0, boxes[idx], gen)
+            x = preprocess_images(x, pre)
+            if detection:
+                out = model(pixel_values=x, labels=_detr_targets(labels[idx], bx, h, w))
+                loss = out.loss
+            else:
+                logits = model(pixel_values=x).logits
+                loss = torch.nn.functional.cross_entropy(logits, labels[idx], label_smoothing=0.1)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), 0.1 if detection else 5.0)
+            opt.step()
+            sched.step()
+            total += float(loss.detach()) * len(idx)
+            seen += len(idx)
+        log(f"epoch {epoch + 1}/{epochs}: loss {total / seen:.4f} "
+            f"({time.perf_counter() - start:.0f} s)")
+    model.eval()
+    return time.perf_counter() - start
+
+
+# --------------------------------------------------------------------------- evaluation
+
+def _batches(ds: Dataset, size: int):
+    for k in range(0, len(ds), size):
+        x = torch.from_numpy(ds.images[k:k + size]).permute(0, 3, 1, 2).float() / 255.0
+        yield k, x
+
+
+def _by(records: list[dict[str, Any]], ok: np.ndarray, key: Callable[[dict[str, Any]], str]
+        ) -> dict[str, float]:
+    groups: dict[str, list[bool]] = {}
+    for rec, good in zip(records, ok):
+        groups.setdefault(key(rec), []).append(bool(good))
+    return {k: float(np.mean(v)) for k, v in sorted(groups.items())}
+
+
+def evaluate(victim: Any, ds: Dataset, batch: int = 100) -> dict[str, Any]:
+    """Held-out numbers of a victim on a dataset.
+
+    Classifier: ``accuracy`` (and per class, per weather). Detector:
+    ``ap50`` = mean over classes of COCO AP at IoU 0.5 (pycocotools, every
+    query's best class and score kept, as COCO scores DETR), ``ap50_thr05``
+    (only detections scoring >= 0.5) and ``top1_correct`` (the best-scoring
+    detection has the right class and IoU >= 0.5).
+    """
+    from undream.metrics import classification_report, is_detected, per_class_ap
+
+    weather = lambda r: r["params"]["environment"]["weather"]  # noqa: E731
+    name = lambda r: r["name"]  # noqa: E731
+    out: dict[str, Any] = {"n_images": len(ds), "victim": getattr(victim, "name", "?")}
+    if victim.task == "classification":
+        preds = []
+        for _, x in _batches(ds, batch):
+            preds += victim.predict(x)
+        rep = classification_report(preds, ds.labels.tolist())
+        ok = np.array([r["correct"] for r in rep.per_frame])
+        out.update(accuracy=rep.aggregate["accuracy"], n_correct=rep.aggregate["n_correct"],
+                   per_class=_by(ds.records, ok, name), per_weather=_by(ds.records, ok, weather))
+        return out
+    preds = []
+    for _, x in _batches(ds, batch):
+        preds += victim.predict(x, threshold=0.0)
+    truths = [{"boxes": [b.tolist()], "labels": [int(y)]} for b, y in zip(ds.boxes, ds.labels)]
+    classes = list(range(len(CLASSES)))
+    aps = per_class_ap(preds, truths, 0.5, classes)
+    kept = [{"boxes": p.boxes[p.scores >= 0.5], "scores": p.scores[p.scores >= 0.5],
+             "labels": p.labels[p.scores >= 0.5]} for p in preds]
+    aps_thr = per_class_ap(kept, truths, 0.5, classes)
+    top1 = np.array([is_detected({"boxes": p.boxes[:1], "scores": p.scores[:1], "labels": p.labels[:1]},
+                                 t, int(y)) for p, t, y in zip(preds, truths, ds.labels)])
+    out.update(ap50=_mean(aps), ap50_per_class={CLASSES[c]: v for c, v in aps.items()},
+               ap50_thr05=_mean(aps_thr), top1_correct=float(top1.mean()),
+               top1_per_weather=_by(ds.records, top1, weather))
+    return out
+
+
+def _mean(aps: dict[int, float | None]) -> float:
+    vals = [v for v in aps.values() if v is not None]
+    return float(np.mean(vals)) if vals else float("nan")
+
+
+# --------------------------------------------------------------------------- the whole run
+
+def train(data: str | Path, test: str | Path, out: str | Path, cfg: TrainConfig,
+          command: str = "", log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Train on ``data``, save to ``out`` (``save_pretrained`` + preprocessor +
+    ``training.json``), reload from disk as a victim and evaluate on ``test``."""
+    from undream.victims.hf import load_hf_victim
+
+    if cfg.threads is not None:
+        torch.set_num_threads(cfg.threads)
+    train_ds, test_ds = load_dataset(data), load_dataset(test)
+    log(f"{cfg.task}: {len(train_ds)} training images, {len(test_ds)} held-out images")
+    torch.manual_seed(cfg.seed)
+    model = build_classifier() if cfg.task == "classification" else build_detector(cfg.backbone)
+    seconds = fit(model, train_ds, cfg, log)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    model.save_pretrained(str(out))
+    processor = processor_json(cfg.task, cfg.input_size)
+    (out / "preprocessor_config.json").write_text(json.dumps(processor, indent=2) + "\n", encoding="utf-8")
+    victim = load_hf_victim(str(out), task=cfg.task)
+    result = {"task": cfg.task, "command": command, "config": _jsonable(asdict(cfg)),
+              "defaults": DEFAULTS[cfg.task], "train_seconds": round(seconds, 1),
+              "threads": torch.get_num_threads(), "train_data": _about(train_ds, data),
+              "test_data": _about(test_ds, test), "test": evaluate(victim, test_ds),
+              "parameters": sum(p.numel() for p in model.parameters()),
+              "versions": _versions()}
+    (out / TRAINING_FILE).write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
+    from undream.victims.bundled import write_model_card
+    write_model_card(out)
+    return result
+
+
+def _about(ds: Dataset, folder: str | Path) -> dict[str, Any]:
+    return {"folder": str(folder), "n": len(ds), "config": ds.metadata.get("config"),
+            "mitsuba_variant": ds.metadata.get("mitsuba_variant"),
+            "command": ds.metadata.get("command")}
+
+
+def _jsonable(d: dict[str, Any]) -> dict[str, Any]:
+    return {k: (str(v) if isinstance(v, Path) else v) for k, v in d.items()}
+
+
+def _versions() -> dict[str, str]:
+    import transformers
+    return {"torch": torch.__version__, "transformers": transformers.__version__,
+            "python": platform.python_version()}
