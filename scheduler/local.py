@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from undream.engine.context import RunContext, build_context
-from undream.engine.evaluate import judge, losses, predict, quantise, render_frames
+from undream.engine.evaluate import ground_truths, judge, losses, predict, quantise, render_frames
 from scheduler.iteration import frame_job, reduce_and_step
 from undream.errors import SpecError
 from undream.render.color import linear_to_srgb, to_uint8
@@ -143,10 +143,8 @@ def _results(ctx, store, run_id, benign_preds, adv_preds, times) -> dict[str, An
     if ctx.victim.task == "classification":
         report = classification_attack_report(benign_preds, adv_preds, label, ctx.targets[0].target_label)
     else:
-        from undream.metrics import GroundTruth
-        truths = [GroundTruth.of({"boxes": [t.box] if t.box else np.zeros((0, 4)),
-                                  "labels": [label] if t.box else []}) for t in ctx.targets]
-        report = detection_attack_report(benign_preds, adv_preds, truths, label, ctx.targets[0].target_label)
+        report = detection_attack_report(benign_preds, adv_preds, ground_truths(ctx), label,
+                                         ctx.targets[0].target_label)
     iters = store.iterations(run_id)
     return {
         "run_id": run_id, "victim": ctx.config.victim, "task": ctx.victim.task, "loss_kind": ctx.config.loss,

@@ -51,9 +51,17 @@ def losses(ctx: RunContext, images: list[np.ndarray]) -> list[float]:
         return [float(ctx.victim.loss(_batch([im]), ctx.targets[i], ctx.config.loss)) for i, im in enumerate(images)]
 
 
+def ground_truths(ctx: RunContext) -> list[Any]:
+    """The object's box per frame (from its visibility mask); no box where it is unseen."""
+    from undream.metrics import GroundTruth
+
+    return [GroundTruth.of({"boxes": [t.box] if t.box else np.zeros((0, 4)),
+                            "labels": [t.label] if t.box else []}) for t in ctx.targets]
+
+
 def judge(ctx: RunContext, preds: list[Any]) -> dict[str, Any]:
     """Per-frame correctness and the overall measure: accuracy, or AP@0.5 of the object's class."""
-    from undream.metrics import GroundTruth, accuracy, average_precision, correct, is_detected
+    from undream.metrics import accuracy, average_precision, correct, is_detected
 
     label = ctx.targets[0].label
     if ctx.victim.task == "classification":
@@ -61,8 +69,7 @@ def judge(ctx: RunContext, preds: list[Any]) -> dict[str, Any]:
         rows = [{"frame": f.index, "prediction": int(p.label), "class": ctx.victim.labels[int(p.label)],
                  "correct": bool(c)} for f, p, c in zip(ctx.sequence.frames, preds, ok)]
         return {"metric": "accuracy", "value": accuracy(preds, label), "per_frame": rows}
-    truths = [GroundTruth.of({"boxes": [t.box] if t.box else np.zeros((0, 4)), "labels": [label] if t.box else []})
-              for t in ctx.targets]
+    truths = ground_truths(ctx)
     rows = [{"frame": f.index, "detected": bool(is_detected(p, gt, label)), "n_detections": int(len(p.scores))}
             for f, p, gt in zip(ctx.sequence.frames, preds, truths)]
     return {"metric": "ap50", "value": average_precision(preds, truths, label), "per_frame": rows}
