@@ -18,7 +18,6 @@ from typing import Any
 from undream.errors import VictimError
 from undream.victims.dataset import BANDS, CLASSES, WEATHER_WEIGHTS
 from undream.victims.registry import BUNDLED, bundled_path
-from undream.victims.train import DETR_ARCH, RESNET_ARCH
 
 MAX_WEIGHTS_BYTES = 10 * 1024 * 1024
 WEIGHTS_FILE = "model.safetensors"
@@ -62,23 +61,34 @@ def _fmt(v: Any) -> str:
     return "n/a" if v is None else f"{v:.3f}" if isinstance(v, float) else str(v)
 
 
-def model_card(folder: str | Path, commands: list[str] | None = None) -> str:
-    """The Markdown model card of a model folder, from its ``training.json``."""
+def _model_config(folder: Path) -> dict[str, Any]:
+    path = folder / "config.json"
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as err:
+        raise VictimError(f"{path}: cannot read the model config ({err})") from None
+
+
+def model_card(folder: str | Path, commands: list[str] | None = None, note: str = "") -> str:
+    """The Markdown model card of a model folder, from its ``training.json`` (see
+    :func:`write_model_card`)."""
     folder = Path(folder)
     rec = training_record(folder)
     task, test = rec["task"], rec["test"]
     size = weights_bytes(folder)
     tr, te = rec["train_data"], rec["test_data"]
+    config = _model_config(folder)  # the architecture as saved, not as the code says today
     if task == "classification":
+        r = config
         title = "bundled:classifier — ResNet image classifier"
-        arch = (f"`transformers` `ResNetForImageClassification` ({RESNET_ARCH['layer_type']} "
-                f"blocks, depths {RESNET_ARCH['depths']}, widths {RESNET_ARCH['hidden_sizes']}, "
-                f"stem {RESNET_ARCH['embedding_size']}), trained from scratch.")
+        arch = (f"`transformers` `ResNetForImageClassification` ({r['layer_type']} "
+                f"blocks, depths {r['depths']}, widths {r['hidden_sizes']}, "
+                f"stem {r['embedding_size']}), trained from scratch.")
         numbers = [f"- **accuracy: {_fmt(test['accuracy'])}** ({test['n_correct']}/{test['n_images']})",
                    "- per class: " + ", ".join(f"{k} {_fmt(v)}" for k, v in test["per_class"].items()),
                    "- per weather: " + ", ".join(f"{k} {_fmt(v)}" for k, v in test["per_weather"].items())]
     else:
-        d = DETR_ARCH
+        d = config
         title = "bundled:detector — DETR object detector"
         arch = ("`transformers` `DetrForObjectDetection`: the classifier's ResNet as backbone "
                 "(stage 4, stride 32; frozen batch norm, stem and first stage, as DETR does), "
@@ -141,11 +151,13 @@ def model_card(folder: str | Path, commands: list[str] | None = None) -> str:
         f"- seed {cfg['seed']}, {rec['defaults']['epochs'] if cfg['epochs'] is None else cfg['epochs']} "
         f"epochs, AdamW, cosine schedule, batch {rec['defaults']['batch_size']}; augmentation: "
         "horizontal flip, ±6 px shift, brightness/saturation/contrast jitter, pixel noise",
-        f"- {rec['train_seconds'] / 60:.1f} min on {rec['threads']} CPU threads; "
+        f"- {rec['train_seconds'] / 60:.1f} min on {rec['threads']} CPU "
+        f"thread{'' if rec['threads'] == 1 else 's'}; "
         f"torch {rec['versions']['torch']}, transformers {rec['versions']['transformers']}", "",
         "## Reproduce", "",
         f"`{REPRODUCE}` runs the whole pipeline with the seeds used here; this model came from:", "",
         "```", *cmds, "```", "",
+        *([note, ""] if note else []),
         "## Limits", "",
         "- Only the six built-in assets, one object per image, 64-pixel renders of undream's "
         "own scenes: not a general-purpose model.",
@@ -163,10 +175,15 @@ def _commands(rec: dict[str, Any]) -> list[str]:
     return [c for c in cmds if c]
 
 
-def write_model_card(folder: str | Path, commands: list[str] | None = None) -> Path:
-    """Write ``MODEL_CARD.md`` into ``folder`` from its ``training.json``; returns its path."""
+def write_model_card(folder: str | Path, commands: list[str] | None = None,
+                     note: str = "") -> Path:
+    """Write ``MODEL_CARD.md`` into ``folder`` from its ``training.json``; returns its path.
+
+    ``commands`` replace the recorded ones (e.g. the same run with the
+    folder names of :data:`REPRODUCE`); ``note`` follows them.
+    """
     path = Path(folder) / CARD_FILE
-    path.write_text(model_card(folder, commands), encoding="utf-8")
+    path.write_text(model_card(folder, commands, note), encoding="utf-8")
     return path
 
 

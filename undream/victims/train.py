@@ -49,7 +49,8 @@ MEAN = (0.485, 0.456, 0.406)  # the usual ImageNet statistics, kept for familiar
 STD = (0.229, 0.224, 0.225)
 RESNET_ARCH: dict[str, Any] = {"embedding_size": 32, "hidden_sizes": [32, 64, 128, 256],
                                "depths": [1, 1, 1, 1], "layer_type": "basic"}
-DETR_ARCH: dict[str, Any] = {"num_queries": 1, "d_model": 128,  # one query: see above "encoder_layers": 1,
+# One query: see the module docstring.
+DETR_ARCH: dict[str, Any] = {"num_queries": 1, "d_model": 128, "encoder_layers": 1,
                              "decoder_layers": 2, "encoder_attention_heads": 4,
                              "decoder_attention_heads": 4, "encoder_ffn_dim": 256,
                              "decoder_ffn_dim": 256, "auxiliary_loss": True}
