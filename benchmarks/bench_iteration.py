@@ -37,7 +37,7 @@ def main(argv=None) -> None:
     from scheduler.local import initial_texture, resolve_scene
     from undream.engine.context import build_context
     from undream.engine.job import frame_seed, render_and_grad, victim_loss_and_grad
-    from undream.render.color import linear_to_srgb
+    from undream.color import linear_to_srgb
     from undream.render.frames import render_linear, srgb_encode_grad, texture_gradient
     from undream.spec.run import RunConfig
 

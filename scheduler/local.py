@@ -21,7 +21,7 @@ from undream.engine.context import RunContext, build_context
 from undream.engine.evaluate import ground_truths, judge, losses, predict, quantise, render_frames
 from scheduler.iteration import frame_job, reduce_and_step
 from undream.errors import SpecError
-from undream.render.color import linear_to_srgb, to_uint8
+from undream.color import linear_to_srgb, to_uint8
 from undream.spec.run import RunConfig
 
 log = logging.getLogger(__name__)
@@ -29,7 +29,7 @@ log = logging.getLogger(__name__)
 
 def resolve_scene(config: RunConfig, out: Path, base_dir: Path) -> Path:
     """The run's scene directory: given, or initialised from a spec file into ``out/scene``."""
-    from undream.scene.init import InitOptions, init_scene
+    from undream.scenedir.init import InitOptions, init_scene
 
     src = Path(config.scene)
     if not src.is_absolute():

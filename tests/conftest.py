@@ -16,14 +16,14 @@ EXAMPLES = sorted((ROOT / "examples").glob("*.yaml")) + sorted((ROOT / "examples
 
 @pytest.fixture(scope="session")
 def mi():
-    from undream.render.variant import mitsuba
+    from undream.variant import mitsuba
     return mitsuba()
 
 
 @pytest.fixture(scope="session")
 def example_scenes(tmp_path_factory, mi) -> dict[str, Path]:
     """Every example in examples/, initialised with 16-spp verification renders."""
-    from undream.scene.init import InitOptions, init_scene
+    from undream.scenedir.init import InitOptions, init_scene
 
     base = tmp_path_factory.mktemp("examples")
     return {p.stem: init_scene(p, base / p.stem, InitOptions(verify_spp=16)) for p in EXAMPLES}

@@ -47,7 +47,7 @@ def built(request: pytest.FixtureRequest) -> tuple[str, Mesh]:
 @pytest.fixture(scope="module")
 def mi():  # noqa: ANN201 - the mitsuba module
     pytest.importorskip("mitsuba")
-    from undream.render.variant import mitsuba
+    from undream.variant import mitsuba
     return mitsuba()
 
 

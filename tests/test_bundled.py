@@ -73,7 +73,7 @@ def test_other_seed_other_dataset(tiny, tmp_path):
 
 
 def test_dataset_restores_the_mitsuba_variant(tmp_path):
-    from undream.render.variant import mitsuba
+    from undream.variant import mitsuba
     before = mitsuba().variant()
     make_dataset(tmp_path / "ds", DatasetConfig(n=1, seed=0, spp=1), progress=False)
     assert json.loads((tmp_path / "ds" / "metadata.json").read_text())["mitsuba_variant"] == "scalar_rgb"

@@ -12,7 +12,7 @@ from undream.engine.context import build_context
 from undream.engine.evaluate import quantise
 from undream.engine.job import FrameResult
 from scheduler.iteration import AllFramesFailed, reduce_and_step
-from undream.scene.init import InitOptions, init_scene
+from undream.scenedir.init import InitOptions, init_scene
 from undream.scene.poses import look_at
 from undream.spec import Asset, Camera, Environment, Frame, Sequence, TextureParam, Transform
 from undream.spec.run import RunConfig

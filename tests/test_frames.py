@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 
 from undream.errors import RenderError
-from undream.render.color import linear_to_srgb, srgb_to_linear
+from undream.color import linear_to_srgb, srgb_to_linear
 from undream.render.frames import (
     FrameScenes, render_linear, srgb_decode_grad, srgb_encode_grad, texture_gradient,
 )
-from undream.scene.init import InitOptions, init_scene
+from undream.scenedir.init import InitOptions, init_scene
 from undream.scene.poses import look_at
 from undream.spec import Asset, Camera, Environment, Frame, Sequence, TextureParam, Transform
 

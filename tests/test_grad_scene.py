@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from projection import barycentric
-from undream.scene.init import InitOptions, init_scene
+from undream.scenedir.init import InitOptions, init_scene
 from undream.scene.mesh import read_ply
 from undream.scene.poses import look_at
 from undream.spec import Asset, Camera, Environment, Frame, Sequence, TextureParam, Transform
@@ -44,11 +44,11 @@ def _texel_points(mesh, h: int, w: int) -> np.ndarray:
 def test_texture_gradient_is_nonzero_where_seen_and_zero_where_not(sphere_scene, mi):
     import drjit as dr
 
-    from undream.render.verify import texture_key
+    from undream.render.loading import texture_param_key
 
     scene = mi.load_file(str(sphere_scene / "frames" / "grad_0000.xml"), spp=64)
     params = mi.traverse(scene)
-    key = texture_key(params)
+    key = texture_param_key(params)
     params[key] = mi.TensorXf(np.full((*TEX_HW, 3), 0.5, np.float32))
     dr.enable_grad(params[key])
     params.update()

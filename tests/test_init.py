@@ -12,7 +12,7 @@ from PIL import Image
 from conftest import EXAMPLES
 from projection import centroid, load, visible_mask
 from undream.cli import main
-from undream.scene.init import InitOptions, init_scene
+from undream.scenedir.init import InitOptions, init_scene
 from undream.spec import load_sequence
 
 MIN_PIXELS = 12  # frames where the object covers fewer pixels say little about a centroid
@@ -78,7 +78,7 @@ def test_refuses_to_overwrite_without_force(example_scenes, tmp_path):
 
 
 def test_failure_midway_leaves_nothing(tmp_path, monkeypatch):
-    import undream.render.verify as verify
+    import undream.scenedir.verify as verify
 
     def boom(*a, **k):
         raise RuntimeError("renderer died")

@@ -20,7 +20,7 @@ from undream.errors import (
 __version__ = "0.1.0"
 
 _LAZY = {
-    "init_scene": "undream.scene.init",
+    "init_scene": "undream.scenedir.init",
     "load_victim": "undream.victims",
     "load_sequence": "undream.spec",
     "save_sequence": "undream.spec",

@@ -27,7 +27,7 @@ def main() -> None:
 @one_line_errors
 def init_cmd(spec: Path, out: Path, force: bool, verify_spp: int, scene_spp: int, progress: bool) -> None:
     """Write the scene directory of SPEC (trajectory YAML, Unreal export JSON or sequence.json)."""
-    from undream.scene.init import InitOptions, init_scene
+    from undream.scenedir.init import InitOptions, init_scene
 
     done = init_scene(spec, out, InitOptions(force=force, verify_spp=verify_spp,
                                              scene_spp=scene_spp, progress=progress))

@@ -10,7 +10,7 @@ from PIL import Image
 
 from undream.errors import VictimError
 from undream.render.frames import FrameScenes
-from undream.scene.init import frame_name
+from undream.scene.layout import frame_name
 from undream.spec import Sequence, load_sequence
 from undream.spec.run import TASK_LOSSES, RunConfig
 

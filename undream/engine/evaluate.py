@@ -9,7 +9,7 @@ from PIL import Image
 
 from undream.engine.context import RunContext
 from undream.engine.job import frame_seed
-from undream.render.color import to_uint8
+from undream.color import to_uint8
 from undream.render.frames import render_srgb
 
 EVAL_ITERATION = 10**6  # seeds of evaluation renders never coincide with the attack's

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from undream.engine.context import RunContext
-from undream.render.color import linear_to_srgb
+from undream.color import linear_to_srgb
 from undream.render.frames import render_linear, srgb_encode_grad, texture_gradient
 
 

@@ -15,9 +15,9 @@ from typing import Any
 import numpy as np
 
 from undream.errors import RenderError
-from undream.render.color import linear_to_srgb, srgb_to_linear
-from undream.render.verify import load_scene, texture_key
-from undream.scene.init import frame_name
+from undream.color import linear_to_srgb, srgb_to_linear
+from undream.render.loading import load_scene, texture_param_key
+from undream.scene.layout import frame_name
 
 
 @dataclass
@@ -31,7 +31,7 @@ class FrameScenes:
     """Per-process cache of a scene directory's ``sim`` and ``grad`` scenes."""
 
     def __init__(self, scene_dir: str | Path, mi: Any | None = None):
-        from undream.render.variant import mitsuba
+        from undream.variant import mitsuba
 
         self.dir = Path(scene_dir)
         self.mi = mi or mitsuba()
@@ -44,7 +44,7 @@ class FrameScenes:
                 raise RenderError(f"{xml}: no such frame file (is {self.dir} a scene directory?)")
             scene = load_scene(self.mi, xml, spp=1)
             params = self.mi.traverse(scene)
-            self._cache[(kind, index)] = _Loaded(scene, params, texture_key(params))
+            self._cache[(kind, index)] = _Loaded(scene, params, texture_param_key(params))
         return self._cache[(kind, index)]
 
     def _set_texture(self, loaded: _Loaded, texture_srgb: np.ndarray) -> Any:

@@ -268,7 +268,7 @@ def load_mesh_file(path: str | Path) -> Mesh:
         raise AssetError(f"{path}: unsupported mesh extension {path.suffix!r} (valid: .obj, .ply)")
     if not path.is_file():
         raise AssetError(f"{path}: file not found")
-    from undream.render.variant import mitsuba
+    from undream.variant import mitsuba
 
     mi = mitsuba()
     try:

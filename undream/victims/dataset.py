@@ -41,7 +41,7 @@ from typing import Any, Iterator
 import numpy as np
 
 from undream.errors import UndreamError
-from undream.render.color import linear_to_srgb, srgb_to_linear, to_uint8
+from undream.color import linear_to_srgb, srgb_to_linear, to_uint8
 from undream.scene.builtin import BUILTINS, builtin_mesh
 from undream.scene.mesh import write_ply
 from undream.scene.mitsuba_scene import OBJECT_ID, ScenePaths, scene_dict
@@ -347,8 +347,8 @@ def render_sample(mi: ModuleType, meshes: _Meshes, cfg: DatasetConfig, index: in
 @contextlib.contextmanager
 def _mitsuba_variant(name: str) -> Iterator[ModuleType]:
     """Mitsuba with variant ``name`` for the block; the process's own variant (the
-    one :func:`undream.render.variant.mitsuba` picks) is set again after it."""
-    from undream.render.variant import mitsuba
+    one :func:`undream.variant.mitsuba` picks) is set again after it."""
+    from undream.variant import mitsuba
 
     before = mitsuba().variant()
     mi = mitsuba(name)

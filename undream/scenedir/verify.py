@@ -8,34 +8,18 @@ from typing import Any
 import numpy as np
 from PIL import Image, ImageDraw
 
-from undream.errors import RenderError
-from undream.render.color import linear_to_srgb, to_uint8
-from undream.scene.mitsuba_scene import OBJECT_ID, ScenePaths, scene_dict
+from undream.render.loading import load_scene, texture_param_key
+from undream.color import linear_to_srgb, to_uint8
+from undream.scene.mitsuba_scene import ScenePaths, scene_dict
 from undream.scene.xml import to_mitsuba
 from undream.spec import Frame, Sequence
-
-
-def texture_key(params: Any) -> str:
-    """The ``mi.traverse`` key of the object's texture data (``object.bsdf...data``)."""
-    keys = [k for k in params.keys() if k.startswith(f"{OBJECT_ID}.") and k.endswith("reflectance.data")]
-    if len(keys) != 1:
-        raise RenderError(f"expected one texture parameter under '{OBJECT_ID}.', found {keys}")
-    return keys[0]
-
-
-def load_scene(mi: ModuleType, xml: Path, spp: int) -> Any:
-    try:
-        return mi.load_file(str(xml), spp=spp)
-    except Exception as err:
-        first = str(err).strip().splitlines()[-1] if str(err).strip() else type(err).__name__
-        raise RenderError(f"{xml}: Mitsuba could not load the scene ({first})") from None
 
 
 def render_white(mi: ModuleType, xml: Path, spp: int, seed: int = 0) -> np.ndarray:
     """Render a simulation scene with a plain white texture: H×W×3 linear RGB."""
     scene = load_scene(mi, xml, spp)
     params = mi.traverse(scene)
-    key = texture_key(params)
+    key = texture_param_key(params)
     params[key] = mi.TensorXf(np.ones(params[key].shape, dtype=np.float32))
     params.update()
     return np.array(mi.render(scene, seed=seed), dtype=np.float32)

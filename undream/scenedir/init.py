@@ -28,12 +28,11 @@ import numpy as np
 from PIL import Image
 
 from undream.errors import AssetError, SpecError
-from undream.render.color import linear_to_srgb, srgb_to_linear, to_uint8
+from undream.color import linear_to_srgb, srgb_to_linear, to_uint8
+from undream.scene.layout import frame_name
 from undream.scene.mitsuba_scene import OBJECT_ID, ScenePaths, scene_dict
 from undream.scene.xml import to_xml
 from undream.spec import Sequence, TextureParam, save_sequence
-
-FRAME_DIGITS = 4
 
 
 @dataclass(frozen=True)
@@ -44,10 +43,6 @@ class InitOptions:
     verify_spp: int = 16  # samples per pixel of the verification renders
     scene_spp: int = 64  # the default ``$spp`` written into the XML files
     progress: bool = False  # show a progress bar
-
-
-def frame_name(kind: str, index: int) -> str:
-    return f"{kind}_{index:0{FRAME_DIGITS}d}"
 
 
 def init_scene(source: str | Path | Sequence, out: str | Path, options: InitOptions = InitOptions(),
@@ -126,8 +121,8 @@ def initial_texture(tex: TextureParam, base_dir: Path | None) -> np.ndarray:
 
 def _write(seq: Sequence, meshes: dict, texture: np.ndarray, root: Path, opt: InitOptions,
            spec_text: str | None) -> None:
-    from undream.render.variant import mitsuba
-    from undream.render.verify import contact_sheet, render_mask, render_white, save_mask, save_rgb
+    from undream.variant import mitsuba
+    from undream.scenedir.verify import contact_sheet, render_mask, render_white, save_mask, save_rgb
     from undream.scene.mesh import write_ply
 
     mi = mitsuba()

@@ -1,0 +1,26 @@
+"""Loading a Mitsuba scene file and finding the adversarial texture among its parameters."""
+from __future__ import annotations
+
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+from undream.errors import RenderError
+from undream.scene.mitsuba_scene import OBJECT_ID
+
+
+def texture_param_key(params: Any) -> str:
+    """The ``mi.traverse`` key of the object's texture data (``object.bsdf...reflectance.data``)."""
+    keys = [k for k in params.keys() if k.startswith(f"{OBJECT_ID}.") and k.endswith("reflectance.data")]
+    if len(keys) != 1:
+        raise RenderError(f"expected one texture parameter under '{OBJECT_ID}.', found {keys}")
+    return keys[0]
+
+
+def load_scene(mi: ModuleType, xml: Path, spp: int) -> Any:
+    """``mi.load_file`` with errors as one :class:`RenderError` line naming the file."""
+    try:
+        return mi.load_file(str(xml), spp=spp)
+    except Exception as err:  # Mitsuba raises plain RuntimeError / ValueError
+        first = str(err).strip().splitlines()[-1] if str(err).strip() else type(err).__name__
+        raise RenderError(f"{xml}: Mitsuba could not load the scene ({first})") from None

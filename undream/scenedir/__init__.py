@@ -1,0 +1,1 @@
+"""Scene directories: writing them (``undream init``) and their verification renders."""
