@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from undream.victims.dataset import (
+from undream.training.dataset import (
     BANDS,
     CLASSES,
     DatasetConfig,
@@ -148,7 +148,7 @@ def test_load_dataset_errors(tmp_path):
 def test_cli_one_line_errors(tiny):
     from click.testing import CliRunner
 
-    from undream.victims.cli import victims
+    from undream.cli.victims import victims
     res = CliRunner().invoke(victims, ["make-dataset", "--out", str(tiny), "--n", "1"])
     assert res.exit_code == 2
     assert res.output.strip().count("\n") == 0 and "already holds a dataset" in res.output
@@ -162,7 +162,7 @@ def test_cli_one_line_errors(tiny):
 def test_augment_moves_boxes_with_the_content():
     import torch
 
-    from undream.victims.train import augment
+    from undream.training.train import augment
     x = torch.zeros(16, 3, SIZE, SIZE)
     x[:, :, 20:30, 10:25] = 1.0
     boxes = torch.tensor([[10.0, 20.0, 25.0, 30.0]]).repeat(16, 1)
@@ -175,7 +175,7 @@ def test_augment_moves_boxes_with_the_content():
 
 def test_processor_json_is_what_the_adapters_read():
     from undream.victims.preprocess import PreprocessConfig
-    from undream.victims.train import preprocess_config, processor_json
+    from undream.training.train import preprocess_config, processor_json
     for task in ("classification", "detection"):
         assert PreprocessConfig.from_hf(processor_json(task)) == preprocess_config()
 
@@ -190,7 +190,7 @@ def offline(monkeypatch):
 
 @pytest.mark.parametrize("name", ["classifier", "detector"])
 def test_bundled_files(name):
-    from undream.victims.bundled import MAX_WEIGHTS_BYTES, bundled_record, check_bundled
+    from undream.training.model_card import MAX_WEIGHTS_BYTES, bundled_record, check_bundled
     info = check_bundled(name)
     assert 0 < info["weights_bytes"] <= MAX_WEIGHTS_BYTES == 10 * 1024 * 1024
     rec = bundled_record(name)
@@ -217,7 +217,7 @@ def test_bundled_detector_offline(offline, held_out):
     from undream.metrics import is_detected
     from undream.victims import load_victim
     from undream.victims.hf import HFDetector
-    from undream.victims.train import DETR_ARCH
+    from undream.training.train import DETR_ARCH
     v = load_victim("bundled:detector")
     assert isinstance(v, HFDetector) and v.labels == list(CLASSES)
     import torch

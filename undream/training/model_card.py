@@ -1,9 +1,9 @@
-"""The bundled victims: what ships in ``undream/victims/bundled/<name>/`` and its model card.
+"""Training records and model cards of trained victims, and the checks of the bundled ones.
 
 Each folder is a Hugging Face ``save_pretrained`` checkpoint (``config.json``,
 ``model.safetensors``, ``preprocessor_config.json``) plus ``training.json``
 (the run's config, data, timings and held-out numbers, written by
-:func:`undream.victims.train.train`) and ``MODEL_CARD.md`` (made from it by
+:func:`undream.training.train.train`) and ``MODEL_CARD.md`` (made from it by
 :func:`model_card`). They load offline with
 ``undream.victims.load_victim("bundled:classifier")`` /
 ``("bundled:detector")``, through the same Hugging Face adapters as any user
@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from undream.errors import VictimError
-from undream.victims.dataset import BANDS, CLASSES, WEATHER_WEIGHTS
+from undream.training.dataset import BANDS, CLASSES, WEATHER_WEIGHTS
 from undream.victims.registry import BUNDLED, bundled_path
 
 MAX_WEIGHTS_BYTES = 10 * 1024 * 1024
@@ -99,7 +99,7 @@ def model_card(folder: str | Path, commands: list[str] | None = None, note: str 
                 "(cross-entropy, L1 and GIoU box terms, auxiliary decoder losses). One query "
                 "because every image holds one object: with six, all queries kept predicting the "
                 "same box at a hedged score and the duplicates sank AP@0.5 to 0.18 after 40 "
-                "epochs (see `undream/victims/train.py`).")
+                "epochs (see `undream/training/train.py`).")
         numbers = [f"- **AP@0.5: {_fmt(test['ap50'])}** (mean over the 6 classes of COCO AP at IoU 0.5, "
                    f"pycocotools; every query's best class and score, as COCO scores DETR)",
                    "- per class: " + ", ".join(f"{k} {_fmt(v)}" for k, v in test["ap50_per_class"].items()),
@@ -117,7 +117,7 @@ def model_card(folder: str | Path, commands: list[str] | None = None, note: str 
         "built-in assets of `undream.scene.builtin`.", "",
         "## Data", "",
         "undream's own renders (`undream victims make-dataset`, module "
-        f"`undream.victims.dataset`): {tr['config']['size']}×{tr['config']['size']} sRGB images, "
+        f"`undream.training.dataset`): {tr['config']['size']}×{tr['config']['size']} sRGB images, "
         f"{tr['config']['spp']} spp, path traced by the project's scene adapter (`volpath` in "
         "fog), each with ONE built-in object at a random yaw, with a "
         "random texture (solid, stripes, checker, smooth noise or a mix, random colours) so that "

@@ -41,7 +41,7 @@ import numpy as np
 import torch
 
 from undream.errors import VictimError
-from undream.victims.dataset import CLASSES, Dataset, load_dataset
+from undream.training.dataset import CLASSES, Dataset, load_dataset
 from undream.victims.preprocess import PreprocessConfig, preprocess_images
 
 INPUT_SIZE = 64  # model input width = height in pixels (the renders' own size)
@@ -343,7 +343,7 @@ def train(data: str | Path, test: str | Path, out: str | Path, cfg: TrainConfig,
               "parameters": sum(p.numel() for p in model.parameters()),
               "versions": _versions()}
     (out / TRAINING_FILE).write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
-    from undream.victims.bundled import write_model_card
+    from undream.training.model_card import write_model_card
     write_model_card(out)
     return result
 

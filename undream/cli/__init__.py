@@ -1,11 +1,14 @@
-"""The ``undream`` command line. Errors are mapped here: one line, non-zero exit."""
+"""The ``undream`` command line: ``init``, ``run`` and the ``victims`` group (:mod:`undream.cli.victims`).
+
+Errors are mapped at this edge (:mod:`undream.cli.errors`): one line on stderr, exit status 2.
+"""
 from __future__ import annotations
 
 from pathlib import Path
 
 import click
 
-from undream.cli_errors import one_line_errors
+from undream.cli.errors import one_line_errors
 
 
 @click.group()
@@ -57,13 +60,9 @@ def _fmt(v: float | None) -> str:
 
 
 def _register_subgroups() -> None:
-    from undream.victims.cli import victims
+    from undream.cli.victims import victims
 
     main.add_command(victims)
 
 
 _register_subgroups()
-
-
-if __name__ == "__main__":  # pragma: no cover
-    main()

@@ -1,8 +1,8 @@
 """``undream victims``: make the bundled victims' datasets, train and evaluate them.
 
-Register with ``main.add_command(victims)`` in :mod:`undream.cli`. Heavy
-imports (Mitsuba, torch, transformers) happen inside the commands. Errors
-are one line on stderr and exit status 2.
+Registered on ``undream`` by :mod:`undream.cli`; the work is in
+:mod:`undream.training`. Heavy imports (Mitsuba, torch, transformers) happen
+inside the commands. Errors are one line on stderr and exit status 2.
 """
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from typing import Any
 
 import click
 
-from undream.cli_errors import one_line_errors
+from undream.cli.errors import one_line_errors
 
 
 def _command() -> str:
@@ -45,7 +45,7 @@ def victims() -> None:
 def make_dataset_cmd(out: Path, n: int, seed: int, split: str, size: int, spp: int,
                      progress: bool) -> None:
     """Render N images of the built-in assets with their classes and boxes."""
-    from undream.victims.dataset import DatasetConfig, make_dataset
+    from undream.training.dataset import DatasetConfig, make_dataset
 
     done = make_dataset(out, DatasetConfig(n=n, seed=seed, split=split, size=size, spp=spp),
                         progress=progress, command=_command())
@@ -61,7 +61,7 @@ def make_dataset_cmd(out: Path, n: int, seed: int, split: str, size: int, spp: i
               help="Folder to write the model to (save_pretrained layout).")
 @click.option("--seed", default=0, show_default=True, type=click.IntRange(0, 2**32 - 1))
 @click.option("--epochs", default=None, type=click.IntRange(1, 10000),
-              help="Training epochs (default: the task's own, see undream.victims.train).")
+              help="Training epochs (default: the task's own, see undream.training.train).")
 @click.option("--backbone", default=None, type=click.Path(path_type=Path),
               help="Detection: start the backbone from this trained classifier folder.")
 @click.option("--threads", default=None, type=click.IntRange(1, 1024),
@@ -70,7 +70,7 @@ def make_dataset_cmd(out: Path, n: int, seed: int, split: str, size: int, spp: i
 def train_cmd(task: str, data: Path, test: Path, out: Path, seed: int, epochs: int | None,
               backbone: Path | None, threads: int | None) -> None:
     """Train a bundled-style victim on DATA and evaluate it on TEST."""
-    from undream.victims.train import TrainConfig, train
+    from undream.training.train import TrainConfig, train
 
     cfg = TrainConfig(task=task, seed=seed, epochs=epochs, backbone=backbone, threads=threads)
     result = train(data, test, out, cfg, command=_command())
@@ -88,8 +88,8 @@ def train_cmd(task: str, data: Path, test: Path, out: Path, seed: int, epochs: i
 def evaluate_cmd(victim: str, data: Path, json_out: Path | None) -> None:
     """Accuracy (classifier) or AP@0.5 (detector) of VICTIM on a dataset."""
     from undream.victims import load_victim
-    from undream.victims.dataset import load_dataset
-    from undream.victims.train import evaluate
+    from undream.training.dataset import load_dataset
+    from undream.training.train import evaluate
 
     ds = load_dataset(data)  # the cheaper check first
     result = evaluate(load_victim(victim), ds)
@@ -97,7 +97,3 @@ def evaluate_cmd(victim: str, data: Path, json_out: Path | None) -> None:
     click.echo(text)
     if json_out is not None:
         json_out.write_text(text + "\n", encoding="utf-8")
-
-
-if __name__ == "__main__":  # pragma: no cover
-    victims()
