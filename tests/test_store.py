@@ -23,7 +23,7 @@ from sqlalchemy.exc import SQLAlchemyError
 
 from undream.errors import StoreError
 from undream.store import (
-    BlobStore, Store, attack_state_key, grad_key, open_store, texture_key,
+    BlobStore, Store, attack_state_key, grad_key, open_store, texture_blob_key,
 )
 from undream.store import blobs as blobs_module
 
@@ -313,7 +313,7 @@ def test_blob_key_validation_names_the_key(tmp_path: Path, key: str):
 def test_blob_round_trip(tmp_path: Path):
     blobs = BlobStore(tmp_path)
     arr = np.arange(24, dtype=np.float64).reshape(2, 3, 4)
-    key = blobs.put_array(texture_key("r1", 12), arr)
+    key = blobs.put_array(texture_blob_key("r1", 12), arr)
     assert key == "runs/r1/texture/000012.npy" and blobs.exists(key)
     assert np.array_equal(blobs.get_array(key), arr)
     blobs.put_json(attack_state_key("r1", 12), {"m": [1, 2], "x": None})
@@ -321,7 +321,7 @@ def test_blob_round_trip(tmp_path: Path):
     with pytest.raises(StoreError, match="not strict JSON"):
         blobs.put_json("runs/r1/bad.json", {"v": float("nan")})
     with pytest.raises(StoreError, match="'runs/r2/texture/000000.npy': not found"):
-        blobs.get_array(texture_key("r2", 0))
+        blobs.get_array(texture_blob_key("r2", 0))
     assert blobs.delete_prefix("runs/r1") == 2 and not blobs.exists(key)
     assert blobs.delete_prefix("runs/r1") == 0
 

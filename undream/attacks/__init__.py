@@ -19,8 +19,8 @@ _LAZY = {
     "project_linf": "undream.attacks.base",
     "register": "undream.attacks.base",
     "apgd_checkpoints": "undream.attacks.apgd",
-    "average_frames": "undream.attacks.frames",
-    "frame_batch": "undream.attacks.frames",
+    "average_frames": "undream.attacks.minibatch",
+    "frame_batch": "undream.attacks.minibatch",
     "state_from_dict": "undream.attacks.state",
     "state_to_dict": "undream.attacks.state",
 }

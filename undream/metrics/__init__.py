@@ -21,7 +21,7 @@ from undream.metrics.detection import (
     mean_average_precision,
     per_class_ap,
 )
-from undream.metrics.frames import Detections, GroundTruth, MetricsError
+from undream.metrics.inputs import Detections, GroundTruth, MetricsError
 from undream.metrics.report import MetricsReport
 
 __all__ = [

@@ -23,7 +23,7 @@ import numpy as np
 
 from undream.metrics.classification import labels_of, true_labels_of
 from undream.metrics.detection import is_detected
-from undream.metrics.frames import GroundTruth, MetricsError, frames_of
+from undream.metrics.inputs import GroundTruth, MetricsError, frames_of
 from undream.metrics.report import MetricsReport
 
 

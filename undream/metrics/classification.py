@@ -5,7 +5,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from undream.metrics.frames import MetricsError, as_array
+from undream.metrics.inputs import MetricsError, as_array
 from undream.metrics.report import MetricsReport
 
 

@@ -23,7 +23,7 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from undream.metrics.frames import Detections, GroundTruth, MetricsError, frames_of
+from undream.metrics.inputs import Detections, GroundTruth, MetricsError, frames_of
 from undream.metrics.report import MetricsReport
 
 

@@ -9,7 +9,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from undream.metrics.frames import MetricsError
+from undream.metrics.inputs import MetricsError
 
 
 def jsonable(value: Any) -> Any:

@@ -58,7 +58,7 @@ def init_scene(source: str | Path | Sequence, out: str | Path, options: InitOpti
     seq, base_dir, spec_text = _resolve_source(source, spec_text)
     try:
         meshes = _load_meshes(seq, base_dir)
-        texture = initial_texture(seq.texture, base_dir)
+        texture = texture_from_spec(seq.texture, base_dir)
     except AssetError as err:
         raise AssetError(f"{source}: {err}" if not isinstance(source, Sequence) else str(err)) from None
     tmp = out.parent / f".{out.name}.tmp-{os.getpid()}-{time.monotonic_ns()}"
@@ -102,7 +102,7 @@ def _load_meshes(seq: Sequence, base_dir: Path | None) -> dict[str, object]:
     return out
 
 
-def initial_texture(tex: TextureParam, base_dir: Path | None) -> np.ndarray:
+def texture_from_spec(tex: TextureParam, base_dir: Path | None) -> np.ndarray:
     """The starting texture: H×W×3 float32 sRGB in [0, 1]."""
     h, w = tex.resolution
     if not isinstance(tex.init, str):

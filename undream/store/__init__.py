@@ -7,7 +7,7 @@ states) goes through it. See :mod:`undream.store.store` for the contract.
 from __future__ import annotations
 
 from undream.store.blobs import (
-    BlobStore, attack_state_key, check_key, grad_key, run_prefix, texture_key,
+    BlobStore, attack_state_key, check_key, grad_key, run_prefix, texture_blob_key,
 )
 from undream.store.db import make_engine, mask_url, open_store
 from undream.store.models import JOB_STATUSES, RUN_STATUSES
@@ -18,5 +18,5 @@ __all__ = [
     "BlobStore", "FrameGrad", "IterationSnapshot", "JOB_STATUSES", "JobSnapshot",
     "RECORD_FIELDS", "RUN_STATUSES", "RunSnapshot", "Store", "TRANSITIONS",
     "attack_state_key", "check_key", "grad_key", "make_engine", "mask_url", "open_store",
-    "run_prefix", "texture_key",
+    "run_prefix", "texture_blob_key",
 ]

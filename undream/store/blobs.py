@@ -31,7 +31,7 @@ _SEGMENT = re.compile(r"^[A-Za-z0-9_-][A-Za-z0-9._-]*$")
 _TEMP_SUFFIX = ".tmp"
 
 
-def texture_key(run_id: str, k: int) -> str:
+def texture_blob_key(run_id: str, k: int) -> str:
     """Key of texture ``k`` of a run (``k = 0`` is the starting texture)."""
     return f"runs/{run_id}/texture/{k:06d}.npy"
 

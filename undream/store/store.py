@@ -28,7 +28,7 @@ from sqlalchemy.orm import Session
 
 from undream.errors import StoreError
 from undream.store.blobs import (
-    BlobStore, attack_state_key, grad_key, run_prefix, texture_key,
+    BlobStore, attack_state_key, grad_key, run_prefix, texture_blob_key,
 )
 from undream.store.models import JOB_STATUSES, RUN_STATUSES, FrameJob, IterationRecord, Run, utcnow
 from undream.store.snapshots import (
@@ -167,7 +167,7 @@ class Store:
                              f"got {type(attack_state0).__name__}")
         run_id = str(uuid.uuid4())
         try:
-            self.blobs.put_array(texture_key(run_id, 0), texture)
+            self.blobs.put_array(texture_blob_key(run_id, 0), texture)
             if attack_state0 is not None:
                 values["attack_state_ref"] = self.blobs.put_json(attack_state_key(run_id, 0),
                                                                  dict(attack_state0))
@@ -232,7 +232,7 @@ class Store:
 
     def texture(self, run_id: str, k: int) -> np.ndarray:
         """Texture ``k`` of the run (H×W×3 sRGB, 0–1)."""
-        key = texture_key(run_id, _int("k", k, 0))
+        key = texture_blob_key(run_id, _int("k", k, 0))
         if not self.blobs.exists(key):
             raise StoreError(f"run {run_id!r}: no texture for iteration {k} (blob {key!r} missing)")
         return self.blobs.get_array(key)
@@ -240,7 +240,7 @@ class Store:
     def put_texture(self, run_id: str, k: int, texture: np.ndarray) -> None:
         """Store texture ``k`` (H×W×3 sRGB, 0–1) outside :meth:`advance` (e.g. evaluation)."""
         arr = _texture("texture", texture)
-        key = texture_key(run_id, _int("k", k, 0))
+        key = texture_blob_key(run_id, _int("k", k, 0))
         self.get_run(run_id)
         self.blobs.put_array(key, arr)
 
@@ -283,7 +283,7 @@ class Store:
                     return False
                 raise StoreError(f"run {run_id!r}: cannot advance from iteration {k}; "
                                  f"the run is at iteration {current}")
-            self.blobs.put_array(texture_key(run_id, k + 1), texture)
+            self.blobs.put_array(texture_blob_key(run_id, k + 1), texture)
             self.blobs.put_json(state_key, dict(attack_state))
             s.add(IterationRecord(run_id=run_id, k=k, **values))
         return True

@@ -1,4 +1,4 @@
-"""Expectation over frames: which frames an iteration uses, and their mean.
+"""Frame minibatches and their average: which frames an iteration uses, and the mean over them.
 
 Each iteration averages the loss and the texture gradient over its frames:
 all of them, or a minibatch drawn from the run's seed and the iteration
