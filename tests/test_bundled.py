@@ -15,7 +15,6 @@ from undream.training.dataset import (
     load_dataset,
     make_dataset,
     make_texture,
-    mask_box,
     band_index,
     banded_values,
     sample_params,
@@ -122,13 +121,6 @@ def test_textures_are_srgb_images(seed):
     tex = make_texture(texture_recipe(np.random.default_rng(seed)), 32)
     assert tex.shape == (32, 32, 3) and tex.dtype == np.float32
     assert 0.0 <= tex.min() and tex.max() <= 1.0
-
-
-def test_mask_box_known_answer():
-    m = np.zeros((8, 10), bool)
-    m[2:5, 3:7] = True
-    assert mask_box(m) == (3.0, 2.0, 7.0, 5.0)
-    assert mask_box(np.zeros((4, 4), bool)) is None
 
 
 def test_bad_config_and_refusal(tiny):

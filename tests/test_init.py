@@ -7,12 +7,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from PIL import Image
 
 from conftest import EXAMPLES
 from projection import centroid, load, visible_mask
 from undream.cli import main
 from undream.scenedir.init import InitOptions, init_scene
+from undream.scenedir.verify import mask_box, read_mask
 from undream.spec import load_sequence
 
 MIN_PIXELS = 12  # frames where the object covers fewer pixels say little about a centroid
@@ -43,7 +43,7 @@ def test_mask_centroid_agrees_with_independent_projection(example_scenes):
     for name, d in example_scenes.items():
         seq = load(d)
         for f in seq["frames"]:
-            mask = np.asarray(Image.open(d / "verify" / f"mask_{f['index']:04d}.png")) > 127
+            mask = read_mask(d, f["index"])
             expect = visible_mask(d, f, seq)
             assert (mask.sum() >= MIN_PIXELS) == (expect.sum() >= MIN_PIXELS) or abs(
                 int(mask.sum()) - int(expect.sum())) < 6, f"{name} frame {f['index']}"
@@ -53,6 +53,21 @@ def test_mask_centroid_agrees_with_independent_projection(example_scenes):
             assert err <= 1.5, f"{name} frame {f['index']}: mask centroid off by {err:.2f} px"
             checked += 1
     assert checked >= 30
+
+
+def test_mask_box_known_answer():
+    m = np.zeros((8, 10), bool)
+    m[2:5, 3:7] = True
+    assert mask_box(m) == (3.0, 2.0, 7.0, 5.0)
+    assert mask_box(np.zeros((4, 4), bool)) is None
+
+
+def test_mask_box_of_a_saved_mask(example_scenes):
+    d = next(iter(example_scenes.values()))
+    index = load_sequence(d / "sequence.json").frames[0].index
+    mask = read_mask(d, index)
+    x0, y0, x1, y1 = mask_box(mask)
+    assert mask[int(y0):int(y1), int(x0):int(x1)].sum() == mask.sum() > 0
 
 
 def test_every_xml_loads(example_scenes, mi):

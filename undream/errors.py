@@ -42,6 +42,11 @@ class StoreError(UndreamError):
     """The run store could not be read or written."""
 
 
+def already_exists(path: object) -> SpecError:
+    """The error for an output ``path`` that exists and is replaced only on request (``--force``)."""
+    return SpecError(f"{path}: already exists (use --force to replace it)")
+
+
 def where(path: str | None, field: str | None) -> str:
     """Format the 'file: field' prefix used in error messages."""
     parts = [p for p in (path, field) if p]

@@ -55,16 +55,7 @@ from undream.bridge.unreal import (
     ue_transform,
 )
 from undream.errors import BridgeError, SpecError
-from undream.spec import (
-    ActorPose,
-    Asset,
-    Camera,
-    Environment,
-    Frame,
-    Sequence,
-    TextureParam,
-    Transform,
-)
+from undream.spec import ActorPose, Asset, Camera, Environment, Frame, Sequence, TextureParam, Transform
 from undream.spec import _check
 from undream.spec.model import BUILTIN_PREFIX
 

@@ -9,6 +9,7 @@ from pathlib import Path
 import click
 
 from undream.cli.errors import one_line_errors
+from undream.cli.options import force_option, out_option, progress_option, spp_option
 
 
 @click.group()
@@ -19,14 +20,11 @@ def main() -> None:
 
 @main.command("init")
 @click.argument("spec", type=click.Path(path_type=Path))
-@click.option("--out", "out", required=True, type=click.Path(path_type=Path),
-              help="Scene directory to write.")
-@click.option("--force", is_flag=True, help="Replace OUT if it exists.")
-@click.option("--verify-spp", default=16, show_default=True, type=click.IntRange(1, 4096),
-              help="Samples per pixel of the verification renders.")
-@click.option("--scene-spp", default=64, show_default=True, type=click.IntRange(1, 65536),
-              help="Default samples per pixel written into the scene XML files.")
-@click.option("--progress/--no-progress", default=True, help="Show a progress bar.")
+@out_option("Scene directory to write.")
+@force_option
+@spp_option("--verify-spp", 16, "Samples per pixel of the verification renders.")
+@spp_option("--scene-spp", 64, "Default samples per pixel written into the scene XML files.", most=65536)
+@progress_option
 @one_line_errors
 def init_cmd(spec: Path, out: Path, force: bool, verify_spp: int, scene_spp: int, progress: bool) -> None:
     """Write the scene directory of SPEC (trajectory YAML, Unreal export JSON or sequence.json)."""
@@ -39,9 +37,9 @@ def init_cmd(spec: Path, out: Path, force: bool, verify_spp: int, scene_spp: int
 
 @main.command("run")
 @click.argument("run_yaml", type=click.Path(path_type=Path))
-@click.option("--out", "out", required=True, type=click.Path(path_type=Path), help="Output directory.")
-@click.option("--force", is_flag=True, help="Replace OUT if it exists.")
-@click.option("--progress/--no-progress", default=True, help="Show a progress bar.")
+@out_option("Output directory.")
+@force_option
+@progress_option
 @one_line_errors
 def run_cmd(run_yaml: Path, out: Path, force: bool, progress: bool) -> None:
     """Run the attack of RUN_YAML in this process (embedded defaults: Mitsuba, SQLite)."""

@@ -14,6 +14,7 @@ from typing import Any
 import click
 
 from undream.cli.errors import one_line_errors
+from undream.cli.options import out_option, progress_option, seed_option, spp_option
 
 
 def _command() -> str:
@@ -30,17 +31,15 @@ def victims() -> None:
 
 
 @victims.command("make-dataset")
-@click.option("--out", "out", required=True, type=click.Path(path_type=Path),
-              help="Folder to write (images/, labels.jsonl, metadata.json).")
+@out_option("Folder to write (images/, labels.jsonl, metadata.json).")
 @click.option("--n", "n", required=True, type=click.IntRange(1, 10**6), help="Number of images.")
-@click.option("--seed", default=0, show_default=True, type=click.IntRange(0, 2**32 - 1))
+@seed_option
 @click.option("--split", default="train", show_default=True, type=click.Choice(["train", "test"]),
               help="Which disjoint set of environments and camera poses to draw from.")
 @click.option("--size", default=64, show_default=True, type=click.IntRange(16, 1024),
               help="Image width and height in pixels.")
-@click.option("--spp", default=16, show_default=True, type=click.IntRange(1, 4096),
-              help="Samples per pixel.")
-@click.option("--progress/--no-progress", default=True, help="Show a progress bar.")
+@spp_option("--spp", 16, "Samples per pixel.")
+@progress_option
 @one_line_errors
 def make_dataset_cmd(out: Path, n: int, seed: int, split: str, size: int, spp: int,
                      progress: bool) -> None:
@@ -57,9 +56,8 @@ def make_dataset_cmd(out: Path, n: int, seed: int, split: str, size: int, spp: i
 @click.option("--data", required=True, type=click.Path(path_type=Path), help="Training dataset.")
 @click.option("--test", "test", required=True, type=click.Path(path_type=Path),
               help="Held-out dataset, evaluated after training.")
-@click.option("--out", "out", required=True, type=click.Path(path_type=Path),
-              help="Folder to write the model to (save_pretrained layout).")
-@click.option("--seed", default=0, show_default=True, type=click.IntRange(0, 2**32 - 1))
+@out_option("Folder to write the model to (save_pretrained layout).")
+@seed_option
 @click.option("--epochs", default=None, type=click.IntRange(1, 10000),
               help="Training epochs (default: the task's own, see undream.training.train).")
 @click.option("--backbone", default=None, type=click.Path(path_type=Path),

@@ -7,13 +7,11 @@
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
-
-import yaml
 
 from undream.errors import SpecError, UndreamError
 from undream.spec import Sequence, load_sequence
+from undream.spec.io import read_json, read_yaml
 
 UNREAL_FORMAT = "undream-unreal-export"
 
@@ -28,10 +26,7 @@ def sequence_from_file(path: str | Path) -> Sequence:
         return _from_yaml(path)
     if suffix != ".json":
         raise SpecError(f"{path}: unknown spec type {suffix!r} (valid: .yaml, .yml, .json)")
-    try:
-        data = json.loads(path.read_text())
-    except json.JSONDecodeError as err:
-        raise SpecError(f"{path}: not valid JSON ({err.msg} at line {err.lineno})") from None
+    data = read_json(path)
     if isinstance(data, dict) and data.get("format") == UNREAL_FORMAT:
         from undream.bridge.unreal_import import sequence_from_unreal
         return sequence_from_unreal(path)
@@ -41,12 +36,7 @@ def sequence_from_file(path: str | Path) -> Sequence:
 def _from_yaml(path: Path) -> Sequence:
     from undream.scene.trajectory import sequence_from_trajectory
 
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as err:
-        mark = getattr(err, "problem_mark", None)
-        line = f" at line {mark.line + 1}" if mark is not None else ""
-        raise SpecError(f"{path}: not valid YAML{line}") from None
+    data = read_yaml(path)
     try:
         return sequence_from_trajectory(data, base_dir=path.parent)
     except UndreamError as err:

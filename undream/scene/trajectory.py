@@ -28,16 +28,7 @@ from scipy.spatial.transform import Rotation, RotationSpline
 
 from undream.errors import SpecError
 from undream.scene import poses
-from undream.spec import (
-    ActorPose,
-    Asset,
-    Camera,
-    Environment,
-    Frame,
-    Sequence,
-    TextureParam,
-    Transform,
-)
+from undream.spec import ActorPose, Asset, Camera, Environment, Frame, Sequence, TextureParam, Transform
 from undream.spec import _check as c
 
 PATH_TYPES = ("static", "orbit", "dolly", "drive_by", "flyover", "keyframes")

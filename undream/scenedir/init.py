@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import json
 import os
-import platform
 import shutil
 import time
 from dataclasses import dataclass
@@ -27,9 +26,10 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from undream.errors import AssetError, SpecError
 from undream.color import linear_to_srgb, srgb_to_linear, to_uint8
-from undream.scene.layout import frame_name
+from undream.errors import AssetError, SpecError, already_exists
+from undream.progress import progress
+from undream.scene.layout import frame_name, frame_xml, mask_png
 from undream.scene.mitsuba_scene import OBJECT_ID, ScenePaths, scene_dict
 from undream.scene.xml import to_xml
 from undream.spec import Sequence, TextureParam, save_sequence
@@ -75,7 +75,7 @@ def init_scene(source: str | Path | Sequence, out: str | Path, options: InitOpti
 
 def _check_target(out: Path, force: bool) -> None:
     if out.exists() and not force:
-        raise SpecError(f"{out}: already exists (use --force to replace it)")
+        raise already_exists(out)
     if out.exists() and not out.is_dir():
         raise SpecError(f"{out}: exists and is not a directory")
 
@@ -137,31 +137,21 @@ def _write(seq: Sequence, meshes: dict, texture: np.ndarray, root: Path, opt: In
     rel = ScenePaths("..")
     defaults = {"spp": opt.scene_spp}
     tiles = []
-    for frame in _progress(seq.frames, opt.progress):
+    for frame in progress(seq.frames, "init frames", "frame", opt.progress):
         for kind in ("sim", "grad"):
-            xml = to_xml(scene_dict(seq, frame, rel, kind), defaults)
-            (root / "frames" / f"{frame_name(kind, frame.index)}.xml").write_text(xml)
-        white = render_white(mi, root / "frames" / f"{frame_name('sim', frame.index)}.xml", opt.verify_spp)
+            frame_xml(root, kind, frame.index).write_text(to_xml(scene_dict(seq, frame, rel, kind), defaults))
+        white = render_white(mi, frame_xml(root, "sim", frame.index), opt.verify_spp)
         mask = render_mask(mi, seq, frame, root, opt.verify_spp)
         save_rgb(white, root / "verify" / f"{frame_name('white', frame.index)}.png")
-        save_mask(mask, root / "verify" / f"{frame_name('mask', frame.index)}.png")
+        save_mask(mask, mask_png(root, frame.index))
         tiles.append((f"frame {frame.index}", to_uint8(linear_to_srgb(white)), mask))
     contact_sheet(tiles, root / "verify" / "contact_sheet.png")
     _write_metadata(seq, root, opt, spec_text, mi)
 
 
-def _progress(frames, enabled: bool):
-    if not enabled:
-        return frames
-    from tqdm import tqdm
-    return tqdm(frames, desc="init frames", unit="frame")
-
-
 def _write_metadata(seq: Sequence, root: Path, opt: InitOptions, spec_text: str | None, mi) -> None:
-    import drjit
-    import scipy
-
     from undream import __version__
+    from undream.versions import versions
 
     meta = {
         "undream": __version__, "created_unix": time.time(), "seed": seq.seed, "source": seq.source,
@@ -169,8 +159,7 @@ def _write_metadata(seq: Sequence, root: Path, opt: InitOptions, spec_text: str 
         "texture": {"name": seq.texture.name, "file": f"textures/{seq.texture.name}.exr",
                     "space": "linear (raw)", "srgb_preview": f"textures/{seq.texture.name}.png"},
         "verify_spp": opt.verify_spp, "scene_spp": opt.scene_spp, "variant": mi.variant(),
-        "versions": {"python": platform.python_version(), "numpy": np.__version__,
-                     "scipy": scipy.__version__, "mitsuba": mi.__version__, "drjit": drjit.__version__},
+        "versions": versions(mi),
     }
     (root / "metadata.json").write_text(json.dumps(meta, indent=1) + "\n")
 

@@ -1,4 +1,9 @@
-"""Verification renders of a scene directory: white-texture frames and visibility masks."""
+"""Verification renders of a scene directory: white-texture frames and visibility masks.
+
+A mask is the object's visible pixels in one frame (H×W bool, coverage > 0.5
+behind every occluder), saved as ``verify/mask_NNNN.png`` (0 or 255) and read
+back by :func:`read_mask`; :func:`mask_box` is the object's box in it.
+"""
 from __future__ import annotations
 
 from pathlib import Path
@@ -8,8 +13,9 @@ from typing import Any
 import numpy as np
 from PIL import Image, ImageDraw
 
-from undream.render.loading import load_scene, texture_param_key
 from undream.color import linear_to_srgb, to_uint8
+from undream.render.loading import load_scene, texture_param_key
+from undream.scene.layout import mask_png
 from undream.scene.mitsuba_scene import ScenePaths, scene_dict
 from undream.scene.xml import to_mitsuba
 from undream.spec import Frame, Sequence
@@ -39,6 +45,19 @@ def save_rgb(linear: np.ndarray, path: Path) -> None:
 
 def save_mask(mask: np.ndarray, path: Path) -> None:
     Image.fromarray((mask.astype(np.uint8) * 255)).save(path)
+
+
+def read_mask(scene_dir: str | Path, index: int) -> np.ndarray:
+    """Frame ``index``'s mask (H×W bool) from ``scene_dir/verify/mask_NNNN.png``."""
+    return np.asarray(Image.open(mask_png(scene_dir, index))) > 127
+
+
+def mask_box(mask: np.ndarray) -> tuple[float, float, float, float] | None:
+    """``(x0, y0, x1, y1)`` pixel box (edges, x1/y1 exclusive) of a boolean H×W mask, or None."""
+    rows, cols = np.nonzero(mask)
+    if rows.size == 0:
+        return None
+    return float(cols.min()), float(rows.min()), float(cols.max() + 1), float(rows.max() + 1)
 
 
 def contact_sheet(tiles: list[tuple[str, np.ndarray, np.ndarray]], path: Path, columns: int = 4) -> None:

@@ -1,22 +1,49 @@
-"""Reading and writing the canonical ``sequence.json``."""
+"""Reading spec files (JSON, YAML) and writing the canonical ``sequence.json``.
+
+Errors are one :class:`~undream.errors.SpecError` line naming the file (and
+the line of a syntax error), whichever reader finds them.
+"""
 from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 from undream.errors import SpecError
 from undream.spec.model import Sequence
 
 
-def load_sequence(path: str | Path) -> Sequence:
-    """Parse a canonical ``sequence.json``; errors name the file and the field."""
+def _text(path: Path) -> str:
+    if not path.is_file():
+        raise SpecError(f"{path}: file not found")
+    return path.read_text()
+
+
+def read_json(path: str | Path) -> Any:
+    """The parsed content of a JSON file."""
     path = Path(path)
     try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise SpecError(f"{path}: file not found") from None
+        return json.loads(_text(path))
     except json.JSONDecodeError as err:
         raise SpecError(f"{path}: not valid JSON ({err.msg} at line {err.lineno})") from None
+
+
+def read_yaml(path: str | Path) -> Any:
+    """The parsed content of a YAML file (``yaml.safe_load``)."""
+    import yaml
+
+    path = Path(path)
+    try:
+        return yaml.safe_load(_text(path))
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        line = f" at line {mark.line + 1}" if mark is not None else ""
+        raise SpecError(f"{path}: not valid YAML{line}") from None
+
+
+def load_sequence(path: str | Path) -> Sequence:
+    """Parse a canonical ``sequence.json``; errors name the file and the field."""
+    data = read_json(path)
     try:
         return Sequence.from_json(data)
     except SpecError as err:

@@ -10,8 +10,8 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from undream.errors import SpecError
-
 from undream.spec import _check as c
+from undream.spec.io import read_yaml
 
 TASK_LOSSES = {"classification": ("ce", "targeted_ce", "dlr"), "detection": ("vanish", "mislabel", "box")}
 ALL_LOSSES = tuple(k for kinds in TASK_LOSSES.values() for k in kinds)
@@ -82,16 +82,8 @@ class RunConfig:
 
 def load_run_config(path: str | Path) -> RunConfig:
     """Parse ``RUN.yaml``; errors name the file and the field."""
-    import yaml
-
     path = Path(path)
-    if not path.is_file():
-        raise SpecError(f"{path}: file not found")
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as err:
-        mark = getattr(err, "problem_mark", None)
-        raise SpecError(f"{path}: not valid YAML" + (f" at line {mark.line + 1}" if mark else "")) from None
+    data = read_yaml(path)
     try:
         config = RunConfig.from_json(data)
     except SpecError as err:

@@ -21,7 +21,7 @@ Output of :func:`make_dataset` (sRGB PNGs, 8 bit)::
 
     OUT/images/00000.png ...
     OUT/labels.jsonl      one JSON object per image (see :func:`render_sample`)
-    OUT/metadata.json     the config, classes, split rules, variant, undream version, command
+    OUT/metadata.json     the config, classes, split rules, variant, versions, command
 
 Reproducible: sample ``i`` of ``(seed, split)`` depends on those three only
 (its generator is ``default_rng([seed, split_id, i])``), so a dataset can be
@@ -40,15 +40,18 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from undream.errors import UndreamError
 from undream.color import linear_to_srgb, srgb_to_linear, to_uint8
+from undream.errors import UndreamError
+from undream.progress import progress as progress_bar
 from undream.scene.builtin import BUILTINS, builtin_mesh
 from undream.scene.mesh import write_ply
 from undream.scene.mitsuba_scene import OBJECT_ID, ScenePaths, scene_dict
 from undream.scene.poses import look_at, object_pose, yaw_rotation
 from undream.scene.xml import to_mitsuba
+from undream.scenedir.verify import mask_box
 from undream.spec import Asset, Camera, Environment, Frame, Sequence, TextureParam, Transform
 from undream.spec.model import BACKGROUNDS
+from undream.versions import versions
 
 CLASSES: tuple[str, ...] = tuple(sorted(BUILTINS))
 SPLITS = ("train", "test")
@@ -298,14 +301,6 @@ def _scene(mi: ModuleType, seq: Sequence, paths: ScenePaths, kind: str, spp: int
     return mi.load_dict(d)
 
 
-def mask_box(mask: np.ndarray) -> tuple[float, float, float, float] | None:
-    """``(x0, y0, x1, y1)`` pixel box (edges, x1/y1 exclusive) of a boolean H×W mask, or None."""
-    rows, cols = np.nonzero(mask)
-    if rows.size == 0:
-        return None
-    return float(cols.min()), float(rows.min()), float(cols.max() + 1), float(rows.max() + 1)
-
-
 def render_sample(mi: ModuleType, meshes: _Meshes, cfg: DatasetConfig, index: int
                   ) -> tuple[np.ndarray, dict[str, Any]]:
     """Render sample ``index``: the H×W×3 uint8 sRGB image and its label record.
@@ -371,7 +366,6 @@ def make_dataset(out: str | Path, cfg: DatasetConfig, progress: bool = True,
     metadata.
     """
     from PIL import Image
-    from tqdm import tqdm
 
     out = Path(out)
     if (out / LABELS_FILE).exists():
@@ -381,7 +375,7 @@ def make_dataset(out: str | Path, cfg: DatasetConfig, progress: bool = True,
     with tempfile.TemporaryDirectory(prefix="undream-meshes-") as tmp, \
             _mitsuba_variant(variant) as mi, open(partial, "w", encoding="utf-8") as fh:
         meshes = _Meshes(Path(tmp))
-        for i in tqdm(range(cfg.n), desc=f"render {cfg.split}", disable=not progress):
+        for i in progress_bar(range(cfg.n), f"render {cfg.split}", "image", progress):
             image, rec = render_sample(mi, meshes, cfg, i)
             Image.fromarray(image).save(out / rec["file"])
             fh.write(json.dumps(rec) + "\n")
@@ -390,17 +384,9 @@ def make_dataset(out: str | Path, cfg: DatasetConfig, progress: bool = True,
             "bands": {k: list(v) for k, v in BANDS.items()},
             "band_rule": "band k = floor((value - low) / width); even k: train, odd k: test",
             "weather_weights": WEATHER_WEIGHTS, "mitsuba_variant": variant,
-            "undream_version": _version(), "command": command}
+            "versions": versions(), "command": command}
     (out / METADATA_FILE).write_text(json.dumps(meta, indent=2) + "\n", encoding="utf-8")
     return out
-
-
-def _version() -> str:
-    from importlib.metadata import PackageNotFoundError, version
-    try:
-        return version("undream")
-    except PackageNotFoundError:
-        return "unknown (not installed)"
 
 
 @dataclass(frozen=True)

@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import json
 import math
-import platform
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -41,6 +40,7 @@ import numpy as np
 import torch
 
 from undream.errors import VictimError
+from undream.versions import versions
 from undream.training.dataset import CLASSES, Dataset, load_dataset
 from undream.victims.preprocess import PreprocessConfig, preprocess_images
 
@@ -341,7 +341,7 @@ def train(data: str | Path, test: str | Path, out: str | Path, cfg: TrainConfig,
               "threads": torch.get_num_threads(), "train_data": _about(train_ds, data),
               "test_data": _about(test_ds, test), "test": evaluate(victim, test_ds),
               "parameters": sum(p.numel() for p in model.parameters()),
-              "versions": _versions()}
+              "versions": versions()}
     (out / TRAINING_FILE).write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
     from undream.training.model_card import write_model_card
     write_model_card(out)
@@ -357,8 +357,3 @@ def _about(ds: Dataset, folder: str | Path) -> dict[str, Any]:
 def _jsonable(d: dict[str, Any]) -> dict[str, Any]:
     return {k: (str(v) if isinstance(v, Path) else v) for k, v in d.items()}
 
-
-def _versions() -> dict[str, str]:
-    import transformers
-    return {"torch": torch.__version__, "transformers": transformers.__version__,
-            "python": platform.python_version()}

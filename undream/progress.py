@@ -1,0 +1,17 @@
+"""One progress bar for every long loop (``tqdm``, imported on first use)."""
+from __future__ import annotations
+
+from typing import Any, Iterable
+
+
+def progress(items: Iterable[Any] | int, desc: str, unit: str = "it", enabled: bool = True) -> Any:
+    """A ``tqdm`` bar over ``items``, or over ``items`` steps when it is an int
+    (advance it with ``.update(1)``, finish with ``.close()``).
+
+    Disabled, it shows nothing and still iterates, updates and closes.
+    """
+    from tqdm import tqdm
+
+    if isinstance(items, int):
+        return tqdm(total=items, desc=desc, unit=unit, disable=not enabled)
+    return tqdm(items, desc=desc, unit=unit, disable=not enabled)
