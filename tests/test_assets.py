@@ -219,8 +219,17 @@ def test_ply_round_trip_exact(built: tuple[str, Mesh], tmp_path: Path) -> None:
     path = write_ply(m, tmp_path / f"{name}.ply")
     assert read_ply(path) == m
     header = path.read_bytes().split(b"end_header\n")[0].decode()
-    assert "property float u\nproperty float v\n" in header
+    assert "property float s\nproperty float t\n" in header  # Mitsuba's names for UVs
     assert "format binary_little_endian 1.0" in header
+
+
+def test_read_ply_reads_u_v_names_too(tmp_path: Path) -> None:
+    m = builtin_mesh("sphere")
+    path = write_ply(m, tmp_path / "st.ply")
+    uv = path.read_bytes().replace(b"property float s\nproperty float t\n",
+                                   b"property float u\nproperty float v\n", 1)
+    (tmp_path / "uv.ply").write_bytes(uv)
+    assert read_ply(tmp_path / "uv.ply") == m
 
 
 def test_ply_round_trip_without_normals(tmp_path: Path) -> None:

@@ -14,7 +14,9 @@ Conventions (Mitsuba's, verified against Mitsuba 3.9.1):
   and :func:`load_mesh_file` returns the flipped values the renderer uses.
   PLY texcoords are used as stored (no flip).
 
-Only numpy is imported here; :func:`load_mesh_file` imports Mitsuba lazily.
+Only numpy is imported here; :func:`write_ply` (Mitsuba's own PLY writer) and
+:func:`load_mesh_file` (Mitsuba's loaders) import Mitsuba lazily. :func:`read_ply`
+stays plain numpy so that tests check what was written independently of Mitsuba.
 """
 from __future__ import annotations
 
@@ -30,7 +32,7 @@ from undream.errors import AssetError
 MESH_SUFFIXES = (".obj", ".ply")
 _PLY_POS = ("x", "y", "z")
 _PLY_NRM = ("nx", "ny", "nz")
-_PLY_UV = ("u", "v")  # Mitsuba's PLY loader also accepts s/t and texture_u/texture_v
+_PLY_UVS = (("s", "t"), ("u", "v"))  # Mitsuba writes s/t; its loader also reads u/v, texture_u/v
 
 
 def _array(name: str, value: object, dtype: type, cols: int) -> np.ndarray:
@@ -166,32 +168,28 @@ def uv_to_texel(uv: np.ndarray, height: int, width: int) -> np.ndarray:
 
 # --- PLY -------------------------------------------------------------------------------------
 
-def _ply_header(mesh: Mesh) -> bytes:
-    props = _PLY_POS + (_PLY_NRM if mesh.normals is not None else ()) + _PLY_UV
-    lines = ["ply", "format binary_little_endian 1.0", "comment undream mesh",
-             f"element vertex {mesh.n_vertices}", *(f"property float {p}" for p in props),
-             f"element face {mesh.n_faces}", "property list uchar int vertex_indices",
-             "end_header"]
-    return ("\n".join(lines) + "\n").encode("ascii")
-
-
 def write_ply(mesh: Mesh, path: str | Path) -> Path:
-    """Write ``mesh`` as binary little-endian PLY that Mitsuba's ``ply`` plugin reads.
+    """Write ``mesh`` as PLY with Mitsuba's own writer (``mi.Mesh.write_ply``); returns the path.
 
-    Vertex properties ``x y z [nx ny nz] u v`` (float32; normals only when the
-    mesh has them), faces ``list uchar int vertex_indices``. UVs are written
-    as stored (Mitsuba does not flip PLY texcoords). Returns the path.
+    Binary little-endian; vertex properties ``x y z [nx ny nz] s t`` (float32;
+    normals only when the mesh has them), faces ``list uchar int
+    vertex_indices``. UVs are written as stored (Mitsuba does not flip PLY
+    texcoords). Uses the process's Mitsuba variant (see :mod:`undream.variant`).
     """
+    from undream.variant import mitsuba
+
     path = Path(path)
-    cols = [mesh.vertices] + ([mesh.normals] if mesh.normals is not None else []) + [mesh.uvs]
-    vdata = np.concatenate(cols, axis=1).astype("<f4")
-    fdata = np.empty(mesh.n_faces, dtype=[("n", "u1"), ("i", "<i4", (3,))])
-    fdata["n"] = 3
-    fdata["i"] = mesh.faces
-    with open(path, "wb") as fh:
-        fh.write(_ply_header(mesh))
-        fh.write(vdata.tobytes())
-        fh.write(fdata.tobytes())
+    mi = mitsuba()
+    shape = mi.Mesh("mesh", mesh.n_vertices, mesh.n_faces, has_vertex_normals=mesh.normals is not None,
+                    has_vertex_texcoords=True)
+    params = mi.traverse(shape)
+    buffers = {"vertex_positions": mesh.vertices, "faces": mesh.faces.astype(np.uint32),
+               "vertex_texcoords": mesh.uvs, "vertex_normals": mesh.normals}
+    for key, array in buffers.items():
+        if array is not None:
+            params[key] = type(params[key])(array.ravel())  # the variant's own buffer type
+    params.update()
+    shape.write_ply(str(path))
     return path
 
 
@@ -201,7 +199,7 @@ def _parse_ply_header(path: Path, blob: bytes) -> tuple[list[str], int, int, int
         raise AssetError(f"{path}: not a PLY file (missing 'ply' magic or 'end_header')")
     lines = blob[:end].decode("ascii", "replace").splitlines()
     if "format binary_little_endian 1.0" not in lines:
-        raise AssetError(f"{path}: read_ply only reads binary_little_endian PLY files written by write_ply")
+        raise AssetError(f"{path}: read_ply only reads binary_little_endian PLY files such as write_ply writes")
     props: list[str] = []
     counts = {"vertex": -1, "face": -1}
     element = ""
@@ -219,7 +217,9 @@ def _parse_ply_header(path: Path, blob: bytes) -> tuple[list[str], int, int, int
 def read_ply(path: str | Path) -> Mesh:
     """Read a PLY written by :func:`write_ply` back into an identical :class:`Mesh`.
 
-    Pure numpy (no Mitsuba), so independent code can check what was written.
+    Pure numpy (no Mitsuba), so independent code can check what was written;
+    it reads binary little-endian float vertices ``x y z [nx ny nz]`` followed
+    by ``s t`` or ``u v``, and triangle faces.
     """
     path = Path(path)
     if not path.is_file():
@@ -227,9 +227,9 @@ def read_ply(path: str | Path) -> Mesh:
     blob = path.read_bytes()
     props, nv, nf, start = _parse_ply_header(path, blob)
     has_n = all(p in props for p in _PLY_NRM)
-    want = list(_PLY_POS + (_PLY_NRM if has_n else ()) + _PLY_UV)
-    if props != want or nv < 0 or nf < 0:
-        raise AssetError(f"{path}: expected vertex properties {' '.join(want)}, got {' '.join(props)}")
+    wanted = [list(_PLY_POS + (_PLY_NRM if has_n else ()) + uv) for uv in _PLY_UVS]
+    if props not in wanted or nv < 0 or nf < 0:
+        raise AssetError(f"{path}: expected vertex properties {' '.join(wanted[0])}, got {' '.join(props)}")
     vbytes, fdt = nv * len(props) * 4, np.dtype([("n", "u1"), ("i", "<i4", (3,))])
     if len(blob) != start + vbytes + nf * fdt.itemsize:
         raise AssetError(f"{path}: truncated or not triangles only (size {len(blob)} bytes)")
