@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from PIL import Image
 
 from conftest import EXAMPLES
 from projection import centroid, load, visible_mask
@@ -102,3 +103,15 @@ def test_failure_midway_leaves_nothing(tmp_path, monkeypatch):
     with pytest.raises(RuntimeError):
         init_scene(EXAMPLES[0], tmp_path / "scene", InitOptions(verify_spp=1))
     assert list(tmp_path.iterdir()) == []
+
+
+def test_texture_resolution_is_width_height(tmp_path):
+    from undream.scenedir.init import texture_from_spec
+    from undream.spec import TextureParam
+
+    tex = TextureParam(resolution=(8, 4), init=(0.2, 0.4, 0.6))
+    assert tex.shape == (4, 8, 3)
+    assert texture_from_spec(tex, None).shape == (4, 8, 3)
+    Image.new("RGB", (3, 5), (255, 0, 0)).save(tmp_path / "red.png")
+    img = texture_from_spec(TextureParam(resolution=(8, 4), init="red.png"), tmp_path)
+    assert img.shape == (4, 8, 3) and np.allclose(img, [1.0, 0.0, 0.0])

@@ -103,15 +103,18 @@ def _load_meshes(seq: Sequence, base_dir: Path | None) -> dict[str, object]:
 
 
 def texture_from_spec(tex: TextureParam, base_dir: Path | None) -> np.ndarray:
-    """The starting texture: H×W×3 float32 sRGB in [0, 1]."""
-    h, w = tex.resolution
+    """The starting texture of ``tex``: H×W×3 float32 sRGB in [0, 1] (``tex.shape``).
+
+    A colour fills it; an image file (relative to ``base_dir``) is resized to
+    ``tex.resolution`` (width, height), bilinearly.
+    """
     if not isinstance(tex.init, str):
-        return np.broadcast_to(np.array(tex.init, np.float32), (h, w, 3)).copy()
+        return np.broadcast_to(np.array(tex.init, np.float32), tex.shape).copy()
     path = Path(tex.init)
     if not path.is_absolute() and base_dir is not None:
         path = base_dir / path
     try:
-        img = Image.open(path).convert("RGB").resize((w, h), Image.BILINEAR)
+        img = Image.open(path).convert("RGB").resize(tex.resolution, Image.BILINEAR)
     except FileNotFoundError:
         raise AssetError(f"{path}: texture file not found (asset.texture.init)") from None
     except OSError as err:

@@ -81,10 +81,15 @@ class Transform:
 
 @dataclass(frozen=True)
 class TextureParam:
-    """The adversarial texture: H×W×3 sRGB in [0, 1], repeated ``uv_scale`` times."""
+    """The adversarial texture: sRGB in [0, 1], repeated ``uv_scale`` times.
+
+    ``resolution`` is (width, height) in texels, the order of
+    :attr:`Camera.resolution` and of image files; the texture array is
+    ``height×width×3`` (:attr:`shape`).
+    """
 
     name: str = "adv_texture"
-    resolution: tuple[int, int] = (256, 256)  # (height, width) in texels
+    resolution: tuple[int, int] = (256, 256)  # (width, height) in texels
     uv_scale: tuple[float, float] = (1.0, 1.0)  # repeats along u and v
     init: Any = (0.5, 0.5, 0.5)  # an sRGB colour, or the path of an image file
 
@@ -100,6 +105,11 @@ class TextureParam:
                 raise c.fail("init", self.init, "must be an sRGB colour or an image path")
         else:
             object.__setattr__(self, "init", c.color("init", self.init))
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """The texture array's shape: (height, width, 3)."""
+        return (self.resolution[1], self.resolution[0], 3)
 
     def to_json(self) -> dict[str, Any]:
         init = self.init if isinstance(self.init, str) else list(self.init)
