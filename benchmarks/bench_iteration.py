@@ -34,11 +34,11 @@ def _parse(argv=None) -> argparse.Namespace:
 
 def main(argv=None) -> None:
     args = _parse(argv)
-    from scheduler.local import initial_texture, resolve_scene
+    from scheduler.local import resolve_scene, starting_texture
     from undream.engine.context import build_context
     from undream.engine.job import frame_seed, render_and_grad, victim_loss_and_grad
     from undream.color import linear_to_srgb
-    from undream.render.frames import render_linear, srgb_encode_grad, texture_gradient
+    from undream.render.differentiable import render_linear, srgb_encode_grad, texture_gradient
     from undream.spec.run import RunConfig
 
     tmp = Path(tempfile.mkdtemp(prefix="undream-bench-"))
@@ -46,7 +46,7 @@ def main(argv=None) -> None:
                     grad_spp=args.grad_spp, attack={"name": "pgd", "eps": 16, "steps": args.iterations})
     scene_dir = resolve_scene(cfg, tmp, Path.cwd())
     ctx = build_context(cfg, scene_dir)
-    tex = initial_texture(ctx)
+    tex = starting_texture(ctx)
     n = len(ctx.sequence.frames)
     for pos in range(n):  # compile every frame's kernels once (not timed)
         render_and_grad(ctx, pos, tex, 0)

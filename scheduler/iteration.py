@@ -9,16 +9,21 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from undream.errors import AttackError, UndreamError
 
+if TYPE_CHECKING:
+    from undream.attacks.base import Attack
+    from undream.engine.context import RunContext
+    from undream.store import Store
+
 log = logging.getLogger(__name__)
 
 
-def frame_job(store: Any, ctx: Any, run_id: str, k: int, position: int) -> dict[str, Any]:
+def frame_job(store: Store, ctx: RunContext, run_id: str, k: int, position: int) -> dict[str, Any]:
     """Render-and-grad frame ``position`` of iteration ``k`` with the stored texture; store the result.
 
     Returns the job's small JSON summary (the gradient goes to the blob store).
@@ -39,7 +44,7 @@ class AllFramesFailed(UndreamError):
     """Every frame of an iteration produced a non-finite gradient or loss."""
 
 
-def reduce_and_step(store: Any, attack: Any, run_id: str, k: int) -> bool:
+def reduce_and_step(store: Store, attack: Attack, run_id: str, k: int) -> bool:
     """Average iteration ``k``'s finite frame gradients, step the attack, advance the run to ``k + 1``.
 
     Frames with a NaN/Inf gradient or loss are dropped with a warning and

@@ -2,8 +2,8 @@
 
 Each iteration plans its frames, runs the per-frame job for each (the farm's
 chord header) and then reduce-and-step (the chord's callback). State lives in
-the store, so the farm only wraps :func:`undream.engine.job.render_and_grad`
-and :func:`undream.engine.step.reduce_and_step` in Celery tasks.
+the store, so the farm only wraps :func:`scheduler.iteration.frame_job` and
+:func:`scheduler.iteration.reduce_and_step` in Celery tasks.
 """
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ from undream.engine.context import RunContext, build_context
 from undream.engine.evaluate import ground_truths, judge, losses, predict, quantise, render_frames
 from scheduler.iteration import frame_job, reduce_and_step
 from undream.errors import SpecError
-from undream.color import linear_to_srgb, to_uint8
+from undream.color import to_uint8
 from undream.spec.run import RunConfig
 
 log = logging.getLogger(__name__)
@@ -41,16 +41,16 @@ def resolve_scene(config: RunConfig, out: Path, base_dir: Path) -> Path:
     return init_scene(src, out / "scene", InitOptions(force=True))
 
 
-def initial_texture(ctx: RunContext) -> np.ndarray:
-    """The scene's starting texture, sRGB H×W×3 float32 (from the exact float EXR)."""
-    name = ctx.sequence.texture.name
-    linear = np.array(ctx.scenes.mi.Bitmap(str(ctx.scene_dir / "textures" / f"{name}.exr")), dtype=np.float32)
-    return linear_to_srgb(linear)
+def starting_texture(ctx: RunContext) -> np.ndarray:
+    """The scene directory's texture, the attack's T0: sRGB H×W×3 float32 (from the exact float EXR)."""
+    from undream.render.loading import read_texture_srgb
+
+    return read_texture_srgb(ctx.scenes.mi, ctx.scene_dir / "textures" / f"{ctx.sequence.texture.name}.exr")
 
 
 def visibility(ctx: RunContext, texture: np.ndarray) -> np.ndarray:
     """Texels some frame sees (H×W bool): a gradient pass seeded with a white image gradient."""
-    from undream.render.frames import texture_gradient
+    from undream.render.differentiable import texture_gradient
 
     seen = np.zeros(texture.shape[:2], dtype=bool)
     for f in ctx.sequence.frames:
@@ -79,7 +79,7 @@ def run_local(config: RunConfig, out: str | Path, base_dir: Path | None = None, 
     scene_dir = resolve_scene(config, out, base_dir or Path.cwd())
     ctx = build_context(config, scene_dir)
     store = open_store(config.store, out / "store")
-    T0 = initial_texture(ctx)
+    T0 = starting_texture(ctx)
     visible = visibility(ctx, T0) if ctx.attack.config.random_start else np.zeros(T0.shape[:2], bool)
     if ctx.attack.config.random_start:
         from PIL import Image
@@ -188,9 +188,8 @@ def _loss_plot(values: list[float], path: Path, config: RunConfig) -> None:
 
 
 def _versions(ctx: RunContext) -> dict[str, str]:
-    import drjit
     import torch
 
     from undream import __version__
     return {"undream": __version__, "python": platform.python_version(), "torch": torch.__version__,
-            "mitsuba": ctx.scenes.mi.__version__, "drjit": drjit.__version__, "variant": ctx.scenes.mi.variant()}
+            "simulator": ctx.sim.name, **ctx.sim.versions()}

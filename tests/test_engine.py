@@ -41,7 +41,7 @@ def scene_dir(tmp_path_factory, mi):
     frames = tuple(Frame(i, Camera(Transform.from_rows(look_at([1.6 * np.sin(a), 1.2, 2.4 * np.cos(a)], [0, 0.5, 0])),
                                    40.0, (24, 24)), Transform.identity(), Environment("cloudy", 12.0))
                    for i, a in enumerate([0.0, 0.5, 1.0]))
-    seq = Sequence("eng", Asset("ball", "builtin:sphere", texture=TextureParam(resolution=(8, 16))), frames)
+    seq = Sequence("eng", Asset("ball", "builtin:sphere", texture=TextureParam(resolution=(16, 8))), frames)
     return init_scene(seq, tmp_path_factory.mktemp("eng") / "scene", InitOptions(verify_spp=1))
 
 

@@ -19,7 +19,7 @@ TEX_HW = (16, 32)
 @pytest.fixture(scope="module")
 def sphere_scene(tmp_path_factory, mi):
     cam = Camera(Transform.from_rows(look_at(CAM, CENTRE)), 40.0, (32, 32))
-    seq = Sequence("grad", Asset("ball", "builtin:sphere", texture=TextureParam(resolution=TEX_HW)),
+    seq = Sequence("grad", Asset("ball", "builtin:sphere", texture=TextureParam(resolution=TEX_HW[::-1])),
                    (Frame(0, cam, Transform.identity(), Environment("cloudy", 12.0)),))
     return init_scene(seq, tmp_path_factory.mktemp("grad") / "scene", InitOptions(verify_spp=1))
 

@@ -3,29 +3,39 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from PIL import Image
 
 from undream.errors import VictimError
-from undream.render.frames import FrameScenes
-from undream.scene.layout import frame_name
+from undream.render.scene_cache import SceneCache
+from undream.scene.layout import mask_png
+from undream.sim import SimulatorBackend, make_backend
 from undream.spec import Sequence, load_sequence
 from undream.spec.run import TASK_LOSSES, RunConfig
+
+if TYPE_CHECKING:
+    from undream.attacks.base import Attack
+    from undream.victims import Target, Victim
 
 
 @dataclass
 class RunContext:
-    """A run's scene, victim, per-frame targets and attack (one per process)."""
+    """A run's scene, simulator, victim, per-frame targets and attack (one per process).
+
+    Frames are addressed by *position* (0 … n−1 in ``sequence.frames``); a
+    frame's *index* (``Frame.index``, in its file names) may differ.
+    """
 
     config: RunConfig
     scene_dir: Path
     sequence: Sequence
-    scenes: FrameScenes
-    victim: Any
-    targets: list[Any]  # undream.victims.Target, one per frame position
-    attack: Any
+    scenes: SceneCache  # Mitsuba scenes: the gradient renders (and the simulator's, when it is Mitsuba)
+    sim: SimulatorBackend  # renders the frames the victim sees
+    victim: "Victim"
+    targets: list["Target"]  # one per frame position
+    attack: "Attack"
 
     @property
     def frame_indices(self) -> list[int]:
@@ -43,7 +53,7 @@ def class_id(victim: Any, name: str, field: str) -> int:
 
 def mask_box(scene_dir: Path, index: int) -> tuple[float, float, float, float] | None:
     """The object's box (x0, y0, x1, y1, pixels) from ``verify/mask_NNNN.png``; None if unseen."""
-    mask = np.asarray(Image.open(scene_dir / "verify" / f"{frame_name('mask', index)}.png")) > 127
+    mask = np.asarray(Image.open(mask_png(scene_dir, index))) > 127
     rows, cols = np.nonzero(mask)
     if rows.size == 0:
         return None
@@ -70,4 +80,6 @@ def build_context(config: RunConfig, scene_dir: Path) -> RunContext:
                       box=mask_box(scene_dir, f.index) if task == "detection" else None)
                for f in seq.frames]
     attack = make_attack(AttackConfig.from_dict({**config.attack, "seed": config.attack.get("seed", config.seed)}))
-    return RunContext(config, scene_dir, seq, FrameScenes(scene_dir), victim, targets, attack)
+    scenes = SceneCache(scene_dir)
+    sim = make_backend("mitsuba", scene_dir, scenes=scenes)
+    return RunContext(config, scene_dir, seq, scenes, sim, victim, targets, attack)

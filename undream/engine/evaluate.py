@@ -10,7 +10,8 @@ from PIL import Image
 from undream.engine.context import RunContext
 from undream.engine.job import frame_seed
 from undream.color import to_uint8
-from undream.render.frames import render_srgb
+from undream.color import linear_to_srgb
+from undream.scene.layout import frame_name
 
 EVAL_ITERATION = 10**6  # seeds of evaluation renders never coincide with the attack's
 
@@ -24,11 +25,11 @@ def render_frames(ctx: RunContext, texture: np.ndarray, out_dir: Path | None) ->
     """Every frame at ``eval_spp`` with ``texture`` (sRGB H×W×3); saved as PNGs when ``out_dir`` is set."""
     images = []
     for f in ctx.sequence.frames:
-        img = render_srgb(ctx.scenes, f.index, texture, ctx.config.eval_spp,
-                          frame_seed(ctx.config.seed, EVAL_ITERATION, f.index))
+        img = linear_to_srgb(ctx.sim.render(f.index, texture, ctx.config.eval_spp,
+                                            frame_seed(ctx.config.seed, EVAL_ITERATION, f.index)))
         if out_dir is not None:
             out_dir.mkdir(parents=True, exist_ok=True)
-            Image.fromarray(to_uint8(img)).save(out_dir / f"frame_{f.index:04d}.png")
+            Image.fromarray(to_uint8(img)).save(out_dir / f"{frame_name('frame', f.index)}.png")
         images.append(img)
     return images
 

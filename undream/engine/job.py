@@ -10,7 +10,7 @@ import numpy as np
 
 from undream.engine.context import RunContext
 from undream.color import linear_to_srgb
-from undream.render.frames import render_linear, srgb_encode_grad, texture_gradient
+from undream.render.differentiable import srgb_encode_grad, texture_gradient
 
 
 def frame_seed(run_seed: int, iteration: int, frame: int) -> int:
@@ -59,7 +59,7 @@ def render_and_grad(ctx: RunContext, position: int, texture: np.ndarray, iterati
     index = ctx.frame_indices[position]
     seed = frame_seed(cfg.seed, iteration, index)
     t0 = time.perf_counter()
-    linear = render_linear(ctx.scenes, index, texture, cfg.sim_spp, seed)
+    linear = ctx.sim.render(index, texture, cfg.sim_spp, seed)
     t1 = time.perf_counter()
     loss, g_image, pred = victim_loss_and_grad(ctx, position, linear_to_srgb(linear))
     t2 = time.perf_counter()

@@ -1,57 +1,23 @@
-"""Rendering a scene directory's frames with a given texture, and the texture gradient.
+"""Rendering a frame with a given texture, and the texture gradient through the frame's gradient scene.
 
 The texture handed in and out is sRGB in [0, 1] (H×W×3, what a user prints);
 the scenes hold linear reflectance, so the conversion is applied here, inside
-the differentiable path. Loaded scenes are cached per process: each frame's
-kernels compile once, and later calls only update the texture via
-``mi.traverse``.
+the differentiable path. Scenes come from a per-process
+:class:`~undream.render.scene_cache.SceneCache`. With ``scenes.frozen`` the
+forward render runs as a Dr.Jit frozen function: traced once per scene
+group, then replayed with the frame's parameters, texture and seed as inputs.
+The backward pass calls the integrator's ``render_backward`` directly (no
+primal image of the gradient scene is rendered: it was never used).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from undream.errors import RenderError
 from undream.color import linear_to_srgb, srgb_to_linear
-from undream.render.loading import load_scene, texture_param_key
-from undream.scene.layout import frame_name
-
-
-@dataclass
-class _Loaded:
-    scene: Any
-    params: Any
-    key: str
-
-
-class FrameScenes:
-    """Per-process cache of a scene directory's ``sim`` and ``grad`` scenes."""
-
-    def __init__(self, scene_dir: str | Path, mi: Any | None = None):
-        from undream.variant import mitsuba
-
-        self.dir = Path(scene_dir)
-        self.mi = mi or mitsuba()
-        self._cache: dict[tuple[str, int], _Loaded] = {}
-
-    def get(self, kind: str, index: int) -> _Loaded:
-        if (kind, index) not in self._cache:
-            xml = self.dir / "frames" / f"{frame_name(kind, index)}.xml"
-            if not xml.is_file():
-                raise RenderError(f"{xml}: no such frame file (is {self.dir} a scene directory?)")
-            scene = load_scene(self.mi, xml, spp=1)
-            params = self.mi.traverse(scene)
-            self._cache[(kind, index)] = _Loaded(scene, params, texture_param_key(params))
-        return self._cache[(kind, index)]
-
-    def _set_texture(self, loaded: _Loaded, texture_srgb: np.ndarray) -> Any:
-        lin = srgb_to_linear(_check_texture(texture_srgb, loaded.params[loaded.key].shape))
-        loaded.params[loaded.key] = self.mi.TensorXf(lin)
-        loaded.params.update()
-        return loaded.params[loaded.key]
+from undream.errors import RenderError
+from undream.render.scene_cache import ActiveFrame, SceneCache
 
 
 def _check_texture(tex: np.ndarray, shape: Any) -> np.ndarray:
@@ -63,14 +29,26 @@ def _check_texture(tex: np.ndarray, shape: Any) -> np.ndarray:
     return tex
 
 
-def render_linear(scenes: FrameScenes, index: int, texture_srgb: np.ndarray, spp: int, seed: int) -> np.ndarray:
-    """The simulation render of frame ``index``: H×W×3 LINEAR radiance (unclipped)."""
-    loaded = scenes.get("sim", index)
-    scenes._set_texture(loaded, texture_srgb)
-    return np.array(scenes.mi.render(loaded.scene, spp=spp, seed=seed), dtype=np.float32)
+def _linear_texture(scenes: SceneCache, active: ActiveFrame, texture_srgb: np.ndarray) -> Any:
+    """The sRGB texture as Mitsuba's linear-reflectance tensor of ``active``'s shape."""
+    return scenes.mi.TensorXf(srgb_to_linear(_check_texture(texture_srgb, active.params[active.texture_key].shape)))
 
 
-def render_srgb(scenes: FrameScenes, index: int, texture_srgb: np.ndarray, spp: int, seed: int) -> np.ndarray:
+def render_linear(scenes: SceneCache, index: int, texture_srgb: np.ndarray, spp: int, seed: int,
+                  kind: str = "sim") -> np.ndarray:
+    """The render of frame ``index``'s ``kind`` scene (simulation by default): H×W×3 LINEAR radiance (unclipped)."""
+    mi = scenes.mi
+    active = scenes.frame(kind, index)
+    active.params[active.texture_key] = _linear_texture(scenes, active, texture_srgb)
+    active.params.update()
+    if scenes.frozen:
+        img = scenes.frozen_call(f"render/{kind}", _sim_render, active.scene, mi.UInt32(seed), spp)
+    else:
+        img = mi.render(active.scene, spp=spp, seed=seed)
+    return np.array(img, dtype=np.float32)
+
+
+def render_srgb(scenes: SceneCache, index: int, texture_srgb: np.ndarray, spp: int, seed: int) -> np.ndarray:
     """The simulation render as the camera delivers it: H×W×3 sRGB in [0, 1]."""
     return linear_to_srgb(render_linear(scenes, index, texture_srgb, spp, seed))
 
@@ -94,26 +72,40 @@ def srgb_decode_grad(texture_srgb: np.ndarray, grad_linear: np.ndarray) -> np.nd
     return (np.asarray(grad_linear, np.float32) * deriv).astype(np.float32)
 
 
-def texture_gradient(scenes: FrameScenes, index: int, texture_srgb: np.ndarray, grad_linear_image: np.ndarray,
+def texture_gradient(scenes: SceneCache, index: int, texture_srgb: np.ndarray, grad_linear_image: np.ndarray,
                      spp: int, seed: int, seed_grad: int) -> np.ndarray:
     """Mitsuba's backward pass of frame ``index``'s gradient scene, seeded with an image gradient.
 
     ``grad_linear_image`` is d(loss)/d(linear image) (H×W×3); returns
-    d(loss)/d(sRGB texture) (H×W×3). ``seed_grad`` must differ from ``seed``.
+    d(loss)/d(sRGB texture) (H×W×3). The gradient is that of the render with
+    ``seed_grad`` (what ``mi.render(..., seed, seed_grad)`` back-propagates);
+    ``seed`` only names the primal render it pairs with and must differ.
     """
     import drjit as dr
 
     if seed == seed_grad:
         raise RenderError(f"seed_grad must differ from seed (both {seed}): prb needs decorrelated samples")
-    loaded = scenes.get("grad", index)
-    tex = scenes._set_texture(loaded, texture_srgb)
+    mi = scenes.mi
+    active = scenes.frame("grad", index)
+    tex = _linear_texture(scenes, active, texture_srgb)
+    w, h = (int(v) for v in active.params["sensor.film.crop_size"])
+    g = np.ascontiguousarray(grad_linear_image, dtype=np.float32)
+    if g.shape != (h, w, 3):
+        raise RenderError(f"image gradient has shape {g.shape}, the render's is {(h, w, 3)}")
+    # Not frozen: Dr.Jit 1.5 corrupts memory when a frozen function runs a backward pass
+    # through scene parameters (seen here as "corrupted size vs. prev_size" at teardown).
     dr.enable_grad(tex)
-    loaded.params.update()
-    img = scenes.mi.render(loaded.scene, loaded.params, spp=spp, seed=seed, seed_grad=seed_grad)
-    g = scenes.mi.TensorXf(np.ascontiguousarray(grad_linear_image, dtype=np.float32))
-    if tuple(g.shape) != tuple(img.shape):
-        raise RenderError(f"image gradient has shape {tuple(g.shape)}, the render's is {tuple(img.shape)}")
-    dr.backward(img * g)
-    grad_lin = np.array(dr.grad(loaded.params[loaded.key]), dtype=np.float32)
-    dr.disable_grad(loaded.params[loaded.key])
+    active.params[active.texture_key] = tex
+    active.params.update()
+    scene = active.scene
+    scene.integrator().render_backward(scene, active.params, mi.TensorXf(g), seed=seed_grad, spp=spp)
+    grad_lin = np.array(dr.grad(tex), dtype=np.float32)
+    dr.disable_grad(tex)
     return srgb_decode_grad(texture_srgb, grad_lin)
+
+
+def _sim_render(scene: Any, seed: Any, spp: int) -> Any:
+    import mitsuba as mi
+
+    return mi.render(scene, spp=spp, seed=seed)
+

@@ -1,0 +1,60 @@
+"""Simulator backends: what renders the frame the victim sees, behind one interface.
+
+The engine asks a backend for frame ``index`` of a scene directory rendered
+with texture ``T`` (sRGB H×W×3 in [0, 1]) at ``spp`` samples with ``seed``,
+and gets back H×W×3 LINEAR radiance. The gradient always comes from Mitsuba's
+gradient scene (:mod:`undream.render.differentiable`), whatever the backend.
+Backends register by name; ``mitsuba`` is the embedded default.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable, Protocol, runtime_checkable
+
+import numpy as np
+
+from undream.errors import RenderError
+
+
+@runtime_checkable
+class SimulatorBackend(Protocol):
+    """Renders the frames of one scene directory (one instance per process and scene)."""
+
+    name: str
+
+    def render(self, index: int, texture_srgb: np.ndarray, spp: int, seed: int) -> np.ndarray:
+        """Frame ``index`` with ``texture_srgb`` (H×W×3 sRGB in [0, 1]): H×W×3 linear radiance."""
+        ...
+
+    def versions(self) -> dict[str, str]:
+        """Names and versions of what renders (for metadata.json)."""
+        ...
+
+
+BackendFactory = Callable[..., SimulatorBackend]
+_BACKENDS: dict[str, BackendFactory] = {}
+
+
+def register_backend(name: str) -> Callable[[BackendFactory], BackendFactory]:
+    """Class decorator: make a backend available to :func:`make_backend` as ``name``."""
+    def add(factory: BackendFactory) -> BackendFactory:
+        _BACKENDS[name] = factory
+        return factory
+    return add
+
+
+def backend_names() -> list[str]:
+    _load_builtin()
+    return sorted(_BACKENDS)
+
+
+def make_backend(name: str, scene_dir: str | Path, **options) -> SimulatorBackend:
+    """The backend ``name`` for the scene directory ``scene_dir``; errors name the valid choices."""
+    _load_builtin()
+    if name not in _BACKENDS:
+        raise RenderError(f"sim: unknown simulator {name!r} (one of {', '.join(sorted(_BACKENDS))})")
+    return _BACKENDS[name](Path(scene_dir), **options)
+
+
+def _load_builtin() -> None:
+    from undream.sim import mitsuba  # noqa: F401  (registers 'mitsuba')
