@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import logging
-import platform
 import shutil
 import time
 from pathlib import Path
@@ -20,9 +19,11 @@ import numpy as np
 from undream.engine.context import RunContext, build_context
 from undream.engine.evaluate import ground_truths, judge, losses, predict, quantise, render_frames
 from scheduler.iteration import frame_job, reduce_and_step
-from undream.errors import SpecError
+from undream.errors import SpecError, already_exists
 from undream.color import to_uint8
+from undream.progress import progress as progress_bar
 from undream.spec.run import RunConfig
+from undream.versions import versions
 
 log = logging.getLogger(__name__)
 
@@ -72,7 +73,7 @@ def run_local(config: RunConfig, out: str | Path, base_dir: Path | None = None, 
     out = Path(out)
     if out.exists() and any(out.iterdir()):
         if not force:
-            raise SpecError(f"{out}: already exists (use --force to replace it)")
+            raise already_exists(out)
         shutil.rmtree(out)
     out.mkdir(parents=True, exist_ok=True)
     wall0 = time.perf_counter()
@@ -96,7 +97,7 @@ def run_local(config: RunConfig, out: str | Path, base_dir: Path | None = None, 
     times["evaluation"] = time.perf_counter() - t
 
     steps = ctx.attack.config.steps
-    bar = _progress(steps, progress)
+    bar = progress_bar(steps, "attack", "it", progress)
     for k in range(steps):
         for pos in frame_batch(len(ctx.sequence.frames), ctx.attack.config.frames_per_step, k, config.seed):
             summary = frame_job(store, ctx, run_id, k, pos)
@@ -128,11 +129,6 @@ def run_local(config: RunConfig, out: str | Path, base_dir: Path | None = None, 
     store.set_status(run_id, "done")
     _write_outputs(out, ctx, T_q, results, run_id, config)
     return results
-
-
-def _progress(total: int, enabled: bool):
-    from tqdm import tqdm
-    return tqdm(total=total, desc="attack", unit="it", disable=not enabled)
 
 
 def _results(ctx, store, run_id, benign_preds, adv_preds, times) -> dict[str, Any]:
@@ -167,7 +163,7 @@ def _write_outputs(out: Path, ctx: RunContext, T_q: np.ndarray, results: dict, r
     meta = {"run_id": run_id, "config": config.to_json(), "seed": config.seed, "scene_dir": str(ctx.scene_dir),
             "texture_final": "8-bit quantised sRGB (texture_final.png); the same values as float in [0, 1] "
                              "(texture_final.npy) — what the adversarial evaluation rendered",
-            "versions": _versions(ctx)}
+            "versions": {**versions(), "simulator": ctx.sim.name, **ctx.sim.versions()}}
     (out / "metadata.json").write_text(json.dumps(meta, indent=1) + "\n")
 
 
@@ -185,11 +181,3 @@ def _loss_plot(values: list[float], path: Path, config: RunConfig) -> None:
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
-
-
-def _versions(ctx: RunContext) -> dict[str, str]:
-    import torch
-
-    from undream import __version__
-    return {"undream": __version__, "python": platform.python_version(), "torch": torch.__version__,
-            "simulator": ctx.sim.name, **ctx.sim.versions()}

@@ -5,12 +5,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
-from PIL import Image
-
 from undream.errors import VictimError
 from undream.render.scene_cache import SceneCache
-from undream.scene.layout import mask_png
+from undream.scenedir.verify import mask_box, read_mask
 from undream.sim import SimulatorBackend, make_backend
 from undream.spec import Sequence, load_sequence
 from undream.spec.run import TASK_LOSSES, RunConfig
@@ -51,15 +48,6 @@ def class_id(victim: Any, name: str, field: str) -> int:
     return labels.index(name.lower())
 
 
-def mask_box(scene_dir: Path, index: int) -> tuple[float, float, float, float] | None:
-    """The object's box (x0, y0, x1, y1, pixels) from ``verify/mask_NNNN.png``; None if unseen."""
-    mask = np.asarray(Image.open(mask_png(scene_dir, index))) > 127
-    rows, cols = np.nonzero(mask)
-    if rows.size == 0:
-        return None
-    return float(cols.min()), float(rows.min()), float(cols.max() + 1), float(rows.max() + 1)
-
-
 def build_context(config: RunConfig, scene_dir: Path) -> RunContext:
     """Load the sequence, scenes, victim and attack of a run."""
     import torch
@@ -77,7 +65,7 @@ def build_context(config: RunConfig, scene_dir: Path) -> RunContext:
     label = class_id(victim, config.label or seq.asset.builtin or seq.asset.name, "label")
     target = class_id(victim, config.target_label, "target_label") if config.target_label else None
     targets = [Target(label=label, target_label=target,
-                      box=mask_box(scene_dir, f.index) if task == "detection" else None)
+                      box=mask_box(read_mask(scene_dir, f.index)) if task == "detection" else None)
                for f in seq.frames]
     attack = make_attack(AttackConfig.from_dict({**config.attack, "seed": config.attack.get("seed", config.seed)}))
     scenes = SceneCache(scene_dir)

@@ -75,16 +75,18 @@ class SceneCache:
     ``max_loaded`` bounds the scenes kept loaded at once (least recently used
     ones are dropped and reloaded when needed again). ``frozen`` runs the
     renders as Dr.Jit frozen functions (default: on, unless the environment
-    sets ``UNDREAM_FROZEN=0``).
+    sets ``UNDREAM_FROZEN=0``). ``share=False`` gives every frame a scene of
+    its own (the engine's former behaviour, kept for benchmarks and tests).
     """
 
     def __init__(self, scene_dir: str | Path, mi: ModuleType | None = None, max_loaded: int = 4,
-                 frozen: bool | None = None):
+                 frozen: bool | None = None, share: bool = True):
         from undream.variant import mitsuba
 
         self.dir = Path(scene_dir)
         self.mi = mi or mitsuba()
         self.max_loaded = max_loaded
+        self.share = share
         self.frozen = os.environ.get("UNDREAM_FROZEN", "1") != "0" if frozen is None else frozen
         self._frozen: dict[str, Any] = {}
         self._groups: dict[tuple[str, tuple[str, int]], _Group] = {}
@@ -143,7 +145,7 @@ class SceneCache:
         xml = frame_xml(self.dir, kind, index)
         if not xml.is_file():
             raise RenderError(f"{xml}: no such frame file (is {self.dir} a scene directory?)")
-        skey = structure_key(xml.read_text())
+        skey = structure_key(xml.read_text()) if self.share else f"frame {index}"
         sub = 0
         while True:
             gkey = (kind, (skey, sub))
