@@ -5,6 +5,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from undream.engine.gradient import GradientPath
 from undream.errors import VictimError
 from undream.render.scene_cache import SceneCache
 from undream.scenedir.verify import mask_box, read_mask
@@ -33,6 +34,7 @@ class RunContext:
     victim: "Victim"
     targets: list["Target"]  # one per frame position
     attack: "Attack"
+    gradients: GradientPath  # each frame's texture gradient: captured transport or prb
 
     @property
     def frame_indices(self) -> list[int]:
@@ -70,4 +72,5 @@ def build_context(config: RunConfig, scene_dir: Path) -> RunContext:
     attack = make_attack(AttackConfig.from_dict({**config.attack, "seed": config.attack.get("seed", config.seed)}))
     scenes = SceneCache(scene_dir)
     sim = make_backend("mitsuba", scene_dir, scenes=scenes)
-    return RunContext(config, scene_dir, seq, scenes, sim, victim, targets, attack)
+    gradients = GradientPath(scenes, config.gradient, config.transport_refresh, config.seed)
+    return RunContext(config, scene_dir, seq, scenes, sim, victim, targets, attack, gradients)

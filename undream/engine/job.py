@@ -10,7 +10,7 @@ import numpy as np
 
 from undream.engine.context import RunContext
 from undream.color import linear_to_srgb
-from undream.render.differentiable import srgb_encode_grad, texture_gradient
+from undream.render.differentiable import srgb_encode_grad
 
 
 def frame_seed(run_seed: int, iteration: int, frame: int) -> int:
@@ -64,7 +64,7 @@ def render_and_grad(ctx: RunContext, position: int, texture: np.ndarray, iterati
     loss, g_image, pred = victim_loss_and_grad(ctx, position, linear_to_srgb(linear))
     t2 = time.perf_counter()
     g_linear = srgb_encode_grad(linear, g_image)
-    grad = texture_gradient(ctx.scenes, index, texture, g_linear, cfg.grad_spp, seed, seed + 1)
+    grad = ctx.gradients.texture_gradient(index, texture, g_linear, cfg.grad_spp, iteration, seed)
     t3 = time.perf_counter()
     finite = bool(np.isfinite(grad).all()) and math.isfinite(loss)
     timings = {"sim_render": t1 - t0, "victim": t2 - t1, "grad_render": t3 - t2, "total": t3 - t0}

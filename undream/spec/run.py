@@ -27,7 +27,12 @@ class RunConfig:
     the name of the built-in asset); ``target_label`` the class a targeted
     loss pushes towards. Samples per pixel: ``sim_spp`` for the simulator's
     frames during the attack, ``grad_spp`` for the gradient renders,
-    ``eval_spp`` for the benign and adversarial evaluations.
+    ``eval_spp`` for the benign and adversarial evaluations. ``gradient``:
+    ``auto`` computes each frame's texture gradient from its captured
+    texel → pixel transport where the gradient scene is linear in the
+    texture (else by Mitsuba's prb backward pass), ``transport`` requires
+    that, ``prb`` always renders; ``transport_refresh``: capture each frame
+    again with a new sample pattern every this many iterations.
     """
 
     scene: str
@@ -44,6 +49,8 @@ class RunConfig:
     device: str = "cpu"
     torch_threads: int = 1  # the victim's CPU threads; Dr.Jit renders on the rest
     store: str | None = None  # SQLAlchemy URL; default: SQLite in the output directory
+    gradient: str = "auto"  # auto | transport | prb
+    transport_refresh: int = 10
 
     def __post_init__(self) -> None:
         if not isinstance(self.scene, str) or not self.scene:
@@ -66,6 +73,8 @@ class RunConfig:
             c.integer(f, getattr(self, f), 1, 65536)
         c.integer("seed", self.seed, 0, 2**31 - 1)
         c.integer("torch_threads", self.torch_threads, 1, 1024)
+        c.choice("gradient", self.gradient, ("auto", "transport", "prb"))
+        c.integer("transport_refresh", self.transport_refresh, 1, 10**6)
         if not isinstance(self.device, str):
             raise c.fail("device", self.device, "must be a torch device string such as 'cpu'")
 

@@ -1,0 +1,103 @@
+"""The engine's choice of gradient: the transport cache where the scene is linear, prb elsewhere, refreshed."""
+from __future__ import annotations
+
+import logging
+import re
+import shutil
+
+import numpy as np
+import pytest
+
+from undream.engine.gradient import GradientPath, capture_seed
+from undream.errors import RenderError
+from undream.render.differentiable import texture_gradient
+from undream.render.scene_cache import SceneCache
+from undream.scene.layout import frame_xml
+from undream.scene.poses import look_at
+from undream.scenedir.init import InitOptions, init_scene
+from undream.spec import Asset, Camera, Environment, Frame, Sequence, TextureParam, Transform
+
+SPP = 4
+IMG = (24, 32)  # (H, W) of the frames
+
+
+@pytest.fixture(scope="module")
+def scene_dir(tmp_path_factory, mi):
+    frames = tuple(Frame(i, Camera(Transform.from_rows(look_at([0.3 + 0.4 * i, 1.0, 2.2], [0, 0.5, 0])), 35.0,
+                                   IMG[::-1]), Transform.identity(), Environment("clear", 13.0))
+                   for i in range(2))
+    seq = Sequence("gp", Asset("ball", "builtin:sphere", texture=TextureParam(resolution=(16, 8))), frames)
+    return init_scene(seq, tmp_path_factory.mktemp("gp") / "scene", InitOptions(verify_spp=1))
+
+
+@pytest.fixture(scope="module")
+def nonlinear_dir(scene_dir, tmp_path_factory):
+    """The same scene with indirect light in its gradient scenes: not linear in the texture."""
+    d = tmp_path_factory.mktemp("nl") / "scene"
+    shutil.copytree(scene_dir, d)
+    for i in range(2):
+        xml = frame_xml(d, "grad", i)
+        xml.write_text(re.sub(r'name="max_depth" value="2"', 'name="max_depth" value="3"', xml.read_text()))
+    return d
+
+
+def _inputs(seed=0):
+    rng = np.random.default_rng(seed)
+    return (rng.uniform(0.1, 0.9, (8, 16, 3)).astype(np.float32),
+            rng.normal(size=(*IMG, 3)).astype(np.float32))
+
+
+def _cos(a, b):
+    return float((a * b).sum() / (np.linalg.norm(a) * np.linalg.norm(b)))
+
+
+def test_auto_uses_the_transport_and_matches_prb_at_its_seed(scene_dir):
+    scenes = SceneCache(scene_dir)
+    path = GradientPath(scenes, "auto", refresh=5, run_seed=3)
+    tex, g = _inputs()
+    got = path.texture_gradient(1, tex, g, SPP, iteration=2, seed=99)
+    assert path.method(1) == "transport"
+    s = capture_seed(3, 1, 0)
+    ref = texture_gradient(scenes, 1, tex, g, SPP, s + 1, s)  # prb with the capture's sample pattern
+    assert _cos(got, ref) > 0.99999
+    assert np.linalg.norm(got - ref) <= 1e-5 * np.linalg.norm(ref)
+    scenes.close()
+
+
+def test_transport_is_captured_again_each_refresh(scene_dir):
+    scenes = SceneCache(scene_dir)
+    path = GradientPath(scenes, "auto", refresh=3, run_seed=0)
+    tex, g = _inputs(1)
+    grads = [path.texture_gradient(0, tex, g, SPP, iteration=k, seed=10 + k) for k in range(4)]
+    assert np.array_equal(grads[0], grads[1]) and np.array_equal(grads[1], grads[2])  # one capture, deterministic
+    assert not np.array_equal(grads[2], grads[3])  # iteration 3 starts epoch 1: a new sample pattern
+    assert _cos(grads[2], grads[3]) > 0.5  # ... of the same gradient
+    scenes.close()
+
+
+def test_prb_mode_is_the_prb_backward(scene_dir):
+    scenes = SceneCache(scene_dir)
+    path = GradientPath(scenes, "prb")
+    tex, g = _inputs(2)
+    got = path.texture_gradient(0, tex, g, SPP, iteration=0, seed=40)
+    assert path.method(0) == "prb"
+    # prb sums samples with parallel atomics: equal to float rounding, not bit for bit
+    np.testing.assert_allclose(got, texture_gradient(scenes, 0, tex, g, SPP, 40, 41), rtol=1e-4, atol=1e-7)
+    scenes.close()
+
+
+def test_a_nonlinear_scene_falls_back_to_prb_with_a_reason(nonlinear_dir, caplog):
+    scenes = SceneCache(nonlinear_dir)
+    tex, g = _inputs(3)
+    with caplog.at_level(logging.WARNING, logger="undream.engine.gradient"):
+        got = GradientPath(scenes, "auto").texture_gradient(0, tex, g, SPP, iteration=0, seed=7)
+    assert "max_depth" in caplog.text
+    np.testing.assert_allclose(got, texture_gradient(scenes, 0, tex, g, SPP, 7, 8), rtol=1e-4, atol=1e-7)
+    with pytest.raises(RenderError, match="frame 0 cannot use the transport cache.*max_depth"):
+        GradientPath(scenes, "transport").texture_gradient(0, tex, g, SPP, iteration=0, seed=7)
+    scenes.close()
+
+
+def test_bad_mode_names_the_choices(scene_dir):
+    with pytest.raises(RenderError, match="auto, transport, prb"):
+        GradientPath(SceneCache(scene_dir), "sparse")

@@ -1,0 +1,103 @@
+"""Which way a frame's texture gradient is computed: the captured transport, or Mitsuba's prb backward.
+
+``gradient: auto`` (the default) uses the transport cache
+(:mod:`undream.render.transport`) on every frame whose gradient scene is
+linear in the texture (checked once per frame by
+:func:`~undream.render.transport.check_linear`, which refuses with a reason)
+and prb elsewhere; ``transport`` requires it (a frame that is not linear is a
+:class:`RenderError` naming the reason); ``prb`` never uses it.
+
+A captured transport is exact for one sample pattern (its ``seed_grad``).
+Reusing it for ever would keep that pattern's noise in every iteration's
+gradient, so each frame is captured again with a new seed every
+``transport_refresh`` iterations (measured: one cached gradient is as close
+to a 256-spp reference as one fresh-seed prb gradient, and averaging
+gradients of 4 captures is as close as averaging 4 fresh seeds). The seed of
+a capture depends on the run's seed, the frame and the refresh epoch only,
+so a run is reproducible whichever process computes which frame.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from undream.errors import RenderError
+from undream.render.differentiable import texture_gradient
+from undream.render.scene_cache import SceneCache
+
+if TYPE_CHECKING:
+    from undream.render.transport import Transport
+
+log = logging.getLogger(__name__)
+
+MODES = ("auto", "transport", "prb")
+MAX_TRANSPORT_BYTES = 4 << 30  # beyond this, further frames use prb (logged once)
+
+
+def capture_seed(run_seed: int, index: int, epoch: int) -> int:
+    """``seed_grad`` of frame ``index``'s capture in refresh epoch ``epoch`` (never a render's own seed)."""
+    return (run_seed * 1_000_003 + epoch * 7_919 + index * 2 + 1_234_567) % (2**31 - 2) + 1
+
+
+@dataclass
+class GradientPath:
+    """Per-process: each frame's transport (captured lazily) or the reason it uses prb."""
+
+    scenes: SceneCache
+    mode: str = "auto"
+    refresh: int = 10
+    run_seed: int = 0
+    _transports: dict[int, tuple[int, "Transport"]] = field(default_factory=dict)  # index → (epoch, T)
+    _refused: dict[int, str] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise RenderError(f"gradient: must be one of {', '.join(MODES)}, got {self.mode!r}")
+
+    @property
+    def transport_bytes(self) -> int:
+        return sum(t.nbytes for _, t in self._transports.values())
+
+    def method(self, index: int) -> str:
+        """'transport' or 'prb' for frame ``index`` (decided on first use)."""
+        return "transport" if self._usable(index) else "prb"
+
+    def texture_gradient(self, index: int, texture_srgb: np.ndarray, grad_linear_image: np.ndarray,
+                         spp: int, iteration: int, seed: int) -> np.ndarray:
+        """d(loss)/d(sRGB texture) (H_t×W_t×3) of frame ``index`` from d(loss)/d(linear image) (H×W×3)."""
+        if not self._usable(index):
+            return texture_gradient(self.scenes, index, texture_srgb, grad_linear_image, spp, seed, seed + 1)
+        from undream.render.transport import capture_transport, texture_gradient_cached
+
+        epoch = iteration // self.refresh
+        held = self._transports.get(index)
+        if held is None or held[0] != epoch:
+            self._transports.pop(index, None)
+            if self.transport_bytes > MAX_TRANSPORT_BYTES:
+                self._refuse(index, f"the transport cache holds {self.transport_bytes >> 20} MiB already")
+                return self.texture_gradient(index, texture_srgb, grad_linear_image, spp, iteration, seed)
+            t = capture_transport(self.scenes, index, spp, capture_seed(self.run_seed, index, epoch))
+            self._transports[index] = held = (epoch, t)
+        return texture_gradient_cached(held[1], texture_srgb, grad_linear_image)
+
+    def _usable(self, index: int) -> bool:
+        if self.mode == "prb" or index in self._refused:
+            return False
+        if index in self._transports:
+            return True
+        from undream.render.transport import check_linear
+
+        reason = check_linear(self.scenes, index)
+        if reason is None:
+            return True
+        if self.mode == "transport":
+            raise RenderError(f"gradient: transport: frame {index} cannot use the transport cache ({reason})")
+        self._refuse(index, reason)
+        return False
+
+    def _refuse(self, index: int, reason: str) -> None:
+        self._refused[index] = reason
+        log.warning("frame %d: texture gradient by prb, not the transport cache: %s", index, reason)
