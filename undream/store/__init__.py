@@ -7,16 +7,22 @@ states) goes through it. See :mod:`undream.store.store` for the contract.
 from __future__ import annotations
 
 from undream.store.blobs import (
-    BlobStore, attack_state_key, check_key, grad_key, run_prefix, texture_blob_key,
+    BlobStore, attack_state_key, blob_root, check_key, eval_image_key, grad_key, run_prefix,
+    scene_key, texture_blob_key,
 )
+from undream.store.checks import RECORD_FIELDS
 from undream.store.db import make_engine, mask_url, open_store
-from undream.store.models import JOB_STATUSES, RUN_STATUSES
-from undream.store.snapshots import FrameGrad, IterationSnapshot, JobSnapshot, RunSnapshot
-from undream.store.store import RECORD_FIELDS, TRANSITIONS, Store
+from undream.store.jobs import UNFINISHED
+from undream.store.models import JOB_PHASES, JOB_STATUSES, RUN_STATUSES, SCHEMA_VERSION
+from undream.store.snapshots import (
+    FrameGrad, IterationSnapshot, JobSnapshot, RunSnapshot, SweepSnapshot,
+)
+from undream.store.store import ACTIVE, TRANSITIONS, Store
 
 __all__ = [
-    "BlobStore", "FrameGrad", "IterationSnapshot", "JOB_STATUSES", "JobSnapshot",
-    "RECORD_FIELDS", "RUN_STATUSES", "RunSnapshot", "Store", "TRANSITIONS",
-    "attack_state_key", "check_key", "grad_key", "make_engine", "mask_url", "open_store",
-    "run_prefix", "texture_blob_key",
+    "ACTIVE", "BlobStore", "FrameGrad", "IterationSnapshot", "JOB_PHASES", "JOB_STATUSES",
+    "JobSnapshot", "RECORD_FIELDS", "RUN_STATUSES", "RunSnapshot", "SCHEMA_VERSION", "Store",
+    "SweepSnapshot", "TRANSITIONS", "UNFINISHED", "attack_state_key", "blob_root", "check_key",
+    "eval_image_key", "grad_key", "make_engine", "mask_url", "open_store", "run_prefix",
+    "scene_key", "texture_blob_key",
 ]

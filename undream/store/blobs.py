@@ -7,7 +7,15 @@ documents ``.json`` files. The layout of one run::
 
     runs/<run_id>/texture/000012.npy         texture k=12, H×W×3 float, sRGB 0–1
     runs/<run_id>/grad/000012/0003.npy       dL/dT of frame 3 at iteration 12
-    runs/<run_id>/attack_state/000012.json   attack state after step 11 → 12
+    runs/<run_id>/attack_state/000012.json   attack state after step 11 → 12 (scalars; arrays by key)
+    runs/<run_id>/arrays/<sha256>.npy        an attack-state array (T0, visibility, ...), content-addressed
+    runs/<run_id>/final/texture.npy          the 8-bit texture the adversarial evaluation renders
+    runs/<run_id>/eval/<phase>/0003.npy      evaluation frame 3 (H×W×3 uint8 sRGB)
+    scenes/<sha256>.tar                      a packed scene directory, content-addressed
+
+The blob store is given as a URL like the database: a local folder
+(``/srv/undream/blobs`` or ``file:///srv/undream/blobs``; a shared mount on a
+cluster), see :func:`blob_root`.
 
 Every write goes to a temporary file in the key's directory, is flushed to
 disk, then renamed over the key (``os.replace``): a reader sees the old content
@@ -15,11 +23,14 @@ or the new, never a partial file, even when the writer dies mid-write.
 """
 from __future__ import annotations
 
+import hashlib
+import io
 import json
 import os
 import re
 import shutil
 import tempfile
+from urllib.parse import unquote, urlparse
 from pathlib import Path
 from typing import Any, Callable, IO
 
@@ -44,6 +55,48 @@ def grad_key(run_id: str, k: int, frame: int) -> str:
 def attack_state_key(run_id: str, k: int) -> str:
     """Key of the attack state that goes with texture ``k``."""
     return f"runs/{run_id}/attack_state/{k:06d}.json"
+
+
+def array_key(run_id: str, digest: str) -> str:
+    """Key of an attack-state array with content hash ``digest`` (see :func:`array_digest`)."""
+    return f"runs/{run_id}/arrays/{digest}.npy"
+
+
+def final_texture_key(run_id: str) -> str:
+    """Key of the texture the adversarial evaluation renders (8-bit values as float)."""
+    return f"runs/{run_id}/final/texture.npy"
+
+
+def eval_image_key(run_id: str, phase: str, frame: int) -> str:
+    """Key of evaluation frame ``frame`` of ``phase`` (``pre``: benign; ``adversarial``)."""
+    return f"runs/{run_id}/eval/{phase}/{frame:04d}.npy"
+
+
+def scene_key(digest: str) -> str:
+    """Key of a packed scene directory whose tar file has SHA-256 ``digest``."""
+    return f"scenes/{digest}.tar"
+
+
+def array_digest(array: np.ndarray) -> str:
+    """SHA-256 of an array's dtype, shape and bytes (equal arrays, equal digests)."""
+    arr = np.ascontiguousarray(array)
+    h = hashlib.sha256(f"{arr.dtype.str}{arr.shape}".encode())
+    h.update(arr.tobytes())
+    return h.hexdigest()
+
+
+def blob_root(url: str | os.PathLike[str]) -> Path:
+    """The folder of a blob-store URL: a path, or ``file:///path``; other schemes are a StoreError."""
+    text = os.fspath(url)
+    if not text:
+        raise StoreError("blob URL: must be a folder path or file:///path, got ''")
+    if "://" not in text:
+        return Path(text).expanduser()
+    parsed = urlparse(text)
+    if parsed.scheme != "file" or parsed.netloc not in ("", "localhost"):
+        raise StoreError(f"blob URL {text!r}: unsupported scheme {parsed.scheme!r}; give a folder "
+                         "(a path or file:///path; a shared mount on a cluster)")
+    return Path(unquote(parsed.path))
 
 
 def run_prefix(run_id: str) -> str:
@@ -71,6 +124,8 @@ class BlobStore:
 
     def __init__(self, root: Path | str) -> None:
         self.root = Path(root)
+        self.bytes_read = 0  # counters of array and file bytes moved by this process
+        self.bytes_written = 0
 
     def path(self, key: str) -> Path:
         """The file that holds ``key`` (which need not exist)."""
@@ -91,7 +146,9 @@ class BlobStore:
     def get_array(self, key: str) -> np.ndarray:
         check_key(key, ".npy")
         try:
-            return np.load(self.path(key), allow_pickle=False)
+            data = self.path(key).read_bytes()
+            self.bytes_read += len(data)
+            return np.load(io.BytesIO(data), allow_pickle=False)
         except FileNotFoundError:
             raise StoreError(f"blob {key!r}: not found under {self.root}") from None
         except (OSError, ValueError) as exc:
@@ -110,11 +167,28 @@ class BlobStore:
     def get_json(self, key: str) -> Any:
         check_key(key, ".json")
         try:
-            return json.loads(self.path(key).read_text(encoding="utf-8"))
+            data = self.path(key).read_bytes()
+            self.bytes_read += len(data)
+            return json.loads(data.decode("utf-8"))
         except FileNotFoundError:
             raise StoreError(f"blob {key!r}: not found under {self.root}") from None
         except (OSError, ValueError) as exc:
             raise StoreError(f"blob {key!r}: unreadable JSON file: {exc}") from exc
+
+    def put_file(self, key: str, src: Path | str) -> str:
+        """Copy the file ``src`` to ``key`` (atomically, like every write); returns the key."""
+        check_key(key)
+        with open(src, "rb") as f_in:
+            self._write(key, lambda f: shutil.copyfileobj(f_in, f, 1 << 20))
+        return key
+
+    def get_file(self, key: str) -> Path:
+        """The local file holding ``key``; StoreError when there is none."""
+        path = self.path(key)
+        if not path.is_file():
+            raise StoreError(f"blob {key!r}: not found under {self.root}")
+        self.bytes_read += path.stat().st_size
+        return path
 
     def delete_prefix(self, prefix: str) -> int:
         """Delete the blob ``prefix`` or every blob under the folder ``prefix``; returns the count."""
@@ -139,6 +213,7 @@ class BlobStore:
                 write(f)
                 f.flush()
                 os.fsync(f.fileno())
+                self.bytes_written += f.tell()
             os.replace(tmp, final)
             tmp = None
         except OSError as exc:

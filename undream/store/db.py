@@ -17,14 +17,15 @@ import re
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import Engine, create_engine, event, text
+from sqlalchemy import Engine, create_engine, event, func, inspect, insert, select, text
 from sqlalchemy.engine import URL, make_url
 from sqlalchemy.exc import ArgumentError, NoSuchModuleError, SQLAlchemyError
 from sqlalchemy.pool import StaticPool
 
 from undream.errors import StoreError
 from undream.store.blobs import BlobStore
-from undream.store.models import Base
+from undream.store.blobs import blob_root as _blob_root
+from undream.store.models import SCHEMA_VERSION, Base, SchemaVersion
 from undream.store.store import WRITE_OPTION, Store
 
 SQLITE_FILENAME = "undream.db"
@@ -95,13 +96,32 @@ def make_engine(url: str) -> Engine:
                          "install undream[postgres] for PostgreSQL") from None
 
 
+def _schema_version(conn: Any) -> int | None:
+    """The schema version of the tables there, None for an empty database (1: before versions)."""
+    names = set(inspect(conn).get_table_names())
+    if SchemaVersion.__tablename__ in names:
+        return conn.scalar(select(func.max(SchemaVersion.version)))
+    return 1 if "runs" in names else None
+
+
 def create_tables(engine: Engine, url: str) -> None:
-    """Create the store's tables if missing; StoreError naming the URL when unreachable."""
+    """Create the store's tables if missing and check their schema version.
+
+    StoreError naming the URL (password hidden) when the database is
+    unreachable, or when its tables were made by an undream with another schema.
+    """
     try:
-        with engine.begin() as conn:
+        with engine.execution_options(**{WRITE_OPTION: "BEGIN IMMEDIATE"}).begin() as conn:
             if engine.dialect.name == "postgresql":
                 conn.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": _CREATE_LOCK})
+            found = _schema_version(conn)
+            if found is not None and found != SCHEMA_VERSION:
+                raise StoreError(
+                    f"the run database at {mask_url(url)!r} has schema version {found}, this undream "
+                    f"needs version {SCHEMA_VERSION}; use a new database (no migrations yet)")
             Base.metadata.create_all(conn)
+            if found is None:
+                conn.execute(insert(SchemaVersion).values(version=SCHEMA_VERSION))
     except SQLAlchemyError as exc:
         reason = str(getattr(exc, "orig", None) or exc).strip().splitlines()[0]
         password = make_url(url).password
@@ -114,10 +134,10 @@ def open_store(url: str | None, blob_dir: Path | str) -> Store:
     """Open (creating tables and folders as needed) the run store.
 
     ``url``: database URL, or None for SQLite at ``<blob_dir>/undream.db``.
-    ``blob_dir``: folder of texture, gradient and attack-state blobs, shared by
-    every process of the farm.
+    ``blob_dir``: folder (or ``file:///`` URL) of texture, gradient and
+    attack-state blobs, shared by every process of the farm.
     """
-    blob_root = Path(blob_dir)
+    blob_root = _blob_root(blob_dir)
     try:
         blob_root.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

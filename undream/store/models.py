@@ -1,7 +1,9 @@
 """The run store's tables (SQLAlchemy 2 declarative, typed).
 
-Three tables, all owned by :class:`undream.store.Store`; nothing else writes
-them. Arrays never live here: textures, gradients and attack states are blobs
+Five tables, all owned by :class:`undream.store.Store`; nothing else writes
+them: runs, sweeps (a grid of runs), iteration records, frame jobs (every
+per-frame job of a run: the attack's render-and-gradient jobs and the
+evaluation's render-and-predict jobs) and the schema version. Arrays never live here: textures, gradients and attack states are blobs
 (:mod:`undream.store.blobs`) and rows hold their keys. JSON columns are text
 holding strict JSON (non-finite floats are written as null).
 
@@ -29,6 +31,8 @@ from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
 RUN_STATUSES = ("queued", "running", "evaluating", "done", "failed", "cancelled")
 JOB_STATUSES = ("queued", "started", "succeeded", "failed", "retried")
+JOB_PHASES = ("attack", "pre", "adversarial")  # iteration jobs; evaluation before and after the final pick
+SCHEMA_VERSION = 2  # 1: runs, iterations, frame_jobs without phases; 2: the farm (sweeps, scenes, phases)
 
 _NAMING = {
     "ix": "ix_%(column_0_label)s",
@@ -80,6 +84,30 @@ class Run(Base):
     error: Mapped[str | None] = mapped_column(Text)
     attack_state_ref: Mapped[str | None] = mapped_column(String(400))
     results_json: Mapped[str | None] = mapped_column(Text)
+    scene_ref: Mapped[str | None] = mapped_column(String(400))  # blob key of the packed scene directory
+    out_dir: Mapped[str | None] = mapped_column(Text)  # where the finish stage writes the outputs
+    sweep_id: Mapped[str | None] = mapped_column(ForeignKey("sweeps.id", ondelete="SET NULL"), index=True)
+    farm_json: Mapped[str] = mapped_column(Text, default="{}")  # scheduling options fixed at submit
+    failures: Mapped[int] = mapped_column(Integer, default=0)  # frame jobs given up on (failure budget)
+
+
+class Sweep(Base):
+    """A grid of runs submitted together (``undream sweep``)."""
+
+    __tablename__ = "sweeps"
+
+    id: Mapped[str] = mapped_column(String(36), primary_key=True)
+    name: Mapped[str] = mapped_column(String(200), index=True)
+    spec_json: Mapped[str] = mapped_column(Text)
+    created: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+
+
+class SchemaVersion(Base):
+    """One row: the schema version the tables were created with (see ``SCHEMA_VERSION``)."""
+
+    __tablename__ = "undream_schema"
+
+    version: Mapped[int] = mapped_column(Integer, primary_key=True)
 
 
 class IterationRecord(Base):
@@ -106,16 +134,25 @@ class IterationRecord(Base):
 
 
 class FrameJob(Base):
-    """One render-and-gradient job: frame ``frame`` of iteration ``k``."""
+    """One per-frame job: frame ``frame`` (a position) of iteration ``k`` in ``phase``.
+
+    ``phase`` ``attack``: the render-and-gradient job of iteration ``k``
+    (gradient blob ``grad_ref``, ``loss``, ``finite``); ``pre`` and
+    ``adversarial``: the evaluation's render-and-predict jobs (``k`` = the
+    number of steps; ``result_json`` the prediction and loss, ``image_ref`` the
+    rendered 8-bit frame).
+    """
 
     __tablename__ = "frame_jobs"
     __table_args__ = (
-        UniqueConstraint("run_id", "k", "frame"),
+        UniqueConstraint("run_id", "phase", "k", "frame"),
         CheckConstraint(_one_of("status", JOB_STATUSES), name="status"),
+        CheckConstraint(_one_of("phase", JOB_PHASES), name="phase"),
     )
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
     run_id: Mapped[str] = mapped_column(ForeignKey("runs.id", ondelete="CASCADE"))
+    phase: Mapped[str] = mapped_column(String(16), default="attack")
     k: Mapped[int] = mapped_column(Integer)
     frame: Mapped[int] = mapped_column(Integer)
     status: Mapped[str] = mapped_column(String(16), default="queued")
@@ -125,5 +162,7 @@ class FrameJob(Base):
     grad_ref: Mapped[str | None] = mapped_column(String(400))
     timings_json: Mapped[str] = mapped_column(Text, default="{}")
     error: Mapped[str | None] = mapped_column(Text)
+    result_json: Mapped[str | None] = mapped_column(Text)
+    image_ref: Mapped[str | None] = mapped_column(String(400))
     started: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
     finished: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))

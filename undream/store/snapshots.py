@@ -8,13 +8,13 @@ from __future__ import annotations
 import datetime as dt
 import json
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
 import numpy as np
 
 from undream.errors import StoreError
-from undream.store.models import FrameJob, IterationRecord, Run
+from undream.store.models import FrameJob, IterationRecord, Run, Sweep
 
 
 def finite_or_none(value: float | None) -> float | None:
@@ -73,6 +73,11 @@ class RunSnapshot:
     error: str | None
     attack_state_ref: str | None
     results: dict[str, Any] | None
+    scene_ref: str | None = None
+    out_dir: str | None = None
+    sweep_id: str | None = None
+    farm: dict[str, Any] = field(default_factory=dict)
+    failures: int = 0
 
     @classmethod
     def of(cls, row: Run) -> "RunSnapshot":
@@ -80,12 +85,32 @@ class RunSnapshot:
                    iteration=row.iteration, n_frames=row.n_frames, seed=row.seed,
                    created=_utc(row.created), updated=_utc(row.updated),  # type: ignore[arg-type]
                    error=row.error, attack_state_ref=row.attack_state_ref,
-                   results=loads(row.results_json))
+                   results=loads(row.results_json), scene_ref=row.scene_ref, out_dir=row.out_dir,
+                   sweep_id=row.sweep_id, farm=loads(row.farm_json) or {}, failures=row.failures or 0)
+
+
+@dataclass(frozen=True)
+class SweepSnapshot:
+    """A sweep: its name and spec (the base config and the grid)."""
+
+    id: str
+    name: str
+    spec: dict[str, Any]
+    created: dt.datetime
+
+    @classmethod
+    def of(cls, row: Sweep) -> "SweepSnapshot":
+        return cls(id=row.id, name=row.name, spec=loads(row.spec_json),
+                   created=_utc(row.created))  # type: ignore[arg-type]
 
 
 @dataclass(frozen=True)
 class JobSnapshot:
-    """One frame job. ``loss`` is None until it succeeds, or when not finite."""
+    """One frame job. ``loss`` is None until it succeeds, or when not finite.
+
+    ``phase``: ``attack`` (``grad_ref``, ``loss``), ``pre`` or ``adversarial``
+    (evaluation: ``result`` holds the prediction and loss, ``image_ref`` the frame).
+    """
 
     run_id: str
     k: int
@@ -99,13 +124,17 @@ class JobSnapshot:
     error: str | None
     started: dt.datetime | None
     finished: dt.datetime | None
+    phase: str = "attack"
+    result: dict[str, Any] | None = None
+    image_ref: str | None = None
 
     @classmethod
     def of(cls, row: FrameJob) -> "JobSnapshot":
         return cls(run_id=row.run_id, k=row.k, frame=row.frame, status=row.status,
                    attempts=row.attempts, loss=row.loss, finite=bool(row.finite),
                    grad_ref=row.grad_ref, timings=loads(row.timings_json) or {},
-                   error=row.error, started=_utc(row.started), finished=_utc(row.finished))
+                   error=row.error, started=_utc(row.started), finished=_utc(row.finished),
+                   phase=row.phase, result=loads(row.result_json), image_ref=row.image_ref)
 
 
 @dataclass(frozen=True)

@@ -10,30 +10,36 @@ with the texture's shape (any float array is accepted; non-finite values are
 kept, and the job's ``finite`` flag says so).
 
 Concurrency: :meth:`Store.advance` is a compare-and-set on the run's iteration
-number, so a callback that runs twice (or two callbacks racing) advances the run
-exactly once. Job writes are upserts, so a redelivered job is recorded, not
-duplicated.
+number (and on the run still being active), so a callback that runs twice (or
+two callbacks racing) advances the run exactly once, and a cancelled run never
+advances. Job writes are upserts, so a redelivered job is recorded, not
+duplicated (:mod:`undream.store.jobs`).
+
+Attack states: the JSON keeps scalars; arrays (T0, the visibility mask,
+APGD's best point, ...) are content-addressed ``.npy`` blobs that the JSON
+names as ``{"array": key}``, so an array that does not change between
+iterations is written once.
 """
 from __future__ import annotations
 
 import uuid
 from contextlib import contextmanager
-from typing import Any, Iterator, Mapping, Sequence
+from typing import Any, Iterator, Mapping
 
 import numpy as np
 from sqlalchemy import Engine, delete, select, update
-from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.orm import Session
 
 from undream.errors import StoreError
 from undream.store.blobs import (
-    BlobStore, attack_state_key, grad_key, run_prefix, texture_blob_key,
+    BlobStore, array_digest, array_key, attack_state_key, final_texture_key, run_prefix,
+    texture_blob_key,
 )
-from undream.store.models import JOB_STATUSES, RUN_STATUSES, FrameJob, IterationRecord, Run, utcnow
-from undream.store.snapshots import (
-    FrameGrad, IterationSnapshot, JobSnapshot, RunSnapshot, dumps, finite_or_none,
-)
+from undream.store.checks import MAX_SEED, RECORD_FIELDS, integer, mapping, record_values, texture
+from undream.store.jobs import JobTables
+from undream.store.models import JOB_STATUSES, RUN_STATUSES, FrameJob, IterationRecord, Run, Sweep
+from undream.store.snapshots import IterationSnapshot, RunSnapshot, SweepSnapshot, dumps
 
 WRITE_OPTION = "undream_begin"  # execution option: the BEGIN statement SQLite writers emit
 
@@ -45,66 +51,27 @@ TRANSITIONS: dict[str, tuple[str, ...]] = {
     "cancelled": ("queued",),   # resume
     "done": (),
 }
-RECORD_FIELDS = ("loss_mean", "n_ok", "n_bad", "dropped_frames", "grad_norm", "step_seconds",
-                 "per_frame")
-_MAX_SEED = 2**63 - 1
-_JOB_KEY = ("run_id", "k", "frame")
+ACTIVE = ("queued", "running")  # statuses in which a run may advance
 
 
-def _int(field: str, value: Any, minimum: int, maximum: int = 2**31 - 1) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) \
-            or not minimum <= value <= maximum:
-        raise StoreError(f"{field}: must be an integer in [{minimum}, {maximum}], got {value!r}")
-    return int(value)
+def _state_doc(blobs: BlobStore, run_id: str, field: str, state: Any,
+               arrays: Mapping[str, np.ndarray] | None) -> dict[str, Any]:
+    """The JSON document of an attack state: ``state``'s scalars, ``arrays`` as blob references."""
+    doc = dict(mapping(field, state, " (see state_to_dict)"))
+    for name, value in (arrays or {}).items():
+        if name in doc:
+            raise StoreError(f"{field}: {name!r} is given both as a scalar and as an array")
+        arr = np.asarray(value)
+        if arr.dtype.hasobject:
+            raise StoreError(f"{field}.{name}: must be a numeric array, got dtype {arr.dtype}")
+        key = array_key(run_id, array_digest(arr))
+        if not blobs.exists(key):
+            blobs.put_array(key, arr)
+        doc[name] = {"array": key}
+    return doc
 
 
-def _float(field: str, value: Any) -> float | None:
-    if value is None:
-        return None
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.number)):
-        raise StoreError(f"{field}: must be a number or None, got {value!r}")
-    return finite_or_none(value)
-
-
-def _texture(field: str, array: Any) -> np.ndarray:
-    """Check an H×W×3 float sRGB texture in [0, 1]."""
-    arr = np.asarray(array)
-    if arr.ndim != 3 or arr.shape[2] != 3 or arr.shape[0] < 1 or arr.shape[1] < 1:
-        raise StoreError(f"{field}: must be an H×W×3 texture, got shape {arr.shape}")
-    if not np.issubdtype(arr.dtype, np.floating):
-        raise StoreError(f"{field}: must be a float array of sRGB values in [0, 1], "
-                         f"got dtype {arr.dtype}")
-    if not np.all(np.isfinite(arr)) or arr.min() < 0.0 or arr.max() > 1.0:
-        raise StoreError(f"{field}: values must be finite sRGB in [0, 1], "
-                         f"got range [{np.nanmin(arr)}, {np.nanmax(arr)}]")
-    return arr
-
-
-def _frames(value: Any) -> list[int]:
-    if not isinstance(value, (list, tuple)):
-        raise StoreError(f"record.dropped_frames: must be a list of frame indexes, got {value!r}")
-    return [_int("record.dropped_frames", f, 0) for f in value]
-
-
-def _record_values(record: Mapping[str, Any]) -> dict[str, Any]:
-    if not isinstance(record, Mapping):
-        raise StoreError(f"record: must be a mapping of {', '.join(RECORD_FIELDS)}, got {record!r}")
-    unknown = sorted(set(record) - set(RECORD_FIELDS))
-    if unknown:
-        raise StoreError(f"record: unknown field(s) {', '.join(map(str, unknown))}; "
-                         f"valid fields are {', '.join(RECORD_FIELDS)}")
-    return {
-        "loss_mean": _float("record.loss_mean", record.get("loss_mean")),
-        "n_ok": _int("record.n_ok", record.get("n_ok", 0), 0),
-        "n_bad": _int("record.n_bad", record.get("n_bad", 0), 0),
-        "grad_norm": _float("record.grad_norm", record.get("grad_norm")),
-        "step_seconds": _float("record.step_seconds", record.get("step_seconds")),
-        "dropped_json": dumps("record.dropped_frames", _frames(record.get("dropped_frames", []))),
-        "per_frame_json": dumps("record.per_frame", record.get("per_frame", [])),
-    }
-
-
-class Store:
+class Store(JobTables):
     """Run state in a SQL database plus a blob folder; see :func:`undream.store.open_store`."""
 
     def __init__(self, engine: Engine, blobs: BlobStore) -> None:
@@ -134,7 +101,8 @@ class Store:
                 yield session
         except SQLAlchemyError as exc:
             reason = str(getattr(exc, "orig", None) or exc).strip().splitlines()[0]
-            raise StoreError(f"{op}: database error at {self.engine.url!r}: {reason}") from exc
+            url = self.engine.url.render_as_string(hide_password=True)
+            raise StoreError(f"{op}: database error at {url!r}: {reason}") from exc
 
     @staticmethod
     def _run(session: Session, run_id: str) -> Run:
@@ -146,47 +114,87 @@ class Store:
     # -- runs ----------------------------------------------------------------
 
     def create_run(self, name: str, config: Mapping[str, Any], n_frames: int, seed: int,
-                   texture0: np.ndarray, attack_state0: Mapping[str, Any] | None = None) -> str:
-        """A new queued run at iteration 0 with starting texture ``texture0`` (H×W×3 sRGB, 0–1).
+                   texture0: np.ndarray | None = None, attack_state0: Mapping[str, Any] | None = None,
+                   *, arrays0: Mapping[str, np.ndarray] | None = None, scene_ref: str | None = None,
+                   out_dir: str | None = None, sweep_id: str | None = None,
+                   farm: Mapping[str, Any] | None = None) -> str:
+        """A new queued run at iteration 0; returns its id (a UUID string).
 
-        ``config``: the run config as plain JSON data. ``attack_state0``: the attack's
-        starting state as plain JSON (``state_to_dict``), or None for none. Returns the
-        run id (a UUID string).
+        ``config``: the run config as plain JSON data. ``texture0`` (H×W×3 sRGB,
+        0–1) and ``attack_state0`` (plain JSON, ``arrays0`` its arrays) may be
+        given now or later with :meth:`start_run` (the farm computes them on a
+        worker). ``scene_ref``: blob key of the packed scene; ``out_dir``: where
+        the run's outputs go; ``sweep_id``: the sweep it belongs to; ``farm``:
+        its scheduling options (plain JSON).
         """
         if not isinstance(name, str) or not name.strip() or len(name) > 200:
             raise StoreError(f"name: must be a non-empty string of at most 200 characters, "
                              f"got {name!r}")
-        if not isinstance(config, Mapping):
-            raise StoreError(f"config: must be a mapping, got {type(config).__name__}")
+        mapping("config", config)
         values: dict[str, Any] = {
             "name": name, "config_json": dumps("config", dict(config)),
-            "n_frames": _int("n_frames", n_frames, 1), "seed": _int("seed", seed, 0, _MAX_SEED)}
-        texture = _texture("texture0", texture0)
-        if attack_state0 is not None and not isinstance(attack_state0, Mapping):
-            raise StoreError(f"attack_state0: must be a mapping (see state_to_dict) or None, "
-                             f"got {type(attack_state0).__name__}")
+            "n_frames": integer("n_frames", n_frames, 1), "seed": integer("seed", seed, 0, MAX_SEED),
+            "scene_ref": scene_ref, "out_dir": None if out_dir is None else str(out_dir),
+            "sweep_id": sweep_id, "farm_json": dumps("farm", dict(farm or {}))}
+        tex = None if texture0 is None else texture("texture0", texture0)
+        if attack_state0 is not None:
+            mapping("attack_state0", attack_state0, " (see state_to_dict) or None")
         run_id = str(uuid.uuid4())
         try:
-            self.blobs.put_array(texture_blob_key(run_id, 0), texture)
+            if tex is not None:
+                self.blobs.put_array(texture_blob_key(run_id, 0), tex)
             if attack_state0 is not None:
-                values["attack_state_ref"] = self.blobs.put_json(attack_state_key(run_id, 0),
-                                                                 dict(attack_state0))
+                doc = _state_doc(self.blobs, run_id, "attack_state0", attack_state0, arrays0)
+                values["attack_state_ref"] = self.blobs.put_json(attack_state_key(run_id, 0), doc)
             with self._tx("create_run", write=True) as s:
+                if sweep_id is not None and s.get(Sweep, sweep_id) is None:
+                    raise StoreError(f"sweep {sweep_id!r}: not found")
                 s.add(Run(id=run_id, status="queued", iteration=0, **values))
         except BaseException:
             self.blobs.delete_prefix(run_prefix(run_id))
             raise
         return run_id
 
+    def start_run(self, run_id: str, texture0: np.ndarray, attack_state0: Mapping[str, Any],
+                  arrays0: Mapping[str, np.ndarray] | None = None) -> bool:
+        """Record a run's starting texture and attack state, once: True for the caller that
+        did, False when they were already there (nothing written)."""
+        tex = texture("texture0", texture0)
+        with self._tx("start_run", write=True) as s:
+            run = self._run(s, run_id)
+            if run.attack_state_ref is not None or run.iteration != 0:
+                return False
+            self.blobs.put_array(texture_blob_key(run_id, 0), tex)
+            doc = _state_doc(self.blobs, run_id, "attack_state0", attack_state0, arrays0)
+            run.attack_state_ref = self.blobs.put_json(attack_state_key(run_id, 0), doc)
+        return True
+
     def get_run(self, run_id: str) -> RunSnapshot:
         with self._tx("get_run", write=False) as s:
             return RunSnapshot.of(self._run(s, run_id))
 
-    def runs(self, status: str | None = None) -> list[RunSnapshot]:
-        """Every run (or those with ``status``), oldest first."""
+    def find_run(self, ref: str) -> RunSnapshot:
+        """The run whose id is ``ref`` or starts with it (at least 4 characters, unique)."""
+        if not isinstance(ref, str) or not ref:
+            raise StoreError(f"run {ref!r}: not found")
+        with self._tx("find_run", write=False) as s:
+            row = s.get(Run, ref)
+            if row is not None:
+                return RunSnapshot.of(row)
+            rows = list(s.scalars(select(Run).where(Run.id.startswith(ref, autoescape=True)).limit(2)))
+        if len(ref) < 4 or not rows:
+            raise StoreError(f"run {ref!r}: not found")
+        if len(rows) > 1:
+            raise StoreError(f"run {ref!r}: ambiguous (several run ids start with it); give more of the id")
+        return RunSnapshot.of(rows[0])
+
+    def runs(self, status: str | None = None, sweep_id: str | None = None) -> list[RunSnapshot]:
+        """Every run (or those with ``status``, of sweep ``sweep_id``), oldest first."""
         query = select(Run).order_by(Run.created, Run.id)
         if status is not None:
             query = query.where(Run.status == self._check_status(status))
+        if sweep_id is not None:
+            query = query.where(Run.sweep_id == sweep_id)
         with self._tx("runs", write=False) as s:
             return [RunSnapshot.of(r) for r in s.scalars(query)]
 
@@ -213,6 +221,21 @@ class Store:
                 raise StoreError(f"run {run_id!r}: status transition {current} → {status} "
                                  f"is not allowed; from {current} it may go to {allowed}")
 
+    def transition(self, run_id: str, sources: tuple[str, ...], status: str,
+                   error: str | None = None) -> bool:
+        """Compare-and-set the status: move to ``status`` only from one of ``sources``
+        (each an allowed transition); True when it moved, False when the run was elsewhere."""
+        self._check_status(status)
+        bad = [src for src in sources if status not in TRANSITIONS[self._check_status(src)]]
+        if bad:
+            raise StoreError(f"status transition {bad[0]} → {status} is not allowed")
+        with self._tx("transition", write=True) as s:
+            self._run(s, run_id)
+            result = s.execute(
+                update(Run).where(Run.id == run_id, Run.status.in_(sources))
+                .values(status=status, error=error).execution_options(synchronize_session=False))
+            return result.rowcount == 1
+
     def set_results(self, run_id: str, results: Mapping[str, Any]) -> None:
         """Store the run's evaluation results (plain JSON data)."""
         text = dumps("results", dict(results))
@@ -228,63 +251,109 @@ class Store:
             s.execute(delete(Run).where(Run.id == run_id))
         self.blobs.delete_prefix(run_prefix(run_id))
 
+    # -- sweeps ----------------------------------------------------------------
+
+    def create_sweep(self, name: str, spec: Mapping[str, Any]) -> str:
+        """A new sweep (its runs are created with ``sweep_id``); returns its id."""
+        if not isinstance(name, str) or not name.strip() or len(name) > 200:
+            raise StoreError(f"name: must be a non-empty string of at most 200 characters, got {name!r}")
+        sweep_id = str(uuid.uuid4())
+        with self._tx("create_sweep", write=True) as s:
+            s.add(Sweep(id=sweep_id, name=name, spec_json=dumps("spec", dict(spec))))
+        return sweep_id
+
+    def find_sweep(self, ref: str) -> SweepSnapshot:
+        """The sweep with id ``ref`` (or an id starting with it), else the latest named ``ref``."""
+        with self._tx("find_sweep", write=False) as s:
+            row = s.get(Sweep, ref) if isinstance(ref, str) else None
+            if row is None and isinstance(ref, str) and len(ref) >= 4:
+                rows = list(s.scalars(select(Sweep).where(Sweep.id.startswith(ref, autoescape=True))
+                                      .limit(2)))
+                row = rows[0] if len(rows) == 1 else None
+            if row is None and isinstance(ref, str):
+                row = s.scalars(select(Sweep).where(Sweep.name == ref)
+                                .order_by(Sweep.created.desc()).limit(1)).first()
+            if row is None:
+                raise StoreError(f"sweep {ref!r}: not found (give a sweep id or name)")
+            return SweepSnapshot.of(row)
+
     # -- textures and attack states ------------------------------------------
+
+    def has_texture(self, run_id: str, k: int) -> bool:
+        return self.blobs.exists(texture_blob_key(run_id, integer("k", k, 0)))
 
     def texture(self, run_id: str, k: int) -> np.ndarray:
         """Texture ``k`` of the run (H×W×3 sRGB, 0–1)."""
-        key = texture_blob_key(run_id, _int("k", k, 0))
+        key = texture_blob_key(run_id, integer("k", k, 0))
         if not self.blobs.exists(key):
             raise StoreError(f"run {run_id!r}: no texture for iteration {k} (blob {key!r} missing)")
         return self.blobs.get_array(key)
 
-    def put_texture(self, run_id: str, k: int, texture: np.ndarray) -> None:
+    def put_texture(self, run_id: str, k: int, texture_k: np.ndarray) -> None:
         """Store texture ``k`` (H×W×3 sRGB, 0–1) outside :meth:`advance` (e.g. evaluation)."""
-        arr = _texture("texture", texture)
-        key = texture_blob_key(run_id, _int("k", k, 0))
+        arr = texture("texture", texture_k)
+        key = texture_blob_key(run_id, integer("k", k, 0))
         self.get_run(run_id)
         self.blobs.put_array(key, arr)
 
-    def attack_state(self, run_id: str, k: int) -> dict[str, Any] | None:
-        """The attack state stored with texture ``k``; None when there is none (a run
-        created without ``attack_state0``, at k = 0)."""
-        key = attack_state_key(run_id, _int("k", k, 0))
+    def put_final_texture(self, run_id: str, texture_final: np.ndarray) -> None:
+        """Store the texture the adversarial evaluation renders (H×W×3 sRGB, 0–1)."""
+        arr = texture("texture_final", texture_final)
         self.get_run(run_id)
-        return self.blobs.get_json(key) if self.blobs.exists(key) else None
+        self.blobs.put_array(final_texture_key(run_id), arr)
+
+    def final_texture(self, run_id: str) -> np.ndarray | None:
+        """The texture the adversarial evaluation renders; None until it is chosen."""
+        key = final_texture_key(run_id)
+        return self.blobs.get_array(key) if self.blobs.exists(key) else None
+
+    def attack_state(self, run_id: str, k: int) -> dict[str, Any] | None:
+        """The attack state stored with texture ``k``, its arrays read back as numpy arrays;
+        None when there is none (a run created without ``attack_state0``, at k = 0)."""
+        key = attack_state_key(run_id, integer("k", k, 0))
+        self.get_run(run_id)
+        if not self.blobs.exists(key):
+            return None
+        doc = self.blobs.get_json(key)
+        return {name: self.blobs.get_array(v["array"]) if isinstance(v, dict) and set(v) == {"array"}
+                else v for name, v in doc.items()}
 
     def advance(self, run_id: str, k: int, texture_next: np.ndarray,
-                attack_state: Mapping[str, Any], record: Mapping[str, Any]) -> bool:
+                attack_state: Mapping[str, Any], record: Mapping[str, Any],
+                arrays: Mapping[str, np.ndarray] | None = None) -> bool:
         """Compare-and-set the run from iteration ``k`` to ``k+1``.
 
         In one transaction: ``iteration`` goes from ``k`` to ``k+1`` only if it is
-        still ``k``; the winner writes texture ``k+1`` (H×W×3 sRGB, 0–1), the attack
-        state for ``k+1`` (plain JSON, e.g. ``state_to_dict(state)``) and the
+        still ``k`` and the run is queued or running; the winner writes texture
+        ``k+1`` (H×W×3 sRGB, 0–1), the attack state for ``k+1`` (plain JSON, e.g.
+        ``state_to_dict(state)``, with its arrays in ``arrays``) and the
         :class:`IterationRecord` of step ``k`` (fields ``RECORD_FIELDS``) before it
         commits; if a blob write fails, nothing is committed.
 
         Returns True for the caller that advanced the run, False when the run is
-        already past ``k`` (another caller won; nothing is written). StoreError when
-        the run is behind ``k`` or missing.
+        already past ``k`` (another caller won) or no longer active (cancelled,
+        failed, evaluating, done); nothing is written then. StoreError when the
+        run is behind ``k`` or missing.
         """
-        k = _int("k", k, 0, 2**31 - 2)
-        texture = _texture("texture_next", texture_next)
-        if not isinstance(attack_state, Mapping):
-            raise StoreError(f"attack_state: must be a mapping (see state_to_dict), "
-                             f"got {type(attack_state).__name__}")
-        values = _record_values(record)
+        k = integer("k", k, 0, 2**31 - 2)
+        tex = texture("texture_next", texture_next)
+        mapping("attack_state", attack_state, " (see state_to_dict)")
+        values = record_values(record)
         state_key = attack_state_key(run_id, k + 1)
         with self._tx("advance", write=True) as s:
             result = s.execute(
-                update(Run).where(Run.id == run_id, Run.iteration == k)
+                update(Run).where(Run.id == run_id, Run.iteration == k, Run.status.in_(ACTIVE))
                 .values(iteration=k + 1, attack_state_ref=state_key)
                 .execution_options(synchronize_session=False))
             if result.rowcount != 1:
-                current = self._run(s, run_id).iteration
-                if current > k:
+                run = self._run(s, run_id)
+                if run.iteration > k or run.status not in ACTIVE:
                     return False
                 raise StoreError(f"run {run_id!r}: cannot advance from iteration {k}; "
-                                 f"the run is at iteration {current}")
-            self.blobs.put_array(texture_blob_key(run_id, k + 1), texture)
-            self.blobs.put_json(state_key, dict(attack_state))
+                                 f"the run is at iteration {run.iteration}")
+            self.blobs.put_array(texture_blob_key(run_id, k + 1), tex)
+            self.blobs.put_json(state_key, _state_doc(self.blobs, run_id, "attack_state",
+                                                      attack_state, arrays))
             s.add(IterationRecord(run_id=run_id, k=k, **values))
         return True
 
@@ -295,78 +364,6 @@ class Store:
             rows = s.scalars(select(IterationRecord).where(IterationRecord.run_id == run_id)
                              .order_by(IterationRecord.k))
             return [IterationSnapshot.of(r) for r in rows]
-
-    # -- frame jobs ----------------------------------------------------------
-
-    def _upsert_job(self, op: str, run_id: str, k: int, frame: int,
-                    insert: dict[str, Any], conflict: dict[str, Any] | None) -> None:
-        """Insert the job row with ``insert`` or, if it exists, update it with ``conflict``."""
-        k = _int("k", k, 0)
-        with self._tx(op, write=True) as s:
-            n_frames = self._run(s, run_id).n_frames
-            _int("frame", frame, 0, n_frames - 1)
-            dialect = postgresql if s.get_bind().dialect.name == "postgresql" else sqlite
-            stmt = dialect.insert(FrameJob.__table__).values(
-                run_id=run_id, k=k, frame=int(frame), **insert)
-            if conflict is None:
-                stmt = stmt.on_conflict_do_nothing(index_elements=list(_JOB_KEY))
-            else:
-                stmt = stmt.on_conflict_do_update(index_elements=list(_JOB_KEY), set_=conflict)
-            s.execute(stmt)
-
-    def queue_jobs(self, run_id: str, k: int, frames: Sequence[int]) -> None:
-        """Record frames ``frames`` of iteration ``k`` as queued (existing jobs are left alone)."""
-        for frame in frames:
-            self._upsert_job("queue_jobs", run_id, k, frame, {"status": "queued"}, None)
-
-    def job_started(self, run_id: str, k: int, frame: int) -> None:
-        """A worker starts the job: status started, one more attempt."""
-        now = utcnow()
-        self._upsert_job("job_started", run_id, k, frame,
-                         {"status": "started", "attempts": 1, "started": now},
-                         {"status": "started", "attempts": FrameJob.__table__.c.attempts + 1,
-                          "started": now, "finished": None})
-
-    def job_succeeded(self, run_id: str, k: int, frame: int, grad: np.ndarray, loss: float,
-                      finite: bool, timings: Mapping[str, Any]) -> None:
-        """Store the job's gradient dL/dT (a blob) and its loss, finiteness and timings (s)."""
-        arr = np.asarray(grad)
-        if not np.issubdtype(arr.dtype, np.floating):
-            raise StoreError(f"grad: must be a float array, got dtype {arr.dtype}")
-        if not isinstance(finite, (bool, np.bool_)):
-            raise StoreError(f"finite: must be true or false, got {finite!r}")
-        values = {"status": "succeeded", "loss": _float("loss", loss), "finite": bool(finite),
-                  "timings_json": dumps("timings", dict(timings)), "error": None,
-                  "finished": utcnow()}
-        key = grad_key(run_id, _int("k", k, 0), _int("frame", frame, 0))
-        self.get_run(run_id)
-        values["grad_ref"] = self.blobs.put_array(key, arr)
-        self._upsert_job("job_succeeded", run_id, k, frame, {**values, "attempts": 1}, values)
-
-    def job_failed(self, run_id: str, k: int, frame: int, error: str,
-                   will_retry: bool = False) -> None:
-        """The job's attempt failed with ``error``; status retried if ``will_retry``, else failed."""
-        values = {"status": "retried" if will_retry else "failed", "error": str(error),
-                  "finished": utcnow()}
-        self._upsert_job("job_failed", run_id, k, frame, {**values, "attempts": 1}, values)
-
-    def jobs(self, run_id: str, k: int) -> list[JobSnapshot]:
-        """The recorded jobs of iteration ``k``, by frame."""
-        with self._tx("jobs", write=False) as s:
-            self._run(s, run_id)
-            rows = s.scalars(select(FrameJob).where(FrameJob.run_id == run_id, FrameJob.k == k)
-                             .order_by(FrameJob.frame))
-            return [JobSnapshot.of(r) for r in rows]
-
-    def frame_grads(self, run_id: str, k: int) -> list[FrameGrad]:
-        """Each recorded job of iteration ``k``, by frame: its gradient (None unless
-        succeeded), loss (None if unknown or not finite) and finiteness flag."""
-        out = []
-        for job in self.jobs(run_id, k):
-            ok = job.status == "succeeded" and job.grad_ref is not None
-            grad = self.blobs.get_array(job.grad_ref) if ok else None  # type: ignore[arg-type]
-            out.append(FrameGrad(job.frame, grad, job.loss, job.finite and ok))
-        return out
 
 
 __all__ = ["JOB_STATUSES", "RECORD_FIELDS", "RUN_STATUSES", "TRANSITIONS", "Store"]

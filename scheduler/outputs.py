@@ -1,0 +1,119 @@
+"""The finish stage's products: results from the store, and the output folder of a run.
+
+Outputs (the same for ``undream run`` and a submitted run): ``results.json``,
+``texture_final.png`` / ``texture_final.npy`` (the 8-bit texture that was
+evaluated), ``loss.png``, ``metadata.json``, ``frames_benign/`` and
+``frames_adversarial/`` (PNG), and ``texture_visibility.png`` with a random
+start.
+"""
+from __future__ import annotations
+
+import datetime as dt
+import json
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from undream.color import to_uint8
+from undream.versions import versions
+
+if TYPE_CHECKING:
+    from undream.engine.context import RunContext
+    from undream.store import RunSnapshot, Store
+
+
+def _timings(store: "Store", run_id: str, k: int) -> dict[str, float]:
+    times = {"sim_render": 0.0, "victim": 0.0, "grad_render": 0.0, "reduce_step": 0.0, "evaluation": 0.0}
+    for job in store.jobs(run_id, None, "attack"):
+        if job.status == "succeeded":
+            for key in ("sim_render", "victim", "grad_render"):
+                times[key] += float(job.timings.get(key, 0.0))
+    times["reduce_step"] = sum(r.step_seconds or 0.0 for r in store.iterations(run_id))
+    for phase in ("pre", "adversarial"):
+        times["evaluation"] += sum(float(j.timings.get("total", 0.0)) for j in store.jobs(run_id, k, phase))
+    return times
+
+
+def results(store: "Store", ctx: "RunContext", run: "RunSnapshot", k: int) -> dict[str, Any]:
+    """The run's results from its stored predictions, iteration records and job timings."""
+    from scheduler.evaluation import prediction_from_json
+    from undream.engine.evaluate import ground_truths, judge
+    from undream.metrics import classification_attack_report, detection_attack_report
+
+    task = ctx.victim.task
+    benign_preds = [prediction_from_json(task, j.result["prediction"])  # type: ignore[index]
+                    for j in store.jobs(run.id, k, "pre")]
+    adv_preds = [prediction_from_json(task, j.result["prediction"])  # type: ignore[index]
+                 for j in store.jobs(run.id, k, "adversarial")]
+    benign, adv = judge(ctx, benign_preds), judge(ctx, adv_preds)
+    label = ctx.targets[0].label
+    if task == "classification":
+        report = classification_attack_report(benign_preds, adv_preds, label, ctx.targets[0].target_label)
+    else:
+        report = detection_attack_report(benign_preds, adv_preds, ground_truths(ctx), label,
+                                         ctx.targets[0].target_label)
+    iters = store.iterations(run.id)
+    times = _timings(store, run.id, k)
+    times["wall"] = (dt.datetime.now(dt.timezone.utc) - run.created).total_seconds()
+    return {
+        "run_id": run.id, "victim": ctx.config.victim, "task": task, "loss_kind": ctx.config.loss,
+        "attack": {**ctx.attack.config.to_dict()}, "label": ctx.victim.labels[label],
+        "benign": benign, "adversarial": adv, "attack_success": report.to_dict(),
+        "loss_per_iteration": [r.loss_mean for r in iters],
+        "frames_dropped_per_iteration": [r.n_bad for r in iters],
+        "wall_time_seconds": times,
+    }
+
+
+def default_out_dir(store: "Store", run: "RunSnapshot") -> Path:
+    """Where a submitted run without ``--out`` writes: ``<blobs>/outputs/<name>-<id[:8]>``."""
+    return store.blobs.root / "outputs" / f"{run.name}-{run.id[:8]}"
+
+
+def write_outputs(out: Path, store: "Store", ctx: "RunContext", run: "RunSnapshot", k: int,
+                  res: dict[str, Any]) -> None:
+    """Write the run's output folder (see the module docstring) from the store."""
+    from PIL import Image
+
+    from undream.scene.layout import frame_name
+
+    out.mkdir(parents=True, exist_ok=True)
+    T_q = store.final_texture(run.id)
+    assert T_q is not None  # finish runs after the final texture was stored
+    Image.fromarray(to_uint8(T_q)).save(out / "texture_final.png")
+    np.save(out / "texture_final.npy", T_q)
+    for phase, folder in (("pre", "frames_benign"), ("adversarial", "frames_adversarial")):
+        (out / folder).mkdir(exist_ok=True)
+        for job in store.jobs(run.id, k, phase):
+            index = ctx.frame_indices[job.frame]
+            Image.fromarray(store.blobs.get_array(job.image_ref)).save(  # type: ignore[arg-type]
+                out / folder / f"{frame_name('frame', index)}.png")
+    state0 = store.attack_state(run.id, 0) or {}
+    if ctx.attack.config.random_start and isinstance(state0.get("visible"), np.ndarray):
+        Image.fromarray(state0["visible"].astype(np.uint8) * 255).save(out / "texture_visibility.png")
+    (out / "results.json").write_text(json.dumps(res, indent=1) + "\n")
+    _loss_plot(res["loss_per_iteration"], out / "loss.png", ctx)
+    meta = {"run_id": run.id, "config": ctx.config.to_json(), "seed": ctx.config.seed,
+            "scene_dir": str(ctx.scene_dir), "scene_blob": run.scene_ref,
+            "texture_final": "8-bit quantised sRGB (texture_final.png); the same values as float in [0, 1] "
+                             "(texture_final.npy) — what the adversarial evaluation rendered",
+            "versions": {**versions(), "simulator": ctx.sim.name, **ctx.sim.versions()}}
+    (out / "metadata.json").write_text(json.dumps(meta, indent=1) + "\n")
+
+
+def _loss_plot(values: list[float | None], path: Path, ctx: "RunContext") -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    config = ctx.config
+    fig, ax = plt.subplots(figsize=(5, 3), dpi=100)
+    ax.plot(range(1, len(values) + 1), [np.nan if v is None else v for v in values], marker=".")
+    ax.set_xlabel("iteration")
+    ax.set_ylabel(f"mean {config.loss} loss (maximised)")
+    ax.set_title(f"{config.name}: {config.attack.get('name')} ε={config.attack.get('eps')}")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)

@@ -1,0 +1,334 @@
+"""A run in stages keyed by its id: start → iterate → evaluate → finish.
+
+Every stage is a plain function of the store (and, where it renders, a
+function giving the run's context); the stage that closes a phase hands the
+next one to a :class:`Dispatch`. On the farm that is Celery (``workers/``): a
+chord per phase whose header runs :func:`run_batch` on batches of frames and
+whose callback runs :func:`collect`; ``undream run`` drains the same calls
+from a queue in one process (:mod:`scheduler.local`). Nothing else drives a
+run: no scheduler daemon; :func:`resume` re-dispatches a run from what the
+store says after any crash.
+
+Phases of per-frame jobs (the store's job ``phase``):
+
+=============  ======================================  =====================================
+phase          one job                                 collect, when every job has a result
+=============  ======================================  =====================================
+``attack`` k   render and gradient of frame f at T_k   reduce and step → plan k + 1, or ``pre``
+``pre``        benign frame + loss at T_N              pick the final texture → ``adversarial``
+``adversarial``  frame with the final texture          results and outputs; the run is done
+=============  ======================================  =====================================
+
+A job that raises is retried up to ``max_attempts`` (the attempts are
+counted in the store, so a job that kills its worker each time gives up
+too); a job that gives up counts against the run's ``failure_budget`` and is
+queued again; past the budget the run fails with the job's error. A phase
+never closes while a job has no result.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING, Any, Callable, Protocol, Sequence
+
+from scheduler.iteration import MissingResults, expected_frames, frame_job, reduce_and_step
+from undream.store import ACTIVE, UNFINISHED
+
+if TYPE_CHECKING:
+    from undream.attacks.base import Attack
+    from undream.engine.context import RunContext
+    from undream.settings import Settings
+    from undream.spec.run import RunConfig
+    from undream.store import RunSnapshot, Store
+
+log = logging.getLogger(__name__)
+
+PHASES = ("attack", "pre", "adversarial")
+Contexts = Callable[[str], "RunContext"]
+
+
+@dataclass(frozen=True)
+class FarmOptions:
+    """How a run is scheduled, fixed when it is submitted (stored with the run)."""
+
+    frames_per_task: int = 1
+    max_attempts: int = 3
+    failure_budget: int = 2
+
+    @classmethod
+    def of(cls, run: "RunSnapshot") -> "FarmOptions":
+        return cls(**{k: v for k, v in run.farm.items() if k in cls.__dataclass_fields__})
+
+    @classmethod
+    def from_settings(cls, settings: "Settings", n_frames: int) -> "FarmOptions":
+        return cls(settings.frames_per_task_for(n_frames), settings.max_attempts, settings.failure_budget)
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+class Dispatch(Protocol):
+    """Where stages send the next work (Celery on the farm, a queue in ``undream run``)."""
+
+    def start(self, run_id: str) -> None:
+        """Run :func:`start` for the run."""
+
+    def frames(self, run_id: str, phase: str, k: int, batches: list[list[int]]) -> None:
+        """Run :func:`run_batch` on each batch, then :func:`collect` (no batches: collect at once)."""
+
+
+def batches(frames: Sequence[int], size: int) -> list[list[int]]:
+    """``frames`` in consecutive batches of ``size``."""
+    frames = list(frames)
+    return [frames[i:i + size] for i in range(0, len(frames), size)]
+
+
+def attack_of(run: "RunSnapshot") -> "Attack":
+    """The run's attack (its step function only: no scene, no victim)."""
+    from undream.attacks import AttackConfig, make_attack
+
+    attack = run.config["attack"]
+    return make_attack(AttackConfig.from_dict({**attack, "seed": attack.get("seed", run.config["seed"])}))
+
+
+def _steps(run: "RunSnapshot") -> int:
+    return attack_of(run).config.steps
+
+
+def expected(run: "RunSnapshot", phase: str, k: int) -> list[int]:
+    """The frame positions whose jobs ``phase`` at ``k`` needs."""
+    if phase == "attack":
+        return expected_frames(run, attack_of(run).config.frames_per_step, k)
+    return list(range(run.n_frames))
+
+
+def _current(run: "RunSnapshot", phase: str, k: int) -> bool:
+    """Is the run still in ``phase`` at ``k`` (else a job or callback for it is stale)?"""
+    if phase == "attack":
+        return run.status == "running" and run.iteration == k
+    return run.status == "evaluating" and run.iteration == k
+
+
+# -- stages ---------------------------------------------------------------------------
+
+
+def create(store: "Store", config: "RunConfig", n_frames: int, options: FarmOptions, *,
+           scene_ref: str | None = None, out_dir: str | None = None, sweep_id: str | None = None) -> str:
+    """Record a run (queued, not yet started); returns its id."""
+    return store.create_run(config.name, config.to_json(), n_frames, config.seed, scene_ref=scene_ref,
+                            out_dir=out_dir, sweep_id=sweep_id, farm=options.to_json())
+
+
+def start(store: "Store", contexts: Contexts, run_id: str, dispatch: Dispatch) -> str:
+    """The starting texture and attack state (once), then iteration 0's jobs."""
+    import torch
+
+    import numpy as np
+
+    from scheduler.state import encode_state
+    from scheduler.texture0 import starting_texture, visibility
+
+    run = store.get_run(run_id)
+    if run.status not in ACTIVE:
+        return "stale"
+    if run.attack_state_ref is None:
+        ctx = contexts(run_id)
+        T0 = starting_texture(ctx)
+        random = ctx.attack.config.random_start
+        seen = visibility(ctx, T0) if random else np.zeros(T0.shape[:2], dtype=bool)
+        T_start, state = ctx.attack.start(torch.from_numpy(T0), visible=torch.from_numpy(seen))
+        scalars, arrays = encode_state(state)
+        store.start_run(run_id, T_start.numpy(), scalars, arrays)
+    store.transition(run_id, ("queued",), "running")
+    run = store.get_run(run_id)
+    if not _current(run, "attack", run.iteration):
+        return "stale"
+    plan(store, run, "attack", run.iteration, dispatch)
+    return "started"
+
+
+def plan(store: "Store", run: "RunSnapshot", phase: str, k: int, dispatch: Dispatch,
+         only: Sequence[int] | None = None) -> list[int]:
+    """Record the expected jobs of ``phase`` at ``k`` as queued and dispatch them (or ``only`` those)."""
+    frames = expected(run, phase, k)
+    store.queue_jobs(run.id, k, frames, phase)
+    todo = frames if only is None else list(only)
+    dispatch.frames(run.id, phase, k, batches(todo, FarmOptions.of(run).frames_per_task))
+    return todo
+
+
+def run_batch(store: "Store", contexts: Contexts, run_id: str, phase: str, k: int,
+              frames: Sequence[int]) -> dict[str, Any]:
+    """The header task's body: the jobs of ``frames`` that have no result yet, failures recorded.
+
+    Returns a small JSON summary: frames ``done``, ``failed`` (gave up),
+    ``retry`` (failed, attempts left: run the batch again), ``skipped`` (the
+    run moved on or was cancelled), and the blob bytes read and written.
+    """
+    from scheduler.evaluation import eval_job, eval_textures
+
+    summary: dict[str, Any] = {"run_id": run_id, "phase": phase, "k": k, "done": [], "failed": [],
+                               "retry": [], "skipped": []}
+    run = store.get_run(run_id)
+    if not _current(run, phase, k):
+        summary["skipped"] = list(frames)
+        return summary
+    max_attempts = FarmOptions.of(run).max_attempts
+    jobs = {j.frame: j for j in store.jobs(run_id, k, phase)}
+    read0, written0 = store.blobs.bytes_read, store.blobs.bytes_written
+    textures: dict[str, Any] | None = None
+    for f in frames:
+        job = jobs.get(f)
+        if job is not None and job.status == "succeeded":
+            summary["done"].append(f)
+            continue
+        if job is not None and job.attempts >= max_attempts:  # e.g. it killed its worker each time
+            why = job.error or "its worker was lost"
+            store.job_failed(run_id, k, f, f"gave up after {job.attempts} attempts: {why}", phase=phase)
+            summary["failed"].append(f)
+            continue
+        try:
+            ctx = contexts(run_id)
+            if phase == "attack":
+                textures = textures or {"k": store.texture(run_id, k)}
+                frame_job(store, ctx, run_id, k, f, textures["k"])
+            else:
+                textures = textures or eval_textures(store, run_id, phase, k)
+                eval_job(store, ctx, run_id, phase, k, f, textures)
+            summary["done"].append(f)
+        except Exception as exc:  # any failure of a job is recorded with it, then retried or counted
+            again = (job.attempts if job is not None else 0) + 1 < max_attempts
+            error = f"{type(exc).__name__}: {' '.join(str(exc).split())}"
+            log.warning("run %s %s k=%d frame %d failed (%s): %s", run_id, phase, k, f,
+                        "will retry" if again else "giving up", error)
+            store.job_failed(run_id, k, f, error, will_retry=again, phase=phase)
+            summary["retry" if again else "failed"].append(f)
+    summary["bytes_read"] = store.blobs.bytes_read - read0
+    summary["bytes_written"] = store.blobs.bytes_written - written0
+    return summary
+
+
+def collect(store: "Store", contexts: Contexts, run_id: str, phase: str, k: int,
+            dispatch: Dispatch) -> str:
+    """The callback of a phase: when every expected job has a result, close the phase.
+
+    A job without a result is run again (never averaged away); a job that
+    gave up counts against the run's failure budget and is queued again, or
+    fails the run past the budget. Returns what it did: ``stale`` (the run
+    moved on, was cancelled, or another callback acted), ``failed``,
+    ``retrying``, ``rerun``, ``stepped``, ``final`` or ``done``.
+    """
+    run = store.get_run(run_id)
+    if not _current(run, phase, k):
+        return "stale"
+    options = FarmOptions.of(run)
+    frames = expected(run, phase, k)
+    jobs = {j.frame: j for j in store.jobs(run_id, k, phase)}
+    failed = [f for f in frames if f in jobs and jobs[f].status == "failed"]
+    missing = [f for f in frames if f not in jobs or jobs[f].status in UNFINISHED]
+    if failed:
+        requeued, used = store.requeue_failed(run_id, k, failed, phase)
+        if used > options.failure_budget:
+            msg = (f"{phase} k={k}: frame(s) {', '.join(map(str, failed))} failed "
+                   f"({jobs[failed[0]].error}); failure budget of {options.failure_budget} used up")
+            store.transition(run_id, ("running", "evaluating"), "failed", error=msg)
+            log.error("run %s failed: %s", run_id, msg)
+            return "failed"
+        if requeued == 0:
+            return "stale"
+        log.warning("run %s %s k=%d: frame(s) %s failed; queued again (failures %d of %d)",
+                    run_id, phase, k, failed, used, options.failure_budget)
+        dispatch.frames(run_id, phase, k, batches(sorted(failed + missing), options.frames_per_task))
+        return "retrying"
+    if missing:
+        log.warning("run %s %s k=%d: no result for frame(s) %s; running them again", run_id, phase, k, missing)
+        dispatch.frames(run_id, phase, k, batches(missing, options.frames_per_task))
+        return "rerun"
+    if phase == "attack":
+        return _step(store, run, k, dispatch)
+    if phase == "pre":
+        return _final(store, run, k, dispatch)
+    return finish(store, contexts, run_id, k)
+
+
+def _step(store: "Store", run: "RunSnapshot", k: int, dispatch: Dispatch) -> str:
+    try:
+        if not reduce_and_step(store, attack_of(run), run.id, k):
+            return "stale"
+    except MissingResults:  # a job was re-queued between our look and reduce's: its callback follows
+        return "stale"
+    run = store.get_run(run.id)
+    if k + 1 < _steps(run):
+        plan(store, run, "attack", k + 1, dispatch)
+    elif store.transition(run.id, ("running",), "evaluating"):
+        plan(store, store.get_run(run.id), "pre", k + 1, dispatch)
+    return "stepped"
+
+
+def _final(store: "Store", run: "RunSnapshot", k: int, dispatch: Dispatch) -> str:
+    from scheduler.evaluation import select_final
+
+    if store.final_texture(run.id) is not None:  # another callback picked it (resume plans the rest)
+        return "stale"
+    store.put_final_texture(run.id, select_final(store, attack_of(run), run.id, k))
+    plan(store, run, "adversarial", k, dispatch)
+    return "final"
+
+
+def finish(store: "Store", contexts: Contexts, run_id: str, k: int) -> str:
+    """Results into the store and the run's output folder; the run is done."""
+    from pathlib import Path
+
+    from scheduler.outputs import default_out_dir, results, write_outputs
+
+    run = store.get_run(run_id)
+    ctx = contexts(run_id)
+    res = results(store, ctx, run, k)
+    store.set_results(run_id, res)
+    write_outputs(Path(run.out_dir) if run.out_dir else default_out_dir(store, run), store, ctx, run, k, res)
+    return "done" if store.transition(run_id, ("evaluating",), "done") else "stale"
+
+
+# -- control ----------------------------------------------------------------------------
+
+
+def cancel(store: "Store", run_id: str) -> bool:
+    """Stop a run: its queued jobs and callbacks find it cancelled and do nothing. False if it had ended."""
+    return store.transition(run_id, ("queued", "running", "evaluating"), "cancelled",
+                            error="cancelled by the user")
+
+
+def resume(store: "Store", run_id: str, dispatch: Dispatch) -> str:
+    """Dispatch a run again from what the store says (after a crash of any part, or a cancel).
+
+    Failed and cancelled runs are queued again with a fresh failure budget;
+    the current phase's jobs without a result (and given-up ones) are
+    dispatched again, then its callback. Jobs still in flight may run twice;
+    every write is idempotent and the step is a compare-and-set. Returns the
+    phase it dispatched (``start``, ``attack``, ``pre``, ``adversarial``) or
+    ``done``.
+    """
+    run = store.get_run(run_id)
+    if run.status == "done":
+        return "done"
+    if run.status in ("failed", "cancelled"):
+        store.set_status(run_id, "queued")
+        store.reset_failures(run_id)
+    if run.attack_state_ref is None:
+        dispatch.start(run_id)
+        return "start"
+    store.transition(run_id, ("queued",), "running")
+    steps = _steps(run)
+    run = store.get_run(run_id)
+    if run.iteration < steps:
+        phase = "attack"
+    else:
+        store.transition(run_id, ("running",), "evaluating")
+        phase = "adversarial" if store.final_texture(run_id) is not None else "pre"
+    run = store.get_run(run_id)
+    frames = expected(run, phase, run.iteration)
+    jobs = {j.frame: j for j in store.jobs(run_id, run.iteration, phase)}
+    store.reset_jobs(run_id, run.iteration, [f for f in frames if f in jobs], phase)
+    plan(store, run, phase, run.iteration, dispatch,
+         only=[f for f in frames if f not in jobs or jobs[f].status != "succeeded"])
+    return phase

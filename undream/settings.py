@@ -1,0 +1,187 @@
+"""The farm's settings: one object built from defaults → settings file → ``UNDREAM_*`` environment → flags.
+
+Every farm process (``undream submit``, ``undream worker``, ``status``, ...)
+builds one :class:`Settings` with :func:`load_settings` and passes it
+explicitly; nothing reads the environment later. A settings file is YAML
+with the field names below (``--settings FILE`` or ``$UNDREAM_SETTINGS``)::
+
+    broker_url: redis://farm-head:6379/0
+    database_url: postgresql://undream:secret@farm-head:5432/undream
+    blob_url: /mnt/shared/undream          # a folder every machine mounts
+    drjit_threads: 1
+
+Environment: ``UNDREAM_`` + the field name in capitals (``UNDREAM_BROKER_URL``,
+``UNDREAM_RESULT_BACKEND``, ``UNDREAM_DATABASE_URL``, ``UNDREAM_BLOB_URL``,
+``UNDREAM_CACHE_DIR``, ``UNDREAM_DRJIT_THREADS``, ...). Errors name the
+source (file and field, or variable) and the value.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, fields, replace
+from pathlib import Path
+from typing import Any, Mapping
+
+from undream.errors import SpecError
+
+ENV_PREFIX = "UNDREAM_"
+SETTINGS_ENV = "UNDREAM_SETTINGS"
+
+
+class SettingsError(SpecError):
+    """A setting is missing or invalid (the message names where it came from)."""
+
+
+def _data_home() -> Path:
+    return Path(os.environ.get("XDG_DATA_HOME") or Path.home() / ".local" / "share")
+
+
+def _cache_home() -> Path:
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Where the farm's broker, database and blobs are, and how workers run.
+
+    ``database_url`` None: SQLite in the blob folder (one machine).
+    ``result_backend`` None: the broker's Redis. ``frames_per_task`` None:
+    ``ceil(frames / farm_slots)``, so an iteration is one task per worker
+    slot (see docs/architecture.md, "The farm"). ``drjit_threads`` None: Dr.Jit's
+    default (every core) — give each worker process its share.
+    """
+
+    broker_url: str = "redis://127.0.0.1:6379/0"
+    result_backend: str | None = None
+    database_url: str | None = None
+    blob_url: str = ""  # "" → $XDG_DATA_HOME/undream/farm
+    cache_dir: str = ""  # "" → $XDG_CACHE_HOME/undream (unpacked scenes, per machine)
+    concurrency: int = 1  # worker processes per `undream worker`
+    drjit_threads: int | None = None  # Dr.Jit threads per worker process
+    torch_threads: int = 1  # the victim's threads per worker process
+    frames_per_task: int | None = None  # frames rendered by one task (None: auto)
+    farm_slots: int = 2  # worker processes the farm has in all (for the auto frames_per_task)
+    max_attempts: int = 3  # attempts per frame job (retries included), then the job fails
+    failure_budget: int = 2  # failed frame jobs a run survives (each re-queued), then it fails
+    visibility_timeout: int = 3600  # s; a job unacknowledged this long is delivered again
+    restore_interval: int = 10  # s between sweeps that re-deliver jobs of lost workers
+    context_cache: int = 2  # runs whose scenes and victim a worker process keeps loaded
+    connect_timeout: float = 5.0  # s to reach the broker before giving up (CLI commands)
+
+    def __post_init__(self) -> None:
+        for name in ("broker_url",):
+            if not isinstance(getattr(self, name), str) or not getattr(self, name):
+                raise SettingsError(f"{name}: must be a non-empty URL, got {getattr(self, name)!r}")
+        for name in ("result_backend", "database_url"):
+            value = getattr(self, name)
+            if value is not None and (not isinstance(value, str) or not value):
+                raise SettingsError(f"{name}: must be a URL or unset, got {value!r}")
+        if not self.blob_url:
+            object.__setattr__(self, "blob_url", str(_data_home() / "undream" / "farm"))
+        if not self.cache_dir:
+            object.__setattr__(self, "cache_dir", str(_cache_home() / "undream"))
+        for name, least in (("concurrency", 1), ("torch_threads", 1), ("farm_slots", 1),
+                            ("max_attempts", 1), ("failure_budget", 0), ("visibility_timeout", 1),
+                            ("restore_interval", 1), ("context_cache", 1)):
+            _check_int(name, getattr(self, name), least)
+        for name in ("drjit_threads", "frames_per_task"):
+            if getattr(self, name) is not None:
+                _check_int(name, getattr(self, name), 1)
+        if isinstance(self.connect_timeout, bool) or not isinstance(self.connect_timeout, (int, float)) \
+                or not self.connect_timeout > 0:
+            raise SettingsError(f"connect_timeout: must be a number of seconds > 0, got {self.connect_timeout!r}")
+
+    @property
+    def backend_url(self) -> str:
+        """The Celery result backend (the broker's Redis unless set)."""
+        return self.result_backend or self.broker_url
+
+    def frames_per_task_for(self, n_frames: int) -> int:
+        """Frames per task for a run of ``n_frames`` frames (see the class docstring)."""
+        if self.frames_per_task is not None:
+            return self.frames_per_task
+        return max(1, -(-n_frames // self.farm_slots))
+
+
+def _check_int(name: str, value: Any, least: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value < least:
+        raise SettingsError(f"{name}: must be an integer >= {least}, got {value!r}")
+
+
+_FIELDS = {f.name: f for f in fields(Settings)}
+_INTS = {"concurrency", "drjit_threads", "torch_threads", "frames_per_task", "farm_slots",
+         "max_attempts", "failure_budget", "visibility_timeout", "restore_interval", "context_cache"}
+
+
+def _coerce(source: str, name: str, value: Any) -> Any:
+    """A value from a file or the environment as the field's type; errors name ``source``."""
+    if value is None or value == "":
+        return None if name in ("result_backend", "database_url", "drjit_threads", "frames_per_task") \
+            else _FIELDS[name].default
+    if name in _INTS:
+        if isinstance(value, (bool, float)):
+            return _bad(source, value, "an integer")
+        try:
+            return int(str(value).strip())
+        except ValueError:
+            return _bad(source, value, "an integer")
+    if name == "connect_timeout":
+        try:
+            return float(value)
+        except (TypeError, ValueError):
+            return _bad(source, value, "a number of seconds")
+    return str(value)
+
+
+def _bad(source: str, value: Any, what: str) -> Any:
+    raise SettingsError(f"{source}: must be {what}, got {value!r}")
+
+
+def _from_file(path: Path) -> dict[str, Any]:
+    from undream.spec.io import read_yaml
+
+    data = read_yaml(path)
+    if data is None:
+        return {}
+    if not isinstance(data, Mapping):
+        raise SettingsError(f"{path}: must be a mapping of settings, got {type(data).__name__}")
+    unknown = sorted(set(map(str, data)) - set(_FIELDS))
+    if unknown:
+        raise SettingsError(f"{path}: {unknown[0]}: unknown setting; valid settings are "
+                            f"{', '.join(_FIELDS)}")
+    return {k: _coerce(f"{path}: {k}", k, v) for k, v in data.items()}
+
+
+def load_settings(file: str | Path | None = None, env: Mapping[str, str] | None = None,
+                  **overrides: Any) -> Settings:
+    """Defaults, then ``file`` (or ``$UNDREAM_SETTINGS``), then ``UNDREAM_*`` variables of
+    ``env`` (default ``os.environ``), then the ``overrides`` that are not None (flags)."""
+    env = os.environ if env is None else env
+    values: dict[str, Any] = {}
+    sources: dict[str, str] = {}
+    path = file or env.get(SETTINGS_ENV)
+    if path:
+        values.update(_from_file(Path(path)))
+        sources.update({k: f"{path}: {k}" for k in values})
+    for name in _FIELDS:
+        var = ENV_PREFIX + name.upper()
+        if var in env:
+            values[name] = _coerce(var, name, env[var])
+            sources[name] = var
+    unknown = sorted(set(overrides) - set(_FIELDS))
+    if unknown:
+        raise SettingsError(f"{unknown[0]}: unknown setting; valid settings are {', '.join(_FIELDS)}")
+    for name, value in overrides.items():
+        if value is not None:
+            values[name] = value
+            sources[name] = f"--{name.replace('_', '-')}"
+    try:
+        return Settings(**values)
+    except SettingsError as err:
+        name, _, rest = str(err).partition(": ")
+        raise SettingsError(f"{sources[name]}: {rest}" if name in sources else str(err)) from None
+
+
+def with_overrides(settings: Settings, **overrides: Any) -> Settings:
+    """``settings`` with the ``overrides`` that are not None."""
+    return replace(settings, **{k: v for k, v in overrides.items() if v is not None})
