@@ -14,9 +14,12 @@ ratio is its wall time over the kernels' time.
 
 ``mode``:
 - ``after``: today's engine (one loaded scene per group of equal frames,
-  frozen simulator render);
-- ``legacy``: the same code with every frame's scene kept loaded and nothing
-  frozen (``SceneCache(share=False, frozen=False)``), the A/B switch;
+  frozen simulator render, gradients from the captured transport, captured
+  in the warm-up iteration: its cost per frame is the ``capture s`` column,
+  paid once every ``transport_refresh`` iterations);
+- ``after-prb``: the same with the prb backward pass for the gradient;
+- ``legacy``: every frame's scene kept loaded, nothing frozen, prb
+  (``SceneCache(share=False, frozen=False)``), the A/B switch;
 - ``pinned``: the engine as it was at commit ``--before`` (default a0c7cd2),
   run from a git worktree on the default example with its own benchmark
   (``benchmarks/bench_iteration.py`` of that commit), for the before/after
@@ -86,7 +89,8 @@ def measure(scene_dir: Path, mode: str, args) -> dict[str, float]:
     from undream.engine.context import build_context
     from undream.engine.job import frame_seed, victim_loss_and_grad
     from undream.color import linear_to_srgb
-    from undream.render.differentiable import srgb_encode_grad, texture_gradient
+    from undream.engine.gradient import GradientPath
+    from undream.render.differentiable import srgb_encode_grad
     from undream.render.scene_cache import SceneCache
     from undream.sim import make_backend
     from undream.spec.run import RunConfig
@@ -98,10 +102,12 @@ def measure(scene_dir: Path, mode: str, args) -> dict[str, float]:
         ctx.scenes.close()
         ctx.scenes = SceneCache(scene_dir, max_loaded=10**6, frozen=False, share=False)
         ctx.sim = make_backend("mitsuba", scene_dir, scenes=ctx.scenes)
+    if mode in ("legacy", "after-prb"):
+        ctx.gradients = GradientPath(ctx.scenes, "prb")
     tex = starting_texture(ctx)
     clock = KernelClock()
     parts = {k: [] for k in ("sim_wall", "sim_kernel", "victim_wall", "grad_wall", "grad_kernel", "job_wall")}
-    iters = []
+    iters, first_grad = [], []
     for k in range(args.iterations + 1):
         t_iter = time.perf_counter()
         for pos, index in enumerate(ctx.frame_indices):
@@ -113,9 +119,11 @@ def measure(scene_dir: Path, mode: str, args) -> dict[str, float]:
             ks = clock.lap()
             _, g_img, _ = victim_loss_and_grad(ctx, pos, linear_to_srgb(lin))
             t2 = time.perf_counter()
-            texture_gradient(ctx.scenes, index, tex, srgb_encode_grad(lin, g_img), cfg.grad_spp, seed, seed + 1)
+            ctx.gradients.texture_gradient(index, tex, srgb_encode_grad(lin, g_img), cfg.grad_spp, k, seed)
             t3 = time.perf_counter()
             kg = clock.lap()
+            if k == 0:
+                first_grad.append(t3 - t2)
             if k > 0:  # iteration 0 loads scenes and compiles kernels
                 for name, v in zip(parts, (t1 - t0, ks, t2 - t1, t3 - t2, kg, t3 - t0)):
                     parts[name].append(v)
@@ -124,6 +132,8 @@ def measure(scene_dir: Path, mode: str, args) -> dict[str, float]:
     out = {name: statistics.median(v) for name, v in parts.items()}
     out["iteration"] = statistics.median(iters)
     out["loaded"] = ctx.scenes.loaded_count
+    out["capture"] = statistics.median(first_grad) if mode == "after" else float("nan")
+    out["path"] = ctx.gradients.method(ctx.frame_indices[0])
     ctx.scenes.close()
     return out
 
@@ -162,8 +172,8 @@ def default_example_iteration(args) -> float:
 def _row(frames, px, mode, r) -> str:
     return (f"| {frames} | {px} | {mode} | {r['sim_wall']:.4f} | {r['sim_kernel']:.4f} | {r['victim_wall']:.4f} | "
             f"{r['grad_wall']:.4f} | {r['grad_kernel']:.4f} | {r['job_wall']:.4f} | "
-            f"{r['job_wall'] / max(r['sim_kernel'] + r['grad_kernel'], 1e-9):.2f} | {r['iteration']:.2f} | "
-            f"{r['loaded']} |")
+            f"{r['job_wall'] / max(r['sim_kernel'] + r['grad_kernel'], 1e-9):.2f} | {r['iteration']:.3f} | "
+            f"{r['loaded']} | {r['path']} | {r['capture']:.3f} |")
 
 
 def main(argv=None) -> None:
@@ -175,13 +185,13 @@ def main(argv=None) -> None:
     load = os.getloadavg()
     print(f"variant {mi.variant()}, {os.cpu_count()} cores, load average before: {load[0]:.2f} {load[1]:.2f}")
     print("| frames | px | mode | sim wall s | sim kernels s | victim s | grad wall s | grad kernels s | "
-          "job s | job / kernels | iteration s | scenes loaded |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "job s | job / kernels | iteration s | scenes loaded | gradient | capture s |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     configs = [(n, 64) for n in args.frames] + [(8, p) for p in args.px if p != 64 or 8 not in args.frames]
     with tempfile.TemporaryDirectory(prefix="undream-perf-") as tmp:
         for frames, px in configs:
             scene = orbit_scene(frames, px, Path(tmp) / f"orbit_{frames}_{px}")
-            for mode in ("after", "legacy"):
+            for mode in ("after", "after-prb", "legacy"):
                 if mode == "legacy" and (frames > args.legacy_max_frames or px > args.legacy_max_px):
                     continue
                 print(_row(frames, px, mode, measure(scene, mode, args)), flush=True)
