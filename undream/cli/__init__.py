@@ -1,4 +1,6 @@
-"""The ``undream`` command line: ``init``, ``run`` and the ``victims`` group (:mod:`undream.cli.victims`).
+"""The ``undream`` command line: ``init``, ``run``, the farm's commands (:mod:`undream.cli.farm`:
+``submit``, ``worker``, ``status``, ``cancel``, ``resume``, ``sweep``, ``results``) and the
+``victims`` group (:mod:`undream.cli.victims`).
 
 Errors are mapped at this edge (:mod:`undream.cli.errors`): one line on stderr, exit status 2.
 """
@@ -58,9 +60,12 @@ def _fmt(v: float | None) -> str:
 
 
 def _register_subgroups() -> None:
+    from undream.cli.farm import COMMANDS
     from undream.cli.victims import victims
 
     main.add_command(victims)
+    for command in COMMANDS:
+        main.add_command(command)
 
 
 _register_subgroups()

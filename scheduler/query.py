@@ -1,0 +1,74 @@
+"""What ``undream status`` and ``undream results`` show, as rows of plain data (no printing here)."""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from undream.store import RunSnapshot, Store
+
+
+def _steps(run: "RunSnapshot") -> int | None:
+    steps = (run.config.get("attack") or {}).get("steps")
+    return steps if isinstance(steps, int) else None
+
+
+def current_phase(store: "Store", run: "RunSnapshot") -> tuple[str, int]:
+    """The phase whose jobs the run is on (or was on when it stopped) and its k."""
+    steps = _steps(run)
+    if steps is None or run.iteration < steps:
+        return "attack", run.iteration
+    if store.final_texture(run.id) is None:
+        return "pre", run.iteration
+    return "adversarial", run.iteration
+
+
+def _short(text: str | None, width: int = 60) -> str:
+    if not text:
+        return ""
+    text = " ".join(text.split())
+    return text if len(text) <= width else text[: width - 1] + "…"
+
+
+def run_rows(store: "Store", runs: list["RunSnapshot"]) -> list[dict[str, Any]]:
+    """One row per run: id, name, status, progress, failures, error."""
+    rows = []
+    for run in runs:
+        phase, k = current_phase(store, run)
+        jobs = store.jobs(run.id, k, phase)
+        done = sum(j.status == "succeeded" for j in jobs)
+        rows.append({"run": run.id[:8], "name": run.name, "status": run.status,
+                     "iteration": f"{run.iteration}/{_steps(run)}",
+                     "phase": phase, "jobs": f"{done}/{len(jobs)}" if jobs else "-",
+                     "failures": run.failures, "updated": run.updated.strftime("%H:%M:%S"),
+                     "error": _short(run.error)})
+    return rows
+
+
+def job_rows(store: "Store", run: "RunSnapshot") -> tuple[str, int, list[dict[str, Any]]]:
+    """The per-frame jobs of the run's current phase: (phase, k, rows)."""
+    phase, k = current_phase(store, run)
+    rows = []
+    for j in store.jobs(run.id, k, phase):
+        seconds = j.timings.get("total")
+        rows.append({"frame": j.frame, "status": j.status, "attempts": j.attempts,
+                     "loss": "" if j.loss is None else f"{j.loss:.4f}",
+                     "seconds": "" if seconds is None else f"{seconds:.3f}", "error": _short(j.error, 50)})
+    return phase, k, rows
+
+
+def result_rows(store: "Store", sweep_id: str, spec: dict[str, Any]) -> list[dict[str, Any]]:
+    """One row per run of a sweep: its grid values, status and headline numbers."""
+    from scheduler.sweep import grid_values
+
+    rows = []
+    for run in store.runs(sweep_id=sweep_id):
+        res = run.results or {}
+        success = (res.get("attack_success") or {}).get("aggregate") or {}
+        losses = [v for v in res.get("loss_per_iteration", []) if v is not None]
+        rows.append({"run": run.id[:8], "name": run.name, **grid_values(spec, run.config),
+                     "status": run.status, "metric": (res.get("benign") or {}).get("metric", ""),
+                     "benign": (res.get("benign") or {}).get("value"),
+                     "adversarial": (res.get("adversarial") or {}).get("value"),
+                     "success_rate": success.get("success_rate"),
+                     "final_loss": losses[-1] if losses else None})
+    return rows

@@ -1,0 +1,97 @@
+"""Submitting runs: validate everything first, then record the runs, then dispatch them.
+
+Validation builds each run's context exactly as a worker will (the scene
+directory, the sequence, the victim and its classes, the attack), so a run
+that passes cannot fail a worker for a bad config. Only then is the scene
+packed into the blob store, the run recorded and its start dispatched; a run
+recorded but not dispatched (the broker vanished in between) starts with
+``undream resume``.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Sequence
+
+from scheduler import stages
+from scheduler.local import resolve_scene
+from undream.spec.run import RunConfig
+
+if TYPE_CHECKING:
+    from undream.settings import Settings
+    from undream.store import Store
+
+_SHARED = ("name", "attack", "seed", "sim_spp", "grad_spp", "eval_spp", "store", "transport_refresh")
+
+
+@dataclass(frozen=True)
+class Prepared:
+    """A validated run: its config, its scene directory and its number of frames."""
+
+    config: RunConfig
+    scene_dir: Path
+    n_frames: int
+
+
+def _signature(config: RunConfig, scene_dir: Path) -> str:
+    """What the context's validity depends on besides the attack (victim, loss, labels, scene)."""
+    data = {k: v for k, v in config.to_json().items() if k not in _SHARED}
+    return json.dumps({**data, "scene": str(scene_dir)}, sort_keys=True, default=str)
+
+
+class Validator:
+    """Validates run configs, building each distinct (scene, victim, labels) context once."""
+
+    def __init__(self, work_dir: Path) -> None:
+        self.work_dir = Path(work_dir)
+        self._scenes: dict[Path, Path] = {}
+        self._frames: dict[str, int] = {}
+
+    def scene(self, config: RunConfig, base_dir: Path) -> Path:
+        src = Path(config.scene) if Path(config.scene).is_absolute() else Path(base_dir) / config.scene
+        src = src.resolve()
+        if src not in self._scenes:
+            self._scenes[src] = resolve_scene(config, self.work_dir / str(len(self._scenes)), base_dir)
+        return self._scenes[src]
+
+    def __call__(self, config: RunConfig, base_dir: Path) -> Prepared:
+        from undream.attacks import AttackConfig, make_attack
+        from undream.engine.context import build_context
+
+        scene_dir = self.scene(config, base_dir)
+        key = _signature(config, scene_dir)
+        if key not in self._frames:
+            ctx = build_context(config, scene_dir)
+            ctx.scenes.close()
+            self._frames[key] = len(ctx.sequence.frames)
+        else:  # same scene and victim: only the attack can differ
+            make_attack(AttackConfig.from_dict({**config.attack, "seed": config.attack.get("seed", config.seed)}))
+        return Prepared(config, scene_dir, self._frames[key])
+
+
+def record(store: "Store", runs: Sequence[Prepared], settings: "Settings", out: Path | None = None,
+           sweep_id: str | None = None, out_per_run: bool = False) -> list[str]:
+    """Pack the scenes into the blob store and record the runs (queued); returns their ids.
+
+    ``out``: the output folder (a sweep: ``out/<run name>`` when ``out_per_run``);
+    None: ``<blobs>/outputs/<name>-<id>``.
+    """
+    from scheduler.scenes import store_scene
+
+    keys: dict[Path, str] = {}
+    ids = []
+    for p in runs:
+        if p.scene_dir not in keys:
+            keys[p.scene_dir] = store_scene(store.blobs, p.scene_dir)
+        folder = None if out is None else Path(out).resolve() / (p.config.name if out_per_run else "")
+        ids.append(stages.create(store, p.config, p.n_frames,
+                                 stages.FarmOptions.from_settings(settings, p.n_frames),
+                                 scene_ref=keys[p.scene_dir], out_dir=None if folder is None else str(folder),
+                                 sweep_id=sweep_id))
+    return ids
+
+
+def dispatch_starts(dispatch: Any, run_ids: Sequence[str]) -> None:
+    for run_id in run_ids:
+        dispatch.start(run_id)

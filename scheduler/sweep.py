@@ -1,0 +1,106 @@
+"""Sweeps: a grid over run-config fields, expanded into runs.
+
+A sweep file (YAML)::
+
+    name: bin_park_eps
+    run: runs/bin_park_pgd.yaml      # the base run config (relative to this file); or
+    # base: {scene: ..., victim: ...}  # the base config inline
+    grid:                            # every combination becomes one run
+      attack.eps: [50, 100, 200]     # dotted names reach into mappings
+      seed: [0, 1]
+
+Runs are named ``<sweep name>-NNN`` in grid order (the last field varies
+fastest); each run's config is the base with that combination set.
+"""
+from __future__ import annotations
+
+import copy
+import itertools
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping
+
+from undream.errors import SpecError
+from undream.spec import _check as c
+from undream.spec.io import read_yaml
+from undream.spec.run import RunConfig
+
+
+@dataclass(frozen=True)
+class SweepRun:
+    """One run of a sweep: its config, the folder its relative paths start from, its grid values."""
+
+    config: RunConfig
+    base_dir: Path
+    values: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class Sweep:
+    name: str
+    runs: list[SweepRun]
+    spec: dict[str, Any]  # as written, for the store
+
+
+def _set(data: dict[str, Any], dotted: str, value: Any, where: str) -> None:
+    *parents, leaf = dotted.split(".")
+    node = data
+    for i, part in enumerate(parents):
+        child = node.get(part, {})
+        if not isinstance(child, dict):
+            raise SpecError(f"{where}: {'.'.join(parents[:i + 1])} is not a mapping")
+        node[part] = child = dict(child)
+        node = child
+    node[leaf] = value
+
+
+def load_sweep(path: str | Path) -> Sweep:
+    """Parse and expand a sweep file; errors name the file, the field and the run."""
+    path = Path(path)
+    data = read_yaml(path)
+    try:
+        data = dict(c.mapping("sweep", data))
+        c.no_extra(data, {"name", "run", "base", "grid"})
+        name = c.name("name", c.require(data, "name"))
+        if ("run" in data) == ("base" in data):
+            raise SpecError("run: give the base run config as a file (run) or inline (base), one of them")
+        if "run" in data:
+            base_file = path.parent / str(data["run"])
+            base, base_dir = read_yaml(base_file), base_file.parent
+        else:
+            base, base_dir = data["base"], path.parent
+        base = dict(c.mapping("base", base))
+        grid = dict(c.mapping("grid", c.require(data, "grid")))
+    except SpecError as err:
+        raise SpecError(f"{path}: {err}") from None
+    fields = set(RunConfig.__dataclass_fields__)
+    for key, values in grid.items():
+        if str(key).split(".")[0] not in fields or str(key).split(".")[0] == "name":
+            raise SpecError(f"{path}: grid.{key}: not a run-config field (valid: "
+                            f"{', '.join(sorted(fields - {'name'}))})")
+        if not isinstance(values, list) or not values:
+            raise SpecError(f"{path}: grid.{key}: must be a non-empty list of values, got {values!r}")
+    runs = []
+    for i, combo in enumerate(itertools.product(*grid.values())):
+        values = dict(zip(map(str, grid), combo))
+        config = copy.deepcopy(base)
+        for key, value in values.items():
+            _set(config, key, value, f"{path}: grid.{key}")
+        config["name"] = f"{name}-{i:03d}"
+        try:
+            runs.append(SweepRun(RunConfig.from_json(config), base_dir, values))
+        except SpecError as err:
+            shown = ", ".join(f"{k}={v!r}" for k, v in values.items())
+            raise SpecError(f"{path}: run {i} ({shown}): {err}") from None
+    return Sweep(name, runs, {"name": name, "base": base, "grid": grid})
+
+
+def grid_values(spec: Mapping[str, Any], config: Mapping[str, Any]) -> dict[str, Any]:
+    """The grid fields' values in a run's config (for the results table)."""
+    out = {}
+    for key in spec.get("grid", {}):
+        node: Any = config
+        for part in str(key).split("."):
+            node = node.get(part) if isinstance(node, Mapping) else None
+        out[str(key)] = node
+    return out

@@ -1,0 +1,250 @@
+"""The farm's commands: ``submit``, ``worker``, ``status``, ``cancel``, ``resume``, ``sweep``, ``results``.
+
+Registered on ``undream`` by :mod:`undream.cli`. Each builds one settings
+object (defaults → ``--settings`` file → ``UNDREAM_*`` → flags) and passes it
+down; the work is in :mod:`scheduler` and :mod:`workers`. Bad input and
+unreachable services are one line on stderr, exit status 2.
+"""
+from __future__ import annotations
+
+import csv
+import functools
+import io
+import tempfile
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Callable
+
+import click
+
+from undream.cli.errors import one_line_errors
+
+if TYPE_CHECKING:
+    from celery import Celery
+
+    from undream.settings import Settings
+    from undream.store import Store
+
+
+def settings_options(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """``--settings FILE --broker URL --database URL --blobs URL``, turned into ``settings``."""
+    @click.option("--settings", "settings_file", type=click.Path(path_type=Path), default=None,
+                  help="Settings file (YAML; default $UNDREAM_SETTINGS).")
+    @click.option("--broker", default=None, help="Broker URL (redis://host:6379/0; $UNDREAM_BROKER_URL).")
+    @click.option("--database", default=None,
+                  help="Run database URL (sqlite:///path or postgresql://...; $UNDREAM_DATABASE_URL).")
+    @click.option("--blobs", default=None, help="Blob folder shared by the farm ($UNDREAM_BLOB_URL).")
+    @functools.wraps(fn)
+    def wrapper(settings_file: Path | None, broker: str | None, database: str | None,
+                blobs: str | None, **kwargs: Any) -> Any:
+        from undream.settings import load_settings
+
+        kwargs["settings"] = lambda **more: load_settings(settings_file, broker_url=broker,
+                                                          database_url=database, blob_url=blobs, **more)
+        return fn(**kwargs)
+    return wrapper
+
+
+def _store(settings: "Settings") -> "Store":
+    from undream.store import open_store
+
+    return open_store(settings.database_url, settings.blob_url)
+
+
+def _app(settings: "Settings") -> "Celery":
+    """The Celery app, after checking that the broker and result backend answer."""
+    from workers.app import check_reachable, create_celery_app
+
+    app = create_celery_app(settings)
+    check_reachable(app, settings)
+    return app
+
+
+def _dispatch(app: "Celery") -> Any:
+    from workers.dispatch import CeleryDispatch
+
+    return CeleryDispatch(app)
+
+
+def _send(what: str, fn: Callable[[], Any]) -> None:
+    """Publish to the broker; a broker lost since the check is one line (runs stay recorded)."""
+    from workers.app import BrokerError
+
+    try:
+        fn()
+    except BrokerError:
+        raise
+    except Exception as exc:  # kombu's OperationalError and the transport's own errors
+        raise BrokerError(f"{what} recorded but not sent to the broker ({' '.join(str(exc).split())}); "
+                          "send it with `undream resume`") from None
+
+
+def _table(rows: list[dict[str, Any]]) -> str:
+    if not rows:
+        return "(none)"
+    cols = list(rows[0])
+    cells = [[_cell(r.get(c)) for c in cols] for r in rows]
+    widths = [max(len(c), *(len(row[i]) for row in cells)) for i, c in enumerate(cols)]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(cols, widths)).rstrip()]
+    lines += ["  ".join(v.ljust(w) for v, w in zip(row, widths)).rstrip() for row in cells]
+    return "\n".join(lines)
+
+
+def _cell(value: Any) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    return str(value)
+
+
+@click.command("submit")
+@click.argument("run_yaml", type=click.Path(path_type=Path))
+@click.option("--out", "out", type=click.Path(path_type=Path), default=None,
+              help="Output folder, reachable from the workers (default: <blobs>/outputs/<name>-<id>).")
+@settings_options
+@one_line_errors
+def submit_cmd(run_yaml: Path, out: Path | None, settings: Callable[..., "Settings"]) -> None:
+    """Validate RUN_YAML, then queue it on the farm; prints the run id."""
+    from scheduler.submit import Validator, dispatch_starts, record
+    from undream.spec.run import load_run_config
+
+    cfg = settings()
+    config = load_run_config(run_yaml)
+    app = _app(cfg)
+    store = _store(cfg)
+    with tempfile.TemporaryDirectory(prefix="undream-submit-") as tmp:
+        prepared = Validator(Path(tmp))(config, run_yaml.parent)
+        (run_id,) = record(store, [prepared], cfg, out)
+    _send(f"run {run_id}", lambda: dispatch_starts(_dispatch(app), [run_id]))
+    click.echo(run_id)
+
+
+@click.command("worker")
+@click.option("--concurrency", type=click.IntRange(1, 1024), default=None,
+              help="Worker processes (default 1; $UNDREAM_CONCURRENCY).")
+@click.option("--threads", type=click.IntRange(1, 1024), default=None,
+              help="Dr.Jit threads per process (default: the cores shared out; $UNDREAM_DRJIT_THREADS).")
+@click.option("--loglevel", default="INFO", show_default=True,
+              type=click.Choice(["DEBUG", "INFO", "WARNING", "ERROR"]))
+@settings_options
+@one_line_errors
+def worker_cmd(concurrency: int | None, threads: int | None, loglevel: str,
+               settings: Callable[..., "Settings"]) -> None:
+    """Run a farm worker (a prefork Celery worker; Mitsuba only in its child processes)."""
+    from workers.main import run_worker
+
+    cfg = settings(concurrency=concurrency, drjit_threads=threads)
+    _app(cfg)
+    _store(cfg).close()  # reachable; each worker process opens its own connections
+    run_worker(cfg, loglevel)
+
+
+@click.command("status")
+@click.argument("run", required=False)
+@settings_options
+@one_line_errors
+def status_cmd(run: str | None, settings: Callable[..., "Settings"]) -> None:
+    """Every run as a table, or RUN (an id or its first characters) with its current jobs."""
+    from scheduler.query import job_rows, run_rows
+
+    store = _store(settings())
+    if run is None:
+        click.echo(_table(run_rows(store, store.runs())))
+        return
+    snap = store.find_run(run)
+    click.echo(_table(run_rows(store, [snap])))
+    if snap.error:
+        click.echo(f"error: {snap.error}")
+    phase, k, rows = job_rows(store, snap)
+    click.echo(f"\n{phase} jobs, k={k}:")
+    click.echo(_table(rows))
+
+
+@click.command("cancel")
+@click.argument("run")
+@settings_options
+@one_line_errors
+def cancel_cmd(run: str, settings: Callable[..., "Settings"]) -> None:
+    """Cancel RUN: its queued jobs and callbacks find it cancelled and do nothing."""
+    from scheduler.stages import cancel
+
+    store = _store(settings())
+    snap = store.find_run(run)
+    if cancel(store, snap.id):
+        click.echo(f"cancelled {snap.id}")
+    else:
+        click.echo(f"run {snap.id} is {store.get_run(snap.id).status}; nothing to cancel")
+
+
+@click.command("resume")
+@click.argument("run")
+@settings_options
+@one_line_errors
+def resume_cmd(run: str, settings: Callable[..., "Settings"]) -> None:
+    """Send RUN's current work to the farm again, from what the store says (after any crash)."""
+    from scheduler.stages import resume
+
+    cfg = settings()
+    app = _app(cfg)
+    store = _store(cfg)
+    snap = store.find_run(run)
+    phase: list[str] = []
+    _send(f"run {snap.id}", lambda: phase.append(resume(store, snap.id, _dispatch(app))))
+    click.echo(f"run {snap.id} is done" if phase == ["done"] else f"resumed {snap.id}: {phase[0]}")
+
+
+@click.command("sweep")
+@click.argument("sweep_yaml", type=click.Path(path_type=Path))
+@click.option("--out", "out", type=click.Path(path_type=Path), default=None,
+              help="Output folder; each run writes OUT/<run name> (default: under the blob folder).")
+@settings_options
+@one_line_errors
+def sweep_cmd(sweep_yaml: Path, out: Path | None, settings: Callable[..., "Settings"]) -> None:
+    """Expand SWEEP_YAML's grid into runs, validate them all, then queue them; prints the sweep id."""
+    from scheduler.submit import Validator, dispatch_starts, record
+    from scheduler.sweep import load_sweep
+    from undream.errors import SpecError
+
+    cfg = settings()
+    sweep = load_sweep(sweep_yaml)
+    app = _app(cfg)
+    store = _store(cfg)
+    with tempfile.TemporaryDirectory(prefix="undream-sweep-") as tmp:
+        validate = Validator(Path(tmp))
+        prepared = []
+        for i, run in enumerate(sweep.runs):
+            try:
+                prepared.append(validate(run.config, run.base_dir))
+            except SpecError as err:
+                raise SpecError(f"{sweep_yaml}: run {i} ({run.config.name}): {err}") from None
+        sweep_id = store.create_sweep(sweep.name, sweep.spec)
+        run_ids = record(store, prepared, cfg, out, sweep_id=sweep_id, out_per_run=True)
+    _send(f"sweep {sweep_id}", lambda: dispatch_starts(_dispatch(app), run_ids))
+    click.echo(sweep_id)
+    click.echo(_table([{"run": r, "name": p.config.name, **s.values}
+                       for r, p, s in zip(run_ids, prepared, sweep.runs)]))
+
+
+@click.command("results")
+@click.argument("sweep")
+@click.option("--csv", "as_csv", is_flag=True, help="CSV instead of a table.")
+@settings_options
+@one_line_errors
+def results_cmd(sweep: str, as_csv: bool, settings: Callable[..., "Settings"]) -> None:
+    """The runs of SWEEP (an id or a name) with their grid values and results."""
+    from scheduler.query import result_rows
+
+    store = _store(settings())
+    snap = store.find_sweep(sweep)
+    rows = result_rows(store, snap.id, snap.spec)
+    if not as_csv:
+        click.echo(_table(rows))
+        return
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=list(rows[0]) if rows else ["run"], lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    click.echo(buf.getvalue(), nl=False)
+
+
+COMMANDS = (submit_cmd, worker_cmd, status_cmd, cancel_cmd, resume_cmd, sweep_cmd, results_cmd)

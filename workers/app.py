@@ -1,0 +1,86 @@
+"""The Celery app factory: one app per settings object, nothing built at import.
+
+Farm rules (docs/architecture.md, "The farm"): JSON only on the wire (arrays
+travel through the blob store as keys); a Redis result backend (chords need
+one; never rpc); ``acks_late`` with ``reject_on_worker_lost`` and prefetch 1,
+so a job whose worker dies goes back to the queue; a visibility timeout
+longer than the longest job, after which Redis delivers a job of a worker
+that vanished to another one. Two queues: ``undream.control`` (start and
+the phase callbacks, short) before ``undream.frames`` (per-frame batches), so
+a finished phase's callback never waits behind other runs' frames.
+"""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from undream.errors import UndreamError
+from undream.store import mask_url
+
+if TYPE_CHECKING:
+    from celery import Celery
+
+    from undream.settings import Settings
+
+CONTROL_QUEUE = "undream.control"
+FRAMES_QUEUE = "undream.frames"
+QUEUES = (CONTROL_QUEUE, FRAMES_QUEUE)  # a worker empties them in this order
+
+
+class BrokerError(UndreamError):
+    """The broker or the result backend cannot be reached."""
+
+
+def create_celery_app(settings: "Settings") -> "Celery":
+    """A Celery app on ``settings``' broker and result backend, with undream's tasks registered."""
+    from celery import Celery
+
+    from workers.tasks import register_tasks
+
+    app = Celery("undream", broker=settings.broker_url, backend=settings.backend_url, set_as_current=False)
+    transport = {
+        "visibility_timeout": settings.visibility_timeout,
+        "queue_order_strategy": "priority",  # control before frames, every poll
+        "unacked_restore_interval": settings.restore_interval,
+        "unacked_restore_throttle": 1,
+        "socket_connect_timeout": settings.connect_timeout,
+    }
+    app.conf.update(
+        task_serializer="json", result_serializer="json", accept_content=["json"],
+        result_accept_content=["json"], event_serializer="json",
+        task_acks_late=True, task_reject_on_worker_lost=True, worker_prefetch_multiplier=1,
+        task_acks_on_failure_or_timeout=True,
+        broker_transport_options=transport, result_backend_transport_options=dict(transport),
+        broker_connection_retry_on_startup=True, broker_connection_max_retries=None,
+        worker_cancel_long_running_tasks_on_connection_loss=True,
+        result_backend_always_retry=True, result_backend_max_retries=10,
+        result_expires=7 * 24 * 3600, result_extended=False,
+        task_default_queue=FRAMES_QUEUE,
+        task_routes={"undream.frames": {"queue": FRAMES_QUEUE},
+                     "undream.start": {"queue": CONTROL_QUEUE},
+                     "undream.collect": {"queue": CONTROL_QUEUE}},
+        worker_send_task_events=False, task_send_sent_event=False,
+    )
+    app.undream_settings = settings  # type: ignore[attr-defined]  # read by workers.runtime
+    register_tasks(app)
+    return app
+
+
+def check_reachable(app: "Celery", settings: "Settings") -> None:
+    """Connect to the broker and the result backend once; BrokerError naming the URL when not."""
+    try:
+        with app.connection_for_write() as conn:
+            conn.ensure_connection(max_retries=1, interval_start=0, interval_step=0,
+                                   timeout=settings.connect_timeout)
+    except Exception as exc:  # kombu raises OperationalError or the transport's own errors
+        raise BrokerError(f"cannot reach the broker at {mask_url(settings.broker_url)!r}: "
+                          f"{_reason(exc)}") from None
+    try:
+        app.backend.client.ping()
+    except Exception as exc:
+        raise BrokerError(f"cannot reach the result backend at {mask_url(settings.backend_url)!r}: "
+                          f"{_reason(exc)}") from None
+
+
+def _reason(exc: BaseException) -> str:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text

@@ -1,0 +1,47 @@
+"""``undream worker``: a prefork Celery worker on the farm's queues, Mitsuba only in its children."""
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import sys
+from typing import TYPE_CHECKING, Any
+
+from workers.app import QUEUES, create_celery_app
+
+if TYPE_CHECKING:
+    from undream.settings import Settings
+
+log = logging.getLogger(__name__)
+HEAVY = ("mitsuba", "drjit", "torch")  # never imported in the worker's parent process
+
+
+def worker_argv(settings: "Settings", loglevel: str = "INFO", hostname: str | None = None) -> list[str]:
+    """The ``celery worker`` arguments of an undream worker."""
+    name = hostname or f"undream-{os.getpid()}@{socket.gethostname()}"
+    return ["worker", "--pool=prefork", f"--concurrency={settings.concurrency}",
+            f"--queues={','.join(QUEUES)}", f"--loglevel={loglevel}", f"--hostname={name}",
+            "--without-gossip", "--without-mingle", "--without-heartbeat"]
+
+
+def run_worker(settings: "Settings", loglevel: str = "INFO", hostname: str | None = None) -> None:
+    """Run a worker until it is stopped (blocks)."""
+    from celery import signals
+
+    from workers.runtime import drjit_threads_for, init_process
+
+    app = create_celery_app(settings)
+
+    def _child_init(**_: Any) -> None:
+        init_process(settings)
+
+    def _ready(**_: Any) -> None:
+        heavy = [m for m in HEAVY if m in sys.modules]
+        if heavy:
+            log.error("undream worker: %s imported in the worker's parent process (not fork-safe)", heavy)
+        log.info("undream worker ready: %d process(es), %d Dr.Jit thread(s) each, parent without %s",
+                 settings.concurrency, drjit_threads_for(settings), ", ".join(HEAVY))
+
+    signals.worker_process_init.connect(_child_init, weak=False)
+    signals.worker_ready.connect(_ready, weak=False)
+    app.worker_main(worker_argv(settings, loglevel, hostname))

@@ -1,0 +1,107 @@
+"""What a worker process holds: its store connection, its runs' contexts, its dispatch.
+
+Built lazily in the process that runs tasks (a prefork child), never in the
+worker's parent: database engines and Mitsuba's JIT are not fork-safe.
+:func:`init_process` runs in each child as it starts (``worker_process_init``)
+and sets the thread counts there.
+"""
+from __future__ import annotations
+
+import fcntl
+import logging
+import os
+from pathlib import Path
+from typing import IO, TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from celery import Celery
+
+    from scheduler.contexts import ContextCache
+    from undream.settings import Settings
+    from undream.store import Store
+    from workers.dispatch import CeleryDispatch
+
+log = logging.getLogger(__name__)
+
+# Mitsuba 3.9.1 deadlocks reading an EXR texture (scene loading, T0) when Dr.Jit's pool has one
+# thread (measured: the read waits for OpenEXR tasks no thread runs). A worker that should use one
+# core gets a pool of two pinned to that core instead.
+MIN_DRJIT_POOL = 2
+_HELD: list[IO[str]] = []  # lock files of the cores this process claimed (released when it exits)
+
+
+class Runtime:
+    """One process's store, context cache (LRU by run id) and Celery dispatch."""
+
+    def __init__(self, app: "Celery") -> None:
+        from scheduler.contexts import ContextCache
+        from undream.store import open_store
+        from workers.dispatch import CeleryDispatch
+
+        settings: Settings = app.undream_settings  # type: ignore[attr-defined]
+        self.pid = os.getpid()
+        self.store: Store = open_store(settings.database_url, settings.blob_url)
+        self.contexts: ContextCache = ContextCache(self.store, settings.cache_dir, settings.context_cache)
+        self.dispatch: CeleryDispatch = CeleryDispatch(app)
+
+
+def runtime(app: "Celery") -> Runtime:
+    """This process's runtime for ``app`` (made on first use; a forked child makes its own)."""
+    rt: Runtime | None = getattr(app, "_undream_runtime", None)
+    if rt is None or rt.pid != os.getpid():
+        rt = Runtime(app)
+        app._undream_runtime = rt  # type: ignore[attr-defined]
+    return rt
+
+
+def drjit_threads_for(settings: "Settings") -> int:
+    """Dr.Jit threads per worker process: as set, else the machine's cores shared among the processes."""
+    return settings.drjit_threads or max(1, (os.cpu_count() or 1) // settings.concurrency)
+
+
+def claim_cores(n: int, lock_dir: Path) -> list[int]:
+    """Pin this process to ``n`` cores that no other worker process on the machine has claimed.
+
+    Claims are ``flock`` s on ``lock_dir/coreN.lock``, released when the process
+    exits (however it dies). Returns the cores; all of them (no pinning) when
+    ``n`` covers the machine or not enough are free.
+    """
+    cores = sorted(os.sched_getaffinity(0))
+    if n >= len(cores):
+        return cores
+    lock_dir.mkdir(parents=True, exist_ok=True)
+    got: list[tuple[int, IO[str]]] = []
+    for core in cores:
+        f = open(lock_dir / f"core{core}.lock", "w")
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            f.close()
+            continue
+        got.append((core, f))
+        if len(got) == n:
+            break
+    if len(got) < n:
+        for _, f in got:
+            f.close()
+        log.warning("no %d free core(s) to pin this worker process to; it runs on all %d", n, len(cores))
+        return cores
+    _HELD.extend(f for _, f in got)
+    os.sched_setaffinity(0, [c for c, _ in got])
+    return [c for c, _ in got]
+
+
+def init_process(settings: "Settings") -> None:
+    """In a worker child as it starts: its cores, Dr.Jit's and torch's thread counts, Mitsuba's variant."""
+    import drjit as dr
+    import torch
+
+    from undream.variant import mitsuba
+
+    threads = drjit_threads_for(settings)
+    cores = claim_cores(threads, Path(settings.cache_dir) / "cores")
+    dr.set_thread_count(max(threads, MIN_DRJIT_POOL))
+    torch.set_num_threads(settings.torch_threads)
+    mitsuba()
+    log.info("worker process %d: cores %s, Dr.Jit pool %d, torch threads %d", os.getpid(), cores,
+             dr.thread_count(), settings.torch_threads)
