@@ -73,9 +73,10 @@ def eval_job(store: "Store", ctx: "RunContext", run_id: str, phase: str, k: int,
     ``textures``: ``benign`` and ``last`` for ``pre``, ``final`` for
     ``adversarial`` (sRGB H×W×3; the caller reads them once per batch).
     """
+    from scheduler.iteration import worker_name
     from undream.color import to_uint8
 
-    store.job_started(run_id, k, position, phase)
+    store.job_started(run_id, k, position, phase, worker=worker_name())
     t0 = time.perf_counter()
     if phase == "pre":
         image = _render(ctx, position, textures["benign"])

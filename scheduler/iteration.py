@@ -44,6 +44,14 @@ def expected_frames(run: "RunSnapshot", frames_per_step: int | None, k: int) -> 
     return frame_batch(run.n_frames, frames_per_step, k, run.seed)
 
 
+def worker_name() -> str:
+    """``host:pid`` of this process (recorded with each job it starts)."""
+    import os
+    import socket
+
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
 def frame_job(store: "Store", ctx: "RunContext", run_id: str, k: int, position: int,
               texture: np.ndarray | None = None) -> dict[str, Any]:
     """Render-and-grad frame ``position`` of iteration ``k`` with texture ``k``; store the result.
@@ -54,7 +62,7 @@ def frame_job(store: "Store", ctx: "RunContext", run_id: str, k: int, position: 
     """
     from undream.engine.job import render_and_grad
 
-    store.job_started(run_id, k, position)
+    store.job_started(run_id, k, position, worker=worker_name())
     res = render_and_grad(ctx, position, store.texture(run_id, k) if texture is None else texture, k)
     store.job_succeeded(run_id, k, position, res.grad, res.loss, res.finite, res.timings)
     return res.summary()

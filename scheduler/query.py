@@ -52,7 +52,8 @@ def job_rows(store: "Store", run: "RunSnapshot") -> tuple[str, int, list[dict[st
         seconds = j.timings.get("total")
         rows.append({"frame": j.frame, "status": j.status, "attempts": j.attempts,
                      "loss": "" if j.loss is None else f"{j.loss:.4f}",
-                     "seconds": "" if seconds is None else f"{seconds:.3f}", "error": _short(j.error, 50)})
+                     "seconds": "" if seconds is None else f"{seconds:.3f}", "worker": j.worker or "",
+                     "error": _short(j.error, 50)})
     return phase, k, rows
 
 

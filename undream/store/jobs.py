@@ -71,13 +71,14 @@ class JobTables:
         for frame in frames:
             self._upsert_job("queue_jobs", run_id, k, frame, phase, {"status": "queued"}, None)
 
-    def job_started(self, run_id: str, k: int, frame: int, phase: str = "attack") -> None:
-        """A worker starts the job: status started, one more attempt."""
+    def job_started(self, run_id: str, k: int, frame: int, phase: str = "attack",
+                    worker: str | None = None) -> None:
+        """A worker (``host:pid``) starts the job: status started, one more attempt."""
         now = utcnow()
         self._upsert_job("job_started", run_id, k, frame, phase,
-                         {"status": "started", "attempts": 1, "started": now},
+                         {"status": "started", "attempts": 1, "started": now, "worker": worker},
                          {"status": "started", "attempts": FrameJob.__table__.c.attempts + 1,
-                          "started": now, "finished": None})
+                          "started": now, "finished": None, "worker": worker})
 
     def job_succeeded(self, run_id: str, k: int, frame: int, grad: np.ndarray, loss: float,
                       finite: bool, timings: Mapping[str, Any]) -> None:

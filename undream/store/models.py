@@ -164,5 +164,6 @@ class FrameJob(Base):
     error: Mapped[str | None] = mapped_column(Text)
     result_json: Mapped[str | None] = mapped_column(Text)
     image_ref: Mapped[str | None] = mapped_column(String(400))
+    worker: Mapped[str | None] = mapped_column(String(200))  # host:pid of the last attempt
     started: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
     finished: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))

@@ -127,6 +127,7 @@ class JobSnapshot:
     phase: str = "attack"
     result: dict[str, Any] | None = None
     image_ref: str | None = None
+    worker: str | None = None
 
     @classmethod
     def of(cls, row: FrameJob) -> "JobSnapshot":
@@ -134,7 +135,8 @@ class JobSnapshot:
                    attempts=row.attempts, loss=row.loss, finite=bool(row.finite),
                    grad_ref=row.grad_ref, timings=loads(row.timings_json) or {},
                    error=row.error, started=_utc(row.started), finished=_utc(row.finished),
-                   phase=row.phase, result=loads(row.result_json), image_ref=row.image_ref)
+                   phase=row.phase, result=loads(row.result_json), image_ref=row.image_ref,
+                   worker=row.worker)
 
 
 @dataclass(frozen=True)

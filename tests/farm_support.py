@@ -1,0 +1,213 @@
+"""Shared pieces of the farm tests: a tiny victim and scene, real worker subprocesses, services.
+
+The farm tests use the real Redis (``UNDREAM_TEST_REDIS``, default
+127.0.0.1:6379; each farm on its own database number, flushed) and the real
+PostgreSQL of tests/test_store.py (a fresh database per farm). A missing
+service is a skip that says why, never a silent pass.
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+REDIS_HOST = os.environ.get("UNDREAM_TEST_REDIS", "127.0.0.1:6379")
+REDIS_START = ["redis-server", "--daemonize", "yes", "--bind", "127.0.0.1", "-::1", "--port", "6379",
+               "--save", "", "--appendonly", "no", "--dir", "/var/lib/redis",
+               "--logfile", "/var/log/redis/ci.log"]
+LABELS = ["car", "sphere", "stop_sign", "traffic_cone", "trash_bin", "umbrella"]
+_used_dbs: set[int] = set()
+
+
+def make_victim(path: Path) -> str:
+    """A tiny random HF ResNet over the built-in classes, saved locally (no network)."""
+    import torch
+    import transformers as T
+
+    torch.manual_seed(0)
+    cfg = T.ResNetConfig(embedding_size=8, hidden_sizes=[8, 16], depths=[1, 1],
+                         id2label=dict(enumerate(LABELS)), label2id={n: i for i, n in enumerate(LABELS)})
+    T.ResNetForImageClassification(cfg).save_pretrained(path)
+    (path / "preprocessor_config.json").write_text(json.dumps(
+        {"size": {"height": 32, "width": 32}, "do_normalize": True,
+         "image_mean": [0.5, 0.5, 0.5], "image_std": [0.5, 0.5, 0.5]}))
+    return str(path)
+
+
+def make_scene(path: Path, n_frames: int = 4, size: int = 24) -> Path:
+    """A sphere seen from ``n_frames`` cameras at ``size`` px, a 16×8 texture."""
+    from undream.scene.poses import look_at
+    from undream.scenedir.init import InitOptions, init_scene
+    from undream.spec import Asset, Camera, Environment, Frame, Sequence, TextureParam, Transform
+
+    angles = np.linspace(0.0, 1.5, n_frames)
+    frames = tuple(Frame(i, Camera(Transform.from_rows(look_at([1.6 * np.sin(a), 1.2, 2.4 * np.cos(a)],
+                                                               [0, 0.5, 0])), 40.0, (size, size)),
+                         Transform.identity(), Environment("cloudy", 12.0)) for i, a in enumerate(angles))
+    seq = Sequence("farm", Asset("ball", "builtin:sphere", texture=TextureParam(resolution=(16, 8))), frames)
+    return init_scene(seq, path, InitOptions(verify_spp=1))
+
+
+def run_config(scene: Path, victim: str, name: str = "farm", steps: int = 3, **extra: Any) -> dict[str, Any]:
+    attack = {"name": "pgd", "eps": 32.0, "steps": steps, **extra.pop("attack", {})}
+    return {"scene": str(scene), "name": name, "victim": victim, "loss": "ce", "attack": attack,
+            "sim_spp": 2, "grad_spp": 2, "eval_spp": 2, "seed": 5, **extra}
+
+
+def write_yaml(path: Path, data: dict[str, Any]) -> Path:
+    import yaml
+
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def redis_client(db: int = 0):
+    import redis
+
+    host, port = REDIS_HOST.split(":")
+    return redis.Redis(host=host, port=int(port), db=db, socket_connect_timeout=2)
+
+
+def redis_up() -> str | None:
+    """None when Redis answers, else why not."""
+    try:
+        redis_client().ping()
+        return None
+    except Exception as exc:
+        return f"Redis unreachable at {REDIS_HOST}: {exc}"
+
+
+def free_db() -> int:
+    """A Redis database number no other farm of this session uses, flushed."""
+    for db in range(15, 0, -1):
+        if db not in _used_dbs:
+            _used_dbs.add(db)
+            redis_client(db).flushdb()
+            return db
+    raise RuntimeError("no free Redis database number")
+
+
+class Farm:
+    """One farm: its settings as environment variables, its worker subprocesses, its CLI."""
+
+    def __init__(self, root: Path, database_url: str | None = None, **settings: Any) -> None:
+        self.root = root
+        self.db = free_db()
+        self.broker = f"redis://{REDIS_HOST}/{self.db}"
+        self.blobs = root / "blobs"
+        self.env = {**os.environ, "HF_HUB_OFFLINE": "1", "TRANSFORMERS_OFFLINE": "1",
+                    "UNDREAM_BROKER_URL": self.broker, "UNDREAM_BLOB_URL": str(self.blobs),
+                    "UNDREAM_CACHE_DIR": str(root / "cache"), "UNDREAM_VISIBILITY_TIMEOUT": "12",
+                    "UNDREAM_RESTORE_INTERVAL": "1", "PYTHONUNBUFFERED": "1"}
+        self.env.pop("UNDREAM_SETTINGS", None)
+        if database_url:
+            self.env["UNDREAM_DATABASE_URL"] = database_url
+        self.env.update({f"UNDREAM_{k.upper()}": str(v) for k, v in settings.items()})
+        self.workers: list[subprocess.Popen] = []
+        self._store = None
+
+    def settings(self):
+        from undream.settings import load_settings
+        return load_settings(env=self.env)
+
+    @property
+    def store(self):
+        from undream.store import open_store
+
+        if self._store is None:
+            s = self.settings()
+            self._store = open_store(s.database_url, s.blob_url)
+        return self._store
+
+    def cli(self, *args: str, timeout: float = 120) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "undream.cli", *args], capture_output=True, text=True,
+                              cwd=ROOT, env=self.env, timeout=timeout)
+
+    def submit(self, run_yaml: Path, *extra: str) -> str:
+        res = self.cli("submit", str(run_yaml), *extra)
+        assert res.returncode == 0, res.stderr
+        return res.stdout.strip().splitlines()[-1]
+
+    def start_worker(self, concurrency: int = 1, threads: int = 1) -> subprocess.Popen:
+        """An ``undream worker`` in its own process group; waits until it consumes."""
+        log = open(self.root / f"worker{len(self.workers)}.log", "w")
+        proc = subprocess.Popen([sys.executable, "-m", "undream.cli", "worker", "--concurrency",
+                                 str(concurrency), "--threads", str(threads)], cwd=ROOT, env=self.env,
+                                stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+        self.workers.append(proc)
+        path = Path(log.name)
+        wait_for(lambda: "ready." in path.read_text() or proc.poll() is not None, 60, "worker ready")
+        assert proc.poll() is None, path.read_text()[-3000:]
+        return proc
+
+    def kill_worker(self, proc: subprocess.Popen) -> None:
+        """SIGKILL the worker and its children (its process group)."""
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        proc.wait(10)
+
+    def stop(self) -> None:
+        for proc in self.workers:
+            if proc.poll() is None:
+                try:
+                    os.killpg(proc.pid, signal.SIGTERM)
+                    proc.wait(10)
+                except (ProcessLookupError, subprocess.TimeoutExpired):
+                    self.kill_worker(proc)
+        self.workers.clear()
+        if self._store is not None:
+            self._store.close()
+            self._store = None
+
+    def logs(self) -> str:
+        return "\n".join(p.read_text()[-4000:] for p in sorted(self.root.glob("worker*.log")))
+
+    def wait_status(self, run_id: str, statuses: tuple[str, ...] = ("done",), timeout: float = 90) -> Any:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            run = self.store.get_run(run_id)
+            if run.status in statuses:
+                return run
+            if run.status in ("failed", "cancelled") and run.status not in statuses:
+                raise AssertionError(f"run {run_id} {run.status}: {run.error}\n{self.logs()}")
+            time.sleep(0.2)
+        raise AssertionError(f"run {run_id} still {self.store.get_run(run_id).status} after {timeout} s\n"
+                             f"{self.logs()}")
+
+
+def wait_for(cond: Callable[[], Any], timeout: float, what: str) -> Any:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        value = cond()
+        if value:
+            return value
+        time.sleep(0.1)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+
+
+def postgres_database(admin_url: str) -> tuple[str, Callable[[], None]]:
+    """A fresh PostgreSQL database: its URL and a function that drops it."""
+    from sqlalchemy import create_engine, text
+
+    engine = create_engine(admin_url, isolation_level="AUTOCOMMIT", connect_args={"connect_timeout": 3})
+    name = f"undream_farm_{uuid.uuid4().hex[:12]}"
+    with engine.connect() as conn:
+        conn.execute(text(f'CREATE DATABASE "{name}"'))
+
+    def drop() -> None:
+        with engine.connect() as conn:
+            conn.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+        engine.dispose()
+
+    return engine.url.set(database=name).render_as_string(hide_password=False), drop

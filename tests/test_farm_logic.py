@@ -1,0 +1,333 @@
+"""The farm's logic without a broker: settings, scenes in the blob store, stages, Celery in eager mode.
+
+Eager mode never serializes and raises differently (docs/architecture.md):
+these tests check the stages' decisions; tests/test_farm_integration.py runs
+the same through Redis and real worker processes.
+"""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from farm_support import make_scene, make_victim, run_config, write_yaml
+from scheduler import stages
+from scheduler.iteration import MissingResults, reduce_and_step
+from scheduler.local import LocalDispatch, RunFailed, drain, run_local
+from scheduler.scenes import pack_scene, store_scene, unpack_scene
+from undream.errors import SpecError, StoreError
+from undream.settings import SettingsError, load_settings
+from undream.spec.run import RunConfig
+from undream.store import open_store
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory, mi):
+    root = tmp_path_factory.mktemp("farm_logic")
+    return {"victim": make_victim(root / "victim"), "scene": make_scene(root / "scene", n_frames=3)}
+
+
+def _config(tiny, **kw) -> RunConfig:
+    return RunConfig.from_json(run_config(tiny["scene"], tiny["victim"], **kw))
+
+
+def _local_run(tiny, tmp_path, cfg, options=None):
+    """A run through the stages in this process; returns (store, run id, context)."""
+    from undream.engine.context import build_context
+
+    store = open_store(None, tmp_path / "store")
+    ctx = build_context(cfg, tiny["scene"])
+    opts = options or stages.FarmOptions(frames_per_task=2, max_attempts=2, failure_budget=1)
+    run_id = stages.create(store, cfg, 3, opts, out_dir=str(tmp_path / "out"))
+    return store, run_id, ctx
+
+
+# -- settings ---------------------------------------------------------------------------------
+
+
+def test_settings_precedence_and_errors_name_their_source(tmp_path):
+    path = write_yaml(tmp_path / "farm.yaml", {"broker_url": "redis://file:6379/1", "concurrency": 3,
+                                               "blob_url": "/srv/blobs"})
+    s = load_settings(path, env={"UNDREAM_CONCURRENCY": "4", "UNDREAM_DRJIT_THREADS": "2"},
+                      blob_url="/flag/blobs")
+    assert (s.broker_url, s.concurrency, s.drjit_threads, s.blob_url) == \
+        ("redis://file:6379/1", 4, 2, "/flag/blobs")
+    assert s.backend_url == s.broker_url and load_settings(env={}).broker_url == "redis://127.0.0.1:6379/0"
+    assert load_settings(env={"UNDREAM_SETTINGS": str(path)}).concurrency == 3
+    with pytest.raises(SettingsError, match="UNDREAM_CONCURRENCY: must be an integer, got 'many'"):
+        load_settings(env={"UNDREAM_CONCURRENCY": "many"})
+    with pytest.raises(SettingsError, match="UNDREAM_FAILURE_BUDGET: must be an integer >= 0, got -1"):
+        load_settings(env={"UNDREAM_FAILURE_BUDGET": "-1"})
+    with pytest.raises(SettingsError, match=r"farm.yaml: brokr_url: unknown setting"):
+        load_settings(write_yaml(tmp_path / "farm.yaml", {"brokr_url": "x"}), env={})
+    with pytest.raises(SettingsError, match="--concurrency: must be an integer >= 1, got 0"):
+        load_settings(env={}, concurrency=0)
+
+
+def test_frames_per_task_is_one_task_per_slot_unless_set():
+    s = load_settings(env={})
+    assert [s.frames_per_task_for(n) for n in (1, 2, 7, 8)] == [1, 1, 4, 4]
+    assert load_settings(env={"UNDREAM_FARM_SLOTS": "8"}).frames_per_task_for(8) == 1
+    assert load_settings(env={"UNDREAM_FRAMES_PER_TASK": "3"}).frames_per_task_for(8) == 3
+
+
+# -- scenes in the blob store ---------------------------------------------------------------
+
+
+def test_scene_is_packed_deterministically_and_unpacked_once(tiny, tmp_path):
+    a, b = pack_scene(tiny["scene"], tmp_path / "a.tar"), pack_scene(tiny["scene"], tmp_path / "b.tar")
+    assert a == b and (tmp_path / "a.tar").read_bytes() == (tmp_path / "b.tar").read_bytes()
+    store = open_store(None, tmp_path / "blobs")
+    key = store_scene(store.blobs, tiny["scene"])
+    assert key == f"scenes/{a}.tar" and store_scene(store.blobs, tiny["scene"]) == key
+    assert len(list((tmp_path / "blobs" / "scenes").iterdir())) == 1
+    dirs: list[Path] = []
+    threads = [threading.Thread(target=lambda: dirs.append(unpack_scene(store.blobs, key, tmp_path / "c")))
+               for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(set(dirs)) == 1 and len(dirs) == 4
+    for f in tiny["scene"].rglob("*"):
+        if f.is_file():
+            assert (dirs[0] / f.relative_to(tiny["scene"])).read_bytes() == f.read_bytes()
+    assert [p.name for p in (tmp_path / "c" / "scenes").iterdir()] == [a]  # no temporary leftovers
+    with open(store.blobs.path(key), "r+b") as f:
+        f.seek(600)
+        f.write(b"corrupt")
+    with pytest.raises(StoreError, match="does not match its SHA-256"):
+        unpack_scene(store.blobs, key, tmp_path / "d")
+
+
+# -- stages ------------------------------------------------------------------------------------
+
+
+def test_reduce_refuses_to_step_while_a_job_has_no_result(tiny, tmp_path):
+    store, run_id, ctx = _local_run(tiny, tmp_path, _config(tiny))
+    dispatch = LocalDispatch()
+    stages.start(store, lambda _: ctx, run_id, dispatch)
+    assert dispatch.queue.popleft() == ("frames", run_id, "attack", 0, [[0, 1], [2]])
+    stages.run_batch(store, lambda _: ctx, run_id, "attack", 0, [0, 1])
+    with pytest.raises(MissingResults, match="no result yet for frame"):
+        reduce_and_step(store, ctx.attack, run_id, 0)
+    assert stages.collect(store, lambda _: ctx, run_id, "attack", 0, dispatch) == "rerun"
+    assert list(dispatch.queue) == [("frames", run_id, "attack", 0, [[2]])]  # only the missing frame
+    assert store.get_run(run_id).iteration == 0
+    drain(store, lambda _: ctx, dispatch)
+    assert store.get_run(run_id).status == "done"
+    assert [r.k for r in store.iterations(run_id)] == [0, 1, 2]
+
+
+def _failing(frames, exc=RuntimeError("the GPU fell off")):
+    from undream.engine import job
+
+    real = job.render_and_grad
+
+    def fake(ctx, position, texture, iteration):
+        if position in frames:
+            raise exc
+        return real(ctx, position, texture, iteration)
+    return fake
+
+
+def test_a_failing_job_is_retried_then_counted_against_the_budget(tiny, tmp_path, monkeypatch):
+    from undream.engine import job
+
+    monkeypatch.setattr(job, "render_and_grad", _failing({1}))
+    store, run_id, ctx = _local_run(tiny, tmp_path, _config(tiny))
+    dispatch = LocalDispatch()
+    dispatch.start(run_id)
+    drain(store, lambda _: ctx, dispatch)
+    run = store.get_run(run_id)
+    assert run.status == "failed" and run.iteration == 0 and run.failures == 2
+    assert "frame(s) 1 failed" in run.error and "the GPU fell off" in run.error
+    assert "failure budget of 1 used up" in run.error
+    jobs = {j.frame: j for j in store.jobs(run_id, 0)}
+    assert jobs[1].status == "queued" and "RuntimeError: the GPU fell off" in jobs[1].error
+    assert store.iterations(run_id) == []  # never stepped on fewer frames
+
+
+def test_cancel_stops_a_run_and_resume_finishes_it(tiny, tmp_path):
+    store, run_id, ctx = _local_run(tiny, tmp_path, _config(tiny))
+    dispatch = LocalDispatch()
+    stages.start(store, lambda _: ctx, run_id, dispatch)
+    stages.run_batch(store, lambda _: ctx, run_id, "attack", 0, [0, 1, 2])
+    assert stages.cancel(store, run_id)
+    assert stages.run_batch(store, lambda _: ctx, run_id, "attack", 0, [0])["skipped"] == [0]
+    assert stages.collect(store, lambda _: ctx, run_id, "attack", 0, dispatch) == "stale"
+    assert not reduce_and_step(store, ctx.attack, run_id, 0)
+    assert not store.advance(run_id, 0, store.texture(run_id, 0), {}, {})  # a cancelled run never advances
+    assert store.get_run(run_id).iteration == 0
+    assert stages.cancel(store, run_id) is False  # already cancelled
+    fresh = LocalDispatch()
+    assert stages.resume(store, run_id, fresh) == "attack"
+    assert list(fresh.queue) == [("frames", run_id, "attack", 0, [])]  # every job of k=0 already done
+    drain(store, lambda _: ctx, fresh)
+    assert store.get_run(run_id).status == "done"
+
+
+def test_resume_after_a_crash_gives_the_same_texture(tiny, tmp_path):
+    cfg = _config(tiny)
+    ref_store, ref_id, ctx = _local_run(tiny, tmp_path / "ref", cfg)
+    ref = LocalDispatch()
+    ref.start(ref_id)
+    drain(ref_store, lambda _: ctx, ref)
+
+    store, run_id, _ = _local_run(tiny, tmp_path / "crash", cfg)
+    dispatch = LocalDispatch()
+    stages.start(store, lambda _: ctx, run_id, dispatch)
+    _, _, _, _, batches = dispatch.queue.popleft()  # iteration 0 whole
+    for batch in batches:
+        stages.run_batch(store, lambda _: ctx, run_id, "attack", 0, batch)
+    stages.collect(store, lambda _: ctx, run_id, "attack", 0, dispatch)
+    _, _, _, k, batches = dispatch.queue.popleft()  # half of iteration 1, then the process "dies"
+    stages.run_batch(store, lambda _: ctx, run_id, "attack", k, batches[0])
+    assert store.get_run(run_id).iteration == 1 == k
+    fresh = LocalDispatch()
+    assert stages.resume(store, run_id, fresh) == "attack"
+    assert list(fresh.queue) == [("frames", run_id, "attack", 1, [[2]])]
+    drain(store, lambda _: ctx, fresh)
+    assert store.get_run(run_id).status == "done"
+    assert [r.k for r in store.iterations(run_id)] == [0, 1, 2]
+    assert np.array_equal(store.final_texture(run_id), ref_store.final_texture(ref_id))
+    for k in range(4):
+        assert np.array_equal(store.texture(run_id, k), ref_store.texture(ref_id, k))
+
+
+def test_attack_state_keeps_scalars_in_json_and_arrays_once(tiny, tmp_path):
+    store, run_id, ctx = _local_run(tiny, tmp_path, _config(tiny, attack={"name": "apgd"}))
+    dispatch = LocalDispatch()
+    dispatch.start(run_id)
+    drain(store, lambda _: ctx, dispatch)
+    texts = [store.blobs.path(f"runs/{run_id}/attack_state/{k:06d}.json").read_text() for k in range(4)]
+    docs = [json.loads(t) for t in texts]
+    for text, doc in zip(texts, docs):
+        assert set(doc["T0"]) == {"array"} and set(doc["x_best"]) == {"array"}
+        assert len(text) < 2000  # scalars only: one 8×16×3 texture as floats would be ~8 kB
+    assert len({doc["T0"]["array"] for doc in docs}) == 1  # T0 written once
+    state = store.attack_state(run_id, 3)
+    assert state["T0"].shape == (8, 16, 3) and state["visible"].dtype == bool
+
+
+def test_a_crashed_job_fails_the_local_run_with_its_error(tiny, tmp_path, monkeypatch):
+    from undream.engine import job
+
+    monkeypatch.setattr(job, "render_and_grad", _failing({0}, ValueError("bad frame")))
+    with pytest.raises(RunFailed, match="ValueError: bad frame"):
+        run_local(_config(tiny), tmp_path / "out", progress=False)
+    (run,) = open_store(None, tmp_path / "out" / "store").runs()
+    assert run.status == "failed" and "ValueError: bad frame" in run.error
+
+
+# -- Celery in eager mode --------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def eager(tiny, tmp_path_factory):
+    """One run through the Celery app in eager mode; every task call and its result recorded."""
+    from celery import signals
+
+    from scheduler.submit import Validator, record
+    from workers.app import create_celery_app
+    from workers.dispatch import CeleryDispatch
+
+    root = tmp_path_factory.mktemp("eager")
+    settings = load_settings(env={}, broker_url="memory://", result_backend="cache+memory://",
+                             blob_url=str(root / "blobs"), cache_dir=str(root / "cache"))
+    app = create_celery_app(settings)
+    app.conf.task_always_eager = True
+    app.conf.task_eager_propagates = True
+    calls: list[tuple[str, list, object]] = []
+    args: dict[str, list] = {}
+
+    def pre(task_id=None, task=None, args=None, **_):
+        args_by_id[task_id] = list(args)
+
+    def post(task_id=None, task=None, retval=None, **_):
+        calls.append((task.name, args_by_id.pop(task_id), retval))
+
+    args_by_id = args
+    signals.task_prerun.connect(pre, weak=False)
+    signals.task_postrun.connect(post, weak=False)
+    try:
+        store = open_store(settings.database_url, settings.blob_url)
+        prepared = Validator(root / "work")(_config(tiny, name="eager"), Path("."))
+        (run_id,) = record(store, [prepared], settings, root / "out")
+        CeleryDispatch(app).start(run_id)
+    finally:
+        signals.task_prerun.disconnect(pre)
+        signals.task_postrun.disconnect(post)
+    return {"store": store, "run_id": run_id, "calls": calls, "out": root / "out", "app": app}
+
+
+def test_eager_run_gives_the_local_runs_texture(eager, tiny, tmp_path):
+    run = eager["store"].get_run(eager["run_id"])
+    assert run.status == "done", run.error
+    for name in ("texture_final.png", "texture_final.npy", "results.json", "loss.png", "metadata.json"):
+        assert (eager["out"] / name).is_file(), name
+    assert len(list((eager["out"] / "frames_adversarial").glob("*.png"))) == 3
+    local = run_local(_config(tiny, name="eager"), tmp_path / "local", progress=False)
+    assert np.array_equal(np.load(eager["out"] / "texture_final.npy"), np.load(tmp_path / "local" / "texture_final.npy"))
+    assert run.results["loss_per_iteration"] == pytest.approx(local["loss_per_iteration"], rel=1e-5)
+    assert run.results["benign"] == local["benign"] and run.results["adversarial"] == local["adversarial"]
+
+
+def test_every_task_argument_and_result_survives_json(eager):
+    from workers.tasks import TASK_NAMES
+
+    assert {name for name, _, _ in eager["calls"]} == set(TASK_NAMES) == \
+        {t for t in eager["app"].tasks if t.startswith("undream.")}
+    for name, args, result in eager["calls"]:
+        assert json.loads(json.dumps(args)) == args, name
+        assert json.loads(json.dumps(result)) == result, (name, result)
+        assert isinstance(result, dict) and result["run_id"] == eager["run_id"]
+
+
+def test_the_worker_parent_imports_no_renderer():
+    code = ("import sys\n"
+            "from undream.settings import load_settings\n"
+            "from workers.app import create_celery_app\n"
+            "from workers.main import worker_argv\n"
+            "import undream.cli.farm, scheduler.stages, workers.runtime\n"
+            "s = load_settings(env={})\n"
+            "create_celery_app(s); worker_argv(s)\n"
+            "heavy = [m for m in ('mitsuba', 'drjit', 'torch') if m in sys.modules]\n"
+            "assert not heavy, heavy\n")
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+# -- sweeps and the schema ---------------------------------------------------------------------
+
+
+def test_sweep_expands_a_grid_and_names_bad_fields(tiny, tmp_path):
+    from scheduler.sweep import load_sweep
+
+    base = write_yaml(tmp_path / "run.yaml", run_config(tiny["scene"], tiny["victim"]))
+    sweep = load_sweep(write_yaml(tmp_path / "s.yaml", {"name": "grid", "run": "run.yaml",
+                                                        "grid": {"attack.eps": [8, 16], "seed": [0, 1, 2]}}))
+    assert [r.config.name for r in sweep.runs] == [f"grid-{i:03d}" for i in range(6)]
+    assert [(r.config.attack["eps"], r.config.seed) for r in sweep.runs] == \
+        [(8, 0), (8, 1), (8, 2), (16, 0), (16, 1), (16, 2)]
+    assert sweep.runs[0].config.attack["steps"] == 3 and sweep.runs[0].base_dir == base.parent
+    with pytest.raises(SpecError, match=r"s2.yaml: grid.epsilon: not a run-config field"):
+        load_sweep(write_yaml(tmp_path / "s2.yaml", {"name": "g", "run": "run.yaml", "grid": {"epsilon": [1]}}))
+    with pytest.raises(SpecError, match=r"s3.yaml: run 1 \(loss='hinge'\): loss"):
+        load_sweep(write_yaml(tmp_path / "s3.yaml", {"name": "g", "run": "run.yaml",
+                                                     "grid": {"loss": ["ce", "hinge"]}}))
+
+
+def test_a_store_of_another_schema_version_is_refused(tmp_path):
+    from sqlalchemy import text
+
+    store = open_store(None, tmp_path)
+    with store.engine.begin() as conn:
+        conn.execute(text("UPDATE undream_schema SET version = 1"))
+    store.close()
+    with pytest.raises(StoreError, match=r"has schema version 1, this undream needs version 2"):
+        open_store(None, tmp_path)
