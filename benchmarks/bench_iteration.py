@@ -34,11 +34,12 @@ def _parse(argv=None) -> argparse.Namespace:
 
 def main(argv=None) -> None:
     args = _parse(argv)
-    from scheduler.local import resolve_scene, starting_texture
+    from scheduler.local import resolve_scene
     from undream.engine.context import build_context
+    from undream.render.loading import read_texture_srgb
     from undream.engine.job import frame_seed, render_and_grad, victim_loss_and_grad
     from undream.color import linear_to_srgb
-    from undream.render.differentiable import render_linear, srgb_encode_grad, texture_gradient
+    from undream.render.differentiable import srgb_encode_grad
     from undream.spec.run import RunConfig
 
     tmp = Path(tempfile.mkdtemp(prefix="undream-bench-"))
@@ -46,7 +47,7 @@ def main(argv=None) -> None:
                     grad_spp=args.grad_spp, attack={"name": "pgd", "eps": 16, "steps": args.iterations})
     scene_dir = resolve_scene(cfg, tmp, Path.cwd())
     ctx = build_context(cfg, scene_dir)
-    tex = starting_texture(ctx)
+    tex = read_texture_srgb(ctx.scenes.mi, scene_dir / "textures" / f"{ctx.sequence.texture.name}.exr")
     n = len(ctx.sequence.frames)
     for pos in range(n):  # compile every frame's kernels once (not timed)
         render_and_grad(ctx, pos, tex, 0)
@@ -62,11 +63,11 @@ def main(argv=None) -> None:
         for pos in range(n):  # the same work, each part alone
             idx, seed = ctx.frame_indices[pos], frame_seed(cfg.seed, k, ctx.frame_indices[pos])
             t0 = time.perf_counter()
-            lin = render_linear(ctx.scenes, idx, tex, cfg.sim_spp, seed)
+            lin = ctx.sim.render(idx, tex, cfg.sim_spp, seed)
             t1 = time.perf_counter()
             _, g_img, _ = victim_loss_and_grad(ctx, pos, linear_to_srgb(lin))
             t2 = time.perf_counter()
-            texture_gradient(ctx.scenes, idx, tex, srgb_encode_grad(lin, g_img), cfg.grad_spp, seed, seed + 1)
+            ctx.gradients.texture_gradient(idx, tex, srgb_encode_grad(lin, g_img), cfg.grad_spp, k, seed)
             t3 = time.perf_counter()
             parts["sim_render"].append(t1 - t0)
             parts["victim"].append(t2 - t1)

@@ -48,7 +48,7 @@ class GradientPath:
 
     scenes: SceneCache
     mode: str = "auto"
-    refresh: int = 10
+    refresh: int = 5
     run_seed: int = 0
     _transports: dict[int, tuple[int, "Transport"]] = field(default_factory=dict)  # index → (epoch, T)
     _refused: dict[int, str] = field(default_factory=dict)

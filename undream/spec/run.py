@@ -50,7 +50,7 @@ class RunConfig:
     torch_threads: int = 1  # the victim's CPU threads; Dr.Jit renders on the rest
     store: str | None = None  # SQLAlchemy URL; default: SQLite in the output directory
     gradient: str = "auto"  # auto | transport | prb
-    transport_refresh: int = 10
+    transport_refresh: int = 5
 
     def __post_init__(self) -> None:
         if not isinstance(self.scene, str) or not self.scene:
