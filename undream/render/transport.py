@@ -264,28 +264,32 @@ def _assemble(a: dict[str, np.ndarray], image_hw: tuple[int, int], tex_hw: tuple
     value, hit = a["value"], a["hit"]
     px0 = a["base"][:, 0] - a["crop_offset"][0]  # footprint's first pixel column, crop-relative
     py0 = a["base"][:, 1] - a["crop_offset"][1]
-    wx, wy = a["wx"], a["wy"]
+    wx, wy = a["wx"].astype(np.float64), a["wy"].astype(np.float64)
     k = wx.shape[1]
-    # Every sample's k×k footprint at once: pixel ids and weights (0 outside the image).
-    offs = np.arange(k)
-    py = py0[:, None] + offs  # (N, k)
-    px = px0[:, None] + offs
-    pix = py[:, :, None] * w + px[:, None, :]  # (N, k, k)
-    wts = wy[:, :, None] * wx[:, None, :]
-    inside = ((py >= 0) & (py < h))[:, :, None] & ((px >= 0) & (px < w))[:, None, :]
-    pix = np.where(inside, pix, 0)
-    wts = np.where(inside, wts, 0).astype(np.float64)
     # Per-pixel filter-weight sums over every sample (the film's weight channel).
-    wsum = np.bincount(pix.ravel(), weights=wts.ravel(), minlength=n_pix)
+    wsum = np.zeros(n_pix, np.float64)
+    for ky in range(k):
+        py = py0 + ky
+        iny = (py >= 0) & (py < h)
+        for kx in range(k):
+            px = px0 + kx
+            ok = iny & (px >= 0) & (px < w)
+            wsum += np.bincount(py[ok] * w + px[ok], weights=(wx[ok, kx] * wy[ok, ky]), minlength=n_pix)
     # F: pixels × (object samples), normalised by the weight sums.
     sel = np.nonzero(hit & np.any(value != 0, axis=1))[0]
     s = len(sel)
-    p_sel, w_sel = pix[sel].reshape(s, -1), wts[sel].reshape(s, -1)
-    keep = w_sel > 0
-    rows = p_sel[keep]
-    cols = np.broadcast_to(np.arange(s)[:, None], keep.shape)[keep]
-    vals = w_sel[keep] / wsum[rows]
-    F = sp.csr_matrix((vals, (rows, cols)), shape=(n_pix, s))
+    rows, cols, vals = [], [], []
+    for ky in range(k):
+        py = py0[sel] + ky
+        for kx in range(k):
+            px = px0[sel] + kx
+            wv = wx[sel, kx] * wy[sel, ky]
+            ok = (py >= 0) & (py < h) & (px >= 0) & (px < w) & (wv > 0)
+            pix = py[ok] * w + px[ok]
+            rows.append(pix)
+            cols.append(np.nonzero(ok)[0])
+            vals.append(wv[ok] / wsum[pix])
+    F = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n_pix, s))
     # B: (object samples) × texels, bilinear as Mitsuba's bitmap (Dr.Jit texture, wrap repeat).
     uv = a["uv"][sel].astype(np.float64)
     u = to_uv[0, 0] * uv[:, 0] + to_uv[0, 1] * uv[:, 1] + to_uv[0, 2]
