@@ -10,6 +10,7 @@ from __future__ import annotations
 import csv
 import functools
 import io
+import os
 import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
@@ -38,6 +39,8 @@ def settings_options(fn: Callable[..., Any]) -> Callable[..., Any]:
                 blobs: str | None, **kwargs: Any) -> Any:
         from undream.settings import load_settings
 
+        # The farm's commands and workers report in lines; no Hugging Face loading bars on stderr.
+        os.environ.setdefault("HF_HUB_DISABLE_PROGRESS_BARS", "1")
         kwargs["settings"] = lambda **more: load_settings(settings_file, broker_url=broker,
                                                           database_url=database, blob_url=blobs, **more)
         return fn(**kwargs)

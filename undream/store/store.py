@@ -181,12 +181,13 @@ class Store(JobTables):
             row = s.get(Run, ref)
             if row is not None:
                 return RunSnapshot.of(row)
-            rows = list(s.scalars(select(Run).where(Run.id.startswith(ref, autoescape=True)).limit(2)))
+            rows = [RunSnapshot.of(r) for r in
+                    s.scalars(select(Run).where(Run.id.startswith(ref, autoescape=True)).limit(2))]
         if len(ref) < 4 or not rows:
             raise StoreError(f"run {ref!r}: not found")
         if len(rows) > 1:
             raise StoreError(f"run {ref!r}: ambiguous (several run ids start with it); give more of the id")
-        return RunSnapshot.of(rows[0])
+        return rows[0]
 
     def runs(self, status: str | None = None, sweep_id: str | None = None) -> list[RunSnapshot]:
         """Every run (or those with ``status``, of sweep ``sweep_id``), oldest first."""

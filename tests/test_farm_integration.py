@@ -1,0 +1,191 @@
+"""The farm for real: Redis, ``undream worker`` subprocesses, SQLite and PostgreSQL, crashes.
+
+Every run here is also run by ``undream run`` in this process (the same
+config and seed); the farm's final texture must equal it bit for bit.
+"""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from farm_support import (
+    REDIS_START, Farm, make_scene, make_victim, postgres_database, redis_client, redis_up, run_config,
+    wait_for, write_yaml,
+)
+
+PG_ADMIN_URL = os.environ.get("UNDREAM_TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/test")
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory, mi):
+    reason = redis_up()
+    if reason:
+        pytest.skip(reason)
+    root = tmp_path_factory.mktemp("farm_int")
+    victim = make_victim(root / "victim")
+    scene = make_scene(root / "scene", n_frames=4)
+    return {"root": root, "victim": victim, "scene": scene, "refs": {}}
+
+
+def reference(tiny, **cfg) -> np.ndarray:
+    """The final texture ``undream run`` gives for this config (computed once per config)."""
+    from scheduler.local import run_local
+    from undream.spec.run import RunConfig
+
+    config = run_config(tiny["scene"], tiny["victim"], **cfg)
+    key = repr(sorted(config.items()))
+    if key not in tiny["refs"]:
+        out = tiny["root"] / f"ref{len(tiny['refs'])}"
+        run_local(RunConfig.from_json(config), out, progress=False)
+        tiny["refs"][key] = np.load(out / "texture_final.npy")
+    return tiny["refs"][key]
+
+
+def submit(farm: Farm, tiny, name: str, *extra: str, **cfg) -> str:
+    path = write_yaml(farm.root / f"{name}.yaml", run_config(tiny["scene"], tiny["victim"], name=name, **cfg))
+    return farm.submit(path, *extra)
+
+
+def final_texture(farm: Farm, run_id: str) -> np.ndarray:
+    run = farm.store.get_run(run_id)
+    out = Path(run.out_dir) if run.out_dir else farm.blobs / "outputs" / f"{run.name}-{run_id[:8]}"
+    return np.load(out / "texture_final.npy")
+
+
+@pytest.fixture(scope="module")
+def sqlite_farm(tiny):
+    farm = Farm(tiny["root"] / "sqlite")
+    farm.root.mkdir()
+    farm.start_worker()
+    yield farm
+    farm.stop()
+
+
+def test_a_submitted_run_completes_on_a_worker_like_the_local_run(sqlite_farm, tiny):
+    farm = sqlite_farm
+    out = farm.root / "out_a"
+    run_id = submit(farm, tiny, "a", "--out", str(out))
+    run = farm.wait_status(run_id)
+    for name in ("texture_final.png", "texture_final.npy", "results.json", "loss.png", "metadata.json"):
+        assert (out / name).is_file(), name
+    assert len(list((out / "frames_benign").glob("*.png"))) == 4
+    assert np.array_equal(np.load(out / "texture_final.npy"), reference(tiny))
+    assert [r.k for r in farm.store.iterations(run_id)] == [0, 1, 2]
+    assert run.farm["frames_per_task"] == 2 and run.scene_ref.startswith("scenes/")
+    table = farm.cli("status")
+    assert table.returncode == 0 and run_id[:8] in table.stdout and "done" in table.stdout
+    detail = farm.cli("status", run_id[:8])
+    assert detail.returncode == 0 and "adversarial jobs, k=3" in detail.stdout
+    assert detail.stdout.count("succeeded") == 4
+
+
+def test_a_short_run_finishes_while_a_long_one_runs(sqlite_farm, tiny):
+    """Runs interleave per iteration (one chord in flight per run, FIFO queue): no starvation."""
+    farm = sqlite_farm
+    long_id = submit(farm, tiny, "long", steps=1000)
+    farm.wait_status(long_id, ("running",))
+    wait_for(lambda: farm.store.get_run(long_id).iteration >= 1, 60, "the long run to step")
+    short_id = submit(farm, tiny, "short", steps=1)
+    farm.wait_status(short_id, ("done",), timeout=60)
+    long_run = farm.store.get_run(long_id)
+    assert long_run.status == "running" and long_run.iteration < 1000
+    res = farm.cli("cancel", long_id)
+    assert res.returncode == 0 and f"cancelled {long_id}" in res.stdout
+    stopped = farm.store.get_run(long_id).iteration
+    time.sleep(1.5)
+    assert farm.store.get_run(long_id).iteration <= stopped + 1  # at most the step in flight
+    assert farm.store.get_run(long_id).status == "cancelled"
+
+
+def test_sigkill_of_a_worker_mid_iteration_loses_nothing(tiny):
+    """Two workers; the one running a frame job of iteration 1 or later is SIGKILLed (with its child).
+
+    Its job goes back to Redis after the visibility timeout and runs on the
+    other worker; every iteration is applied once and the texture is the
+    undisturbed run's, bit for bit.
+    """
+    farm = Farm(tiny["root"] / "kill", frames_per_task=1)
+    farm.root.mkdir()
+    try:
+        workers = [farm.start_worker(), farm.start_worker()]
+        cfg = {"steps": 4, "sim_spp": 16, "grad_spp": 16}
+        run_id = submit(farm, tiny, "kill", **cfg)
+
+        def started_job():
+            run = farm.store.get_run(run_id)
+            jobs = [j for j in farm.store.jobs(run_id, run.iteration) if j.status == "started" and j.worker]
+            return run.iteration >= 1 and jobs and jobs[0]
+
+        job = wait_for(started_job, 90, "a started frame job of iteration >= 1")
+        pgid = os.getpgid(int(job.worker.split(":")[1]))
+        victim = next(w for w in workers if w.pid == pgid)
+        farm.kill_worker(victim)
+        run = farm.wait_status(run_id, timeout=90)
+        records = farm.store.iterations(run_id)
+        assert [r.k for r in records] == [0, 1, 2, 3] and all(r.n_ok == 4 for r in records)
+        again = next(j for j in farm.store.jobs(run_id, job.k) if j.frame == job.frame)
+        assert again.status == "succeeded" and again.attempts >= 2  # ran again after the kill
+        assert run.failures == 0
+        assert np.array_equal(final_texture(farm, run_id), reference(tiny, **cfg))
+    finally:
+        farm.stop()
+
+
+def test_a_run_on_postgresql(tiny):
+    pytest.importorskip("psycopg", reason="psycopg not installed (pip install 'undream[postgres]')")
+    try:
+        url, drop = postgres_database(PG_ADMIN_URL)
+    except Exception as exc:
+        pytest.skip(f"PostgreSQL unreachable at {PG_ADMIN_URL}: {str(exc).splitlines()[0]}")
+    farm = Farm(tiny["root"] / "pg", database_url=url)
+    farm.root.mkdir()
+    try:
+        farm.start_worker()
+        run_id = submit(farm, tiny, "pg")
+        farm.wait_status(run_id)
+        assert farm.store.engine.dialect.name == "postgresql"
+        assert np.array_equal(final_texture(farm, run_id), reference(tiny))
+    finally:
+        farm.stop()
+        drop()
+
+
+def _restart_redis() -> None:
+    Path("/var/lib/redis").mkdir(parents=True, exist_ok=True)
+    Path("/var/log/redis").mkdir(parents=True, exist_ok=True)
+    subprocess.run(REDIS_START, check=True, capture_output=True)
+    wait_for(lambda: redis_up() is None, 20, "Redis to answer again")
+
+
+def test_a_run_survives_a_broker_restart_with_resume(tiny):
+    """Redis is SIGKILLed mid-run and started again (empty: no persistence); `undream resume` finishes."""
+    farm = Farm(tiny["root"] / "broker")
+    farm.root.mkdir()
+    try:
+        farm.start_worker()
+        cfg = {"steps": 6, "sim_spp": 16, "grad_spp": 16}
+        run_id = submit(farm, tiny, "broker", **cfg)
+        wait_for(lambda: farm.store.get_run(run_id).iteration >= 1, 60, "the run to step")
+        pid = redis_client().info("server")["process_id"]
+        os.kill(pid, signal.SIGKILL)
+        wait_for(lambda: redis_up() is not None, 10, "Redis to go away")
+        at_kill = farm.store.get_run(run_id).iteration
+        _restart_redis()
+        time.sleep(2)
+        assert farm.store.get_run(run_id).status == "running"
+        res = farm.cli("resume", run_id)
+        assert res.returncode == 0, res.stderr
+        assert f"resumed {run_id}" in res.stdout
+        farm.wait_status(run_id, timeout=90)
+        assert [r.k for r in farm.store.iterations(run_id)] == list(range(6)) and at_kill < 6
+        assert np.array_equal(final_texture(farm, run_id), reference(tiny, **cfg))
+    finally:
+        if redis_up() is not None:
+            _restart_redis()
+        farm.stop()
