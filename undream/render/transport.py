@@ -223,6 +223,14 @@ def _replay(mi: Any, scene: Any, spp: int, seed: int) -> dict[str, np.ndarray]:
     obj_index, _ = _object_shape(scene)
     obj_ptr = dr.reinterpret_array(mi.UInt32, scene.shapes_dr())[obj_index]
     hit = si.is_valid() & (dr.reinterpret_array(mi.UInt32, si.shape) == obj_ptr)
+    # The film's weight channel: every sample's filter weights summed per pixel (texture-independent).
+    block = film.create_block()
+    block.put(pos, ray.wavelengths, mi.Color3f(0.0), mi.Float(0.0), mi.Float(1.0))
+    weights = block.tensor()
+    # Only samples whose first hit is the object carry the texture: keep those.
+    keep = dr.compress(hit & dr.any(value != 0))
+    value, uv, pos = dr.gather(type(value), value, keep), dr.gather(mi.Point2f, si.uv, keep), \
+        dr.gather(mi.Point2f, pos, keep)
     rfilter = film.rfilter()
     if rfilter.is_box_filter():  # the image block drops it: one pixel, weight 1
         base = dr.floor(pos)
@@ -232,19 +240,20 @@ def _replay(mi: Any, scene: Any, spp: int, seed: int) -> dict[str, np.ndarray]:
         base = dr.floor(pos) - n
         wx = [rfilter.eval(base.x + k + 0.5 - pos.x) for k in range(2 * n + 1)]
         wy = [rfilter.eval(base.y + k + 0.5 - pos.y) for k in range(2 * n + 1)]
-    dr.eval(value, hit, si.uv, base, wx, wy)
+    dr.eval(value, uv, base, wx, wy, weights)
+    b = block.border_size()
     out = {
         "value": np.stack([np.array(value.x, np.float32), np.array(value.y, np.float32),
                            np.array(value.z, np.float32)], axis=1),
-        "hit": np.array(hit, bool),
-        "uv": np.stack([np.array(si.uv.x, np.float32), np.array(si.uv.y, np.float32)], axis=1),
+        "uv": np.stack([np.array(uv.x, np.float32), np.array(uv.y, np.float32)], axis=1),
         "base": np.stack([np.array(base.x, np.float64), np.array(base.y, np.float64)], axis=1).astype(np.int64),
         "wx": np.stack([np.array(v, np.float32) for v in wx], axis=1),
         "wy": np.stack([np.array(v, np.float32) for v in wy], axis=1),
+        "wsum": np.array(weights, np.float64)[b:weights.shape[0] - b, b:weights.shape[1] - b, -1].ravel(),
         "crop_offset": np.array([int(v) for v in film.crop_offset()], np.int64),
         "spp": np.array(spp_used),
     }
-    del sampler, ray, weight, pos, L, value, si
+    del sampler, ray, weight, pos, L, value, si, block
     return out
 
 
@@ -261,29 +270,20 @@ def _assemble(a: dict[str, np.ndarray], image_hw: tuple[int, int], tex_hw: tuple
     h, w = image_hw
     th, tw = tex_hw
     n_pix = h * w
-    value, hit = a["value"], a["hit"]
+    value = a["value"]  # the object samples only (first hit on the object, non-zero radiance)
     px0 = a["base"][:, 0] - a["crop_offset"][0]  # footprint's first pixel column, crop-relative
     py0 = a["base"][:, 1] - a["crop_offset"][1]
     wx, wy = a["wx"].astype(np.float64), a["wy"].astype(np.float64)
     k = wx.shape[1]
-    # Per-pixel filter-weight sums over every sample (the film's weight channel).
-    wsum = np.zeros(n_pix, np.float64)
-    for ky in range(k):
-        py = py0 + ky
-        iny = (py >= 0) & (py < h)
-        for kx in range(k):
-            px = px0 + kx
-            ok = iny & (px >= 0) & (px < w)
-            wsum += np.bincount(py[ok] * w + px[ok], weights=(wx[ok, kx] * wy[ok, ky]), minlength=n_pix)
+    wsum = a["wsum"]  # per-pixel filter-weight sums over every sample (the film's weight channel)
     # F: pixels × (object samples), normalised by the weight sums.
-    sel = np.nonzero(hit & np.any(value != 0, axis=1))[0]
-    s = len(sel)
+    s = len(value)
     rows, cols, vals = [], [], []
     for ky in range(k):
-        py = py0[sel] + ky
+        py = py0 + ky
         for kx in range(k):
-            px = px0[sel] + kx
-            wv = wx[sel, kx] * wy[sel, ky]
+            px = px0 + kx
+            wv = wx[:, kx] * wy[:, ky]
             ok = (py >= 0) & (py < h) & (px >= 0) & (px < w) & (wv > 0)
             pix = py[ok] * w + px[ok]
             rows.append(pix)
@@ -291,7 +291,7 @@ def _assemble(a: dict[str, np.ndarray], image_hw: tuple[int, int], tex_hw: tuple
             vals.append(wv[ok] / wsum[pix])
     F = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n_pix, s))
     # B: (object samples) × texels, bilinear as Mitsuba's bitmap (Dr.Jit texture, wrap repeat).
-    uv = a["uv"][sel].astype(np.float64)
+    uv = a["uv"].astype(np.float64)
     u = to_uv[0, 0] * uv[:, 0] + to_uv[0, 1] * uv[:, 1] + to_uv[0, 2]
     v = to_uv[1, 0] * uv[:, 0] + to_uv[1, 1] * uv[:, 1] + to_uv[1, 2]
     x = (u * tw - 0.5).astype(np.float32)
@@ -308,7 +308,7 @@ def _assemble(a: dict[str, np.ndarray], image_hw: tuple[int, int], tex_hw: tuple
     b_cols_a, b_w_a = np.concatenate(b_cols), np.concatenate(b_w)
     jt = []
     for c in range(3):
-        B = sp.csr_matrix((b_w_a * np.tile(value[sel, c].astype(np.float64), 4), (b_rows, b_cols_a)),
+        B = sp.csr_matrix((b_w_a * np.tile(value[:, c].astype(np.float64), 4), (b_rows, b_cols_a)),
                           shape=(s, th * tw))
         J = (F @ B).tocsr()  # pixels × texels
         J.eliminate_zeros()
