@@ -101,3 +101,25 @@ def test_a_nonlinear_scene_falls_back_to_prb_with_a_reason(nonlinear_dir, caplog
 def test_bad_mode_names_the_choices(scene_dir):
     with pytest.raises(RenderError, match="auto, transport, prb"):
         GradientPath(SceneCache(scene_dir), "sparse")
+
+
+@pytest.mark.parametrize("mode", ["prb", "transport"])
+def test_a_nan_image_gradient_marks_the_frame_non_finite(scene_dir, monkeypatch, mode):
+    """The victim's NaN must reach the reduce step: prb's backward would turn it into zeros."""
+    from types import SimpleNamespace
+
+    import undream.engine.job as job
+    from undream.sim import make_backend
+    from undream.spec.run import RunConfig
+
+    scenes = SceneCache(scene_dir)
+    ctx = SimpleNamespace(config=RunConfig(scene=str(scene_dir), sim_spp=2, grad_spp=2), frame_indices=[0, 1],
+                          sim=make_backend("mitsuba", scene_dir, scenes=scenes),
+                          gradients=GradientPath(scenes, mode))
+    bad = np.full((*IMG, 3), np.nan, np.float32)
+    monkeypatch.setattr(job, "victim_loss_and_grad", lambda *_: (0.5, bad, None))
+    res = job.render_and_grad(ctx, 0, np.full((8, 16, 3), 0.5, np.float32), 0)
+    assert not res.finite
+    if mode == "prb":
+        assert np.isfinite(res.grad).all()  # what the old check looked at, and let through
+    scenes.close()

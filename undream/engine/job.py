@@ -66,6 +66,8 @@ def render_and_grad(ctx: RunContext, position: int, texture: np.ndarray, iterati
     g_linear = srgb_encode_grad(linear, g_image)
     grad = ctx.gradients.texture_gradient(index, texture, g_linear, cfg.grad_spp, iteration, seed)
     t3 = time.perf_counter()
-    finite = bool(np.isfinite(grad).all()) and math.isfinite(loss)
+    # A NaN in the victim's image gradient must not hide behind the renderer: Mitsuba's
+    # backward pass turns it into zeros, which would pass as a finite frame.
+    finite = bool(np.isfinite(g_image).all() and np.isfinite(grad).all()) and math.isfinite(loss)
     timings = {"sim_render": t1 - t0, "victim": t2 - t1, "grad_render": t3 - t2, "total": t3 - t0}
     return FrameResult(grad, loss, finite, pred, timings)
