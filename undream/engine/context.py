@@ -50,8 +50,19 @@ def class_id(victim: Any, name: str, field: str) -> int:
     return labels.index(name.lower())
 
 
-def build_context(config: RunConfig, scene_dir: Path) -> RunContext:
-    """Load the sequence, scenes, victim and attack of a run."""
+def task_of(config: RunConfig) -> str:
+    """The victim's task that the run's loss belongs to (``classification`` or ``detection``)."""
+    return next(t for t, kinds in TASK_LOSSES.items() if config.loss in kinds)
+
+
+def build_context(config: RunConfig, scene_dir: Path, *, victim: "Victim | None" = None,
+                  scenes: SceneCache | None = None) -> RunContext:
+    """Load the sequence, scenes, victim and attack of a run.
+
+    ``victim`` and ``scenes``: already loaded ones to share (a farm worker
+    serving several runs of one scene and victim loads them once); loaded here
+    when None. Everything else is the run's own.
+    """
     import torch
 
     from undream.attacks import AttackConfig, make_attack
@@ -62,15 +73,17 @@ def build_context(config: RunConfig, scene_dir: Path) -> RunContext:
     # 0.1–2.3 s with 2 threads while rendering on the same 2 cores).
     torch.set_num_threads(config.torch_threads)
     seq = load_sequence(scene_dir / "sequence.json")
-    task = next(t for t, kinds in TASK_LOSSES.items() if config.loss in kinds)
-    victim = load_victim(config.victim, device=config.device, task=task)
+    task = task_of(config)
+    if victim is None:
+        victim = load_victim(config.victim, device=config.device, task=task)
     label = class_id(victim, config.label or seq.asset.builtin or seq.asset.name, "label")
     target = class_id(victim, config.target_label, "target_label") if config.target_label else None
     targets = [Target(label=label, target_label=target,
                       box=mask_box(read_mask(scene_dir, f.index)) if task == "detection" else None)
                for f in seq.frames]
     attack = make_attack(AttackConfig.from_dict({**config.attack, "seed": config.attack.get("seed", config.seed)}))
-    scenes = SceneCache(scene_dir)
+    if scenes is None:
+        scenes = SceneCache(scene_dir)
     sim = make_backend("mitsuba", scene_dir, scenes=scenes)
     gradients = GradientPath(scenes, config.gradient, config.transport_refresh, config.seed)
     return RunContext(config, scene_dir, seq, scenes, sim, victim, targets, attack, gradients)
