@@ -1,17 +1,26 @@
-"""A run's context rebuilt from its id, cached per process (least recently used dropped).
+"""A run's context rebuilt from its id, cached per process, sharing scenes and victims across runs.
 
-A worker process serves frame jobs of many runs; building a run's context
-(unpacking the scene, loading its Mitsuba scenes and its victim) costs
-seconds, a frame job tens of milliseconds. So each process keeps the
-contexts of the last few runs it served. Every loaded Mitsuba scene slows
-every later render of the process (docs/architecture.md), so a dropped
-context closes its scenes.
+A worker process serves frame jobs of many runs, interleaved (one iteration
+of each active run in turn). Building a context from nothing (unpacking the
+scene, loading its Mitsuba scenes and its victim) costs seconds, a frame job
+tens of milliseconds, so each process keeps three least-recently-used caches:
+
+- Mitsuba scene caches by scene directory (``scenes``, default 2): every
+  loaded Mitsuba scene slows every later render of the process
+  (docs/architecture.md), so few, and a dropped one is closed together with
+  the contexts that use it;
+- victims by (model, device, task) (``victims``, default 4);
+- the runs' own contexts by run id (``runs``, default 32): config, targets,
+  attack, gradient path — cheap once the scene and victim are loaded.
+
+The runs of a sweep over attack settings share one scene and one victim, so
+a worker serving all of them loads each once.
 """
 from __future__ import annotations
 
 from collections import OrderedDict
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from undream.errors import StoreError
 from undream.spec.run import RunConfig
@@ -26,43 +35,77 @@ def run_config(run: "RunSnapshot") -> RunConfig:
     return RunConfig.from_json(run.config)
 
 
-def context_for_run(store: "Store", run: "RunSnapshot", cache_dir: Path | str) -> "RunContext":
-    """Build the context of a submitted run: its scene from the blob store, then build_context."""
-    from scheduler.scenes import unpack_scene
-    from undream.engine.context import build_context
-
-    if run.scene_ref is None:
-        raise StoreError(f"run {run.id!r}: records no scene (was it made by `undream run`?)")
-    return build_context(run_config(run), unpack_scene(store.blobs, run.scene_ref, cache_dir))
+class _LRU(OrderedDict):
+    def touch(self, key: Any) -> Any:
+        self.move_to_end(key)
+        return self[key]
 
 
 class ContextCache:
-    """The contexts of the last ``size`` runs this process served, by run id."""
+    """Contexts of the runs this process serves, by run id (see the module docstring)."""
 
-    def __init__(self, store: "Store", cache_dir: Path | str, size: int = 2) -> None:
+    def __init__(self, store: "Store", cache_dir: Path | str, scenes: int = 2, victims: int = 4,
+                 runs: int = 32) -> None:
         self.store = store
         self.cache_dir = Path(cache_dir)
-        self.size = size
-        self._contexts: OrderedDict[str, RunContext] = OrderedDict()
-        self.built = 0  # contexts built so far (for tests and the benchmark)
+        self.sizes = {"scenes": scenes, "victims": victims, "runs": runs}
+        self._scenes: _LRU = _LRU()
+        self._victims: _LRU = _LRU()
+        self._contexts: _LRU = _LRU()
+        self.built = {"contexts": 0, "scenes": 0, "victims": 0}  # loads so far (tests, benchmark)
 
     def __call__(self, run_id: str) -> "RunContext":
-        ctx = self._contexts.get(run_id)
-        if ctx is not None:
-            self._contexts.move_to_end(run_id)
+        if run_id in self._contexts:
+            ctx = self._contexts.touch(run_id)
+            self._scenes.touch(ctx.scene_dir)
             return ctx
-        ctx = context_for_run(self.store, self.store.get_run(run_id), self.cache_dir)
-        self.built += 1
+        from scheduler.scenes import unpack_scene
+        from undream.engine.context import build_context, task_of
+
+        run = self.store.get_run(run_id)
+        if run.scene_ref is None:
+            raise StoreError(f"run {run_id!r}: records no scene (was it made by `undream run`?)")
+        config = run_config(run)
+        scene_dir = unpack_scene(self.store.blobs, run.scene_ref, self.cache_dir)
+        ctx = build_context(config, scene_dir, victim=self._victim(config, task_of(config)),
+                            scenes=self._scene_cache(scene_dir))
+        self.built["contexts"] += 1
         self._contexts[run_id] = ctx
-        while len(self._contexts) > self.size:
-            _, old = self._contexts.popitem(last=False)
-            old.scenes.close()
+        while len(self._contexts) > self.sizes["runs"]:
+            self._contexts.popitem(last=False)
         return ctx
+
+    def _scene_cache(self, scene_dir: Path) -> Any:
+        from undream.render.scene_cache import SceneCache
+
+        if scene_dir in self._scenes:
+            return self._scenes.touch(scene_dir)
+        self._scenes[scene_dir] = scenes = SceneCache(scene_dir)
+        self.built["scenes"] += 1
+        while len(self._scenes) > self.sizes["scenes"]:
+            old_dir, old = self._scenes.popitem(last=False)
+            for run_id in [r for r, c in self._contexts.items() if c.scenes is old]:
+                del self._contexts[run_id]
+            old.close()
+        return scenes
+
+    def _victim(self, config: RunConfig, task: str) -> Any:
+        from undream.victims import load_victim
+
+        key = (config.victim, config.device, task)
+        if key in self._victims:
+            return self._victims.touch(key)
+        self._victims[key] = victim = load_victim(config.victim, device=config.device, task=task)
+        self.built["victims"] += 1
+        while len(self._victims) > self.sizes["victims"]:
+            self._victims.popitem(last=False)
+        return victim
 
     def __contains__(self, run_id: str) -> bool:
         return run_id in self._contexts
 
     def clear(self) -> None:
-        while self._contexts:
-            _, old = self._contexts.popitem(last=False)
-            old.scenes.close()
+        self._contexts.clear()
+        self._victims.clear()
+        while self._scenes:
+            self._scenes.popitem(last=False)[1].close()

@@ -65,7 +65,7 @@ class Settings:
     failure_budget: int = 2  # failed frame jobs a run survives (each re-queued), then it fails
     visibility_timeout: int = 3600  # s; a job unacknowledged this long is delivered again
     restore_interval: int = 10  # s between sweeps that re-deliver jobs of lost workers
-    context_cache: int = 2  # runs whose scenes and victim a worker process keeps loaded
+    scene_cache: int = 2  # scene directories whose Mitsuba scenes a worker process keeps loaded
     connect_timeout: float = 5.0  # s to reach the broker before giving up (CLI commands)
 
     def __post_init__(self) -> None:
@@ -82,7 +82,7 @@ class Settings:
             object.__setattr__(self, "cache_dir", str(_cache_home() / "undream"))
         for name, least in (("concurrency", 1), ("torch_threads", 1), ("farm_slots", 1),
                             ("max_attempts", 1), ("failure_budget", 0), ("visibility_timeout", 1),
-                            ("restore_interval", 1), ("context_cache", 1)):
+                            ("restore_interval", 1), ("scene_cache", 1)):
             _check_int(name, getattr(self, name), least)
         for name in ("drjit_threads", "frames_per_task"):
             if getattr(self, name) is not None:
@@ -110,7 +110,7 @@ def _check_int(name: str, value: Any, least: int) -> None:
 
 _FIELDS = {f.name: f for f in fields(Settings)}
 _INTS = {"concurrency", "drjit_threads", "torch_threads", "frames_per_task", "farm_slots",
-         "max_attempts", "failure_budget", "visibility_timeout", "restore_interval", "context_cache"}
+         "max_attempts", "failure_budget", "visibility_timeout", "restore_interval", "scene_cache"}
 
 
 def _coerce(source: str, name: str, value: Any) -> Any:

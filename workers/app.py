@@ -15,15 +15,14 @@ from typing import TYPE_CHECKING
 
 from undream.errors import UndreamError
 from undream.store import mask_url
+from workers.queues import CONTROL_QUEUE, FRAMES_QUEUE, QUEUES
 
 if TYPE_CHECKING:
     from celery import Celery
 
     from undream.settings import Settings
 
-CONTROL_QUEUE = "undream.control"
-FRAMES_QUEUE = "undream.frames"
-QUEUES = (CONTROL_QUEUE, FRAMES_QUEUE)  # a worker empties them in this order
+__all__ = ["BrokerError", "CONTROL_QUEUE", "FRAMES_QUEUE", "QUEUES", "check_reachable", "create_celery_app"]
 
 
 class BrokerError(UndreamError):

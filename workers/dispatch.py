@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from workers.app import CONTROL_QUEUE, FRAMES_QUEUE
+from workers.queues import CONTROL_QUEUE, FRAMES_QUEUE
 
 if TYPE_CHECKING:
     from celery import Celery

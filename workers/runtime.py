@@ -41,7 +41,7 @@ class Runtime:
         settings: Settings = app.undream_settings  # type: ignore[attr-defined]
         self.pid = os.getpid()
         self.store: Store = open_store(settings.database_url, settings.blob_url)
-        self.contexts: ContextCache = ContextCache(self.store, settings.cache_dir, settings.context_cache)
+        self.contexts: ContextCache = ContextCache(self.store, settings.cache_dir, scenes=settings.scene_cache)
         self.dispatch: CeleryDispatch = CeleryDispatch(app)
 
 

@@ -109,6 +109,7 @@ def _cell(value: Any) -> str:
 def submit_cmd(run_yaml: Path, out: Path | None, settings: Callable[..., "Settings"]) -> None:
     """Validate RUN_YAML, then queue it on the farm; prints the run id."""
     from scheduler.submit import Validator, dispatch_starts, record
+    from undream.errors import SpecError, StoreError, UndreamError
     from undream.spec.run import load_run_config
 
     cfg = settings()
@@ -116,7 +117,12 @@ def submit_cmd(run_yaml: Path, out: Path | None, settings: Callable[..., "Settin
     app = _app(cfg)
     store = _store(cfg)
     with tempfile.TemporaryDirectory(prefix="undream-submit-") as tmp:
-        prepared = Validator(Path(tmp))(config, run_yaml.parent)
+        try:
+            prepared = Validator(Path(tmp))(config, run_yaml.parent)
+        except StoreError:
+            raise
+        except UndreamError as err:
+            raise SpecError(f"{run_yaml}: {err}") from None
         (run_id,) = record(store, [prepared], cfg, out)
     _send(f"run {run_id}", lambda: dispatch_starts(_dispatch(app), [run_id]))
     click.echo(run_id)
@@ -206,7 +212,7 @@ def sweep_cmd(sweep_yaml: Path, out: Path | None, settings: Callable[..., "Setti
     """Expand SWEEP_YAML's grid into runs, validate them all, then queue them; prints the sweep id."""
     from scheduler.submit import Validator, dispatch_starts, record
     from scheduler.sweep import load_sweep
-    from undream.errors import SpecError
+    from undream.errors import SpecError, StoreError, UndreamError
 
     cfg = settings()
     sweep = load_sweep(sweep_yaml)
@@ -218,7 +224,9 @@ def sweep_cmd(sweep_yaml: Path, out: Path | None, settings: Callable[..., "Setti
         for i, run in enumerate(sweep.runs):
             try:
                 prepared.append(validate(run.config, run.base_dir))
-            except SpecError as err:
+            except StoreError:
+                raise
+            except UndreamError as err:
                 raise SpecError(f"{sweep_yaml}: run {i} ({run.config.name}): {err}") from None
         sweep_id = store.create_sweep(sweep.name, sweep.spec)
         run_ids = record(store, prepared, cfg, out, sweep_id=sweep_id, out_per_run=True)
