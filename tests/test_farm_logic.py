@@ -331,3 +331,12 @@ def test_a_store_of_another_schema_version_is_refused(tmp_path):
     store.close()
     with pytest.raises(StoreError, match=r"has schema version 1, this undream needs version 2"):
         open_store(None, tmp_path)
+
+
+def test_each_app_has_its_own_tasks():
+    """Tasks are not Celery 'shared' tasks: a second app (tests, the benchmark) never runs the first's."""
+    from workers.app import create_celery_app
+
+    a, b = (create_celery_app(load_settings(env={})) for _ in range(2))
+    for name in ("undream.start", "undream.frames", "undream.collect"):
+        assert a.tasks[name] is not b.tasks[name] and a.tasks[name].app is a and b.tasks[name].app is b

@@ -44,7 +44,7 @@ def register_tasks(app: "Celery") -> None:
     from scheduler import stages
     from workers.runtime import runtime
 
-    common: dict[str, Any] = {"bind": True, "acks_late": True, "reject_on_worker_lost": True,
+    common: dict[str, Any] = {"bind": True, "shared": False, "acks_late": True, "reject_on_worker_lost": True,
                               "autoretry_for": (StoreError,), "retry_backoff": 1,
                               "retry_backoff_max": 30, "max_retries": 10}
 
