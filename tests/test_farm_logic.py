@@ -340,3 +340,12 @@ def test_each_app_has_its_own_tasks():
     a, b = (create_celery_app(load_settings(env={})) for _ in range(2))
     for name in ("undream.start", "undream.frames", "undream.collect"):
         assert a.tasks[name] is not b.tasks[name] and a.tasks[name].app is a and b.tasks[name].app is b
+
+
+def test_the_example_sweep_expands():
+    from farm_support import ROOT
+    from scheduler.sweep import load_sweep
+
+    sweep = load_sweep(ROOT / "examples" / "sweeps" / "bin_park_eps.yaml")
+    assert len(sweep.runs) == 6 and {r.config.attack["eps"] for r in sweep.runs} == {16, 32, 64}
+    assert all((r.base_dir / r.config.scene).is_file() for r in sweep.runs)
