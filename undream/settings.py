@@ -47,7 +47,7 @@ class Settings:
     ``database_url`` None: SQLite in the blob folder (one machine).
     ``result_backend`` None: the broker's Redis. ``frames_per_task`` None:
     ``ceil(frames / farm_slots)``, so an iteration is one task per worker
-    slot (see docs/architecture.md, "The farm"). ``drjit_threads`` None: Dr.Jit's
+    slot (see the README, "Farm"). ``drjit_threads`` None: Dr.Jit's
     default (every core) — give each worker process its share.
     """
 

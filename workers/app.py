@@ -1,6 +1,6 @@
 """The Celery app factory: one app per settings object, nothing built at import.
 
-Farm rules (docs/architecture.md, "The farm"): JSON only on the wire (arrays
+Farm rules (README, "Farm"; ../shared/DESIGN.md): JSON only on the wire (arrays
 travel through the blob store as keys); a Redis result backend (chords need
 one; never rpc); ``acks_late`` with ``reject_on_worker_lost`` and prefetch 1,
 so a job whose worker dies goes back to the queue; a visibility timeout
