@@ -79,8 +79,11 @@ def write_outputs(out: Path, store: "Store", ctx: "RunContext", run: "RunSnapsho
     from undream.scene.layout import frame_name
 
     out.mkdir(parents=True, exist_ok=True)
+    from undream.errors import StoreError
+
     T_q = store.final_texture(run.id)
-    assert T_q is not None  # finish runs after the final texture was stored
+    if T_q is None:
+        raise StoreError(f"run {run.id!r}: no final texture to write (the 'pre' evaluation has not finished)")
     Image.fromarray(to_uint8(T_q)).save(out / "texture_final.png")
     np.save(out / "texture_final.npy", T_q)
     for phase, folder in (("pre", "frames_benign"), ("adversarial", "frames_adversarial")):

@@ -28,6 +28,7 @@ never closes while a job has no result.
 from __future__ import annotations
 
 import logging
+from collections import OrderedDict
 from dataclasses import asdict, dataclass
 from typing import TYPE_CHECKING, Any, Callable, Protocol, Sequence
 
@@ -158,12 +159,15 @@ def plan(store: "Store", run: "RunSnapshot", phase: str, k: int, dispatch: Dispa
 
 
 def run_batch(store: "Store", contexts: Contexts, run_id: str, phase: str, k: int,
-              frames: Sequence[int]) -> dict[str, Any]:
+              frames: Sequence[int], textures: "OrderedDict[tuple, dict] | None" = None) -> dict[str, Any]:
     """The header task's body: the jobs of ``frames`` that have no result yet, failures recorded.
 
-    Returns a small JSON summary: frames ``done``, ``failed`` (gave up),
-    ``retry`` (failed, attempts left: run the batch again), ``skipped`` (the
-    run moved on or was cancelled), and the blob bytes read and written.
+    ``textures``: the process's cache of the textures each (run, phase, k)
+    renders, so a process reads a texture version once however many of its
+    batches it serves (least recently used dropped past 8). Returns a small
+    JSON summary: frames ``done``, ``failed`` (gave up), ``retry`` (failed,
+    attempts left: run the batch again), ``skipped`` (the run moved on or was
+    cancelled), and the blob bytes read and written.
     """
     from scheduler.evaluation import eval_job, eval_textures
 
@@ -176,7 +180,8 @@ def run_batch(store: "Store", contexts: Contexts, run_id: str, phase: str, k: in
     max_attempts = FarmOptions.of(run).max_attempts
     jobs = {j.frame: j for j in store.jobs(run_id, k, phase)}
     read0, written0 = store.blobs.bytes_read, store.blobs.bytes_written
-    textures: dict[str, Any] | None = None
+    cache: OrderedDict[tuple, dict] = textures if textures is not None else OrderedDict()
+    key = (run_id, phase, k)
     for f in frames:
         job = jobs.get(f)
         if job is not None and job.status == "succeeded":
@@ -189,12 +194,16 @@ def run_batch(store: "Store", contexts: Contexts, run_id: str, phase: str, k: in
             continue
         try:
             ctx = contexts(run_id)
+            if key not in cache:
+                cache[key] = {"k": store.texture(run_id, k)} if phase == "attack" \
+                    else eval_textures(store, run_id, phase, k)
+                while len(cache) > 8:
+                    cache.popitem(last=False)
+            cache.move_to_end(key)
             if phase == "attack":
-                textures = textures or {"k": store.texture(run_id, k)}
-                frame_job(store, ctx, run_id, k, f, textures["k"])
+                frame_job(store, ctx, run_id, k, f, cache[key]["k"])
             else:
-                textures = textures or eval_textures(store, run_id, phase, k)
-                eval_job(store, ctx, run_id, phase, k, f, textures)
+                eval_job(store, ctx, run_id, phase, k, f, cache[key])
             summary["done"].append(f)
         except Exception as exc:  # any failure of a job is recorded with it, then retried or counted
             again = (job.attempts if job is not None else 0) + 1 < max_attempts

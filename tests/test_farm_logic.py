@@ -349,3 +349,29 @@ def test_the_example_sweep_expands():
     sweep = load_sweep(ROOT / "examples" / "sweeps" / "bin_park_eps.yaml")
     assert len(sweep.runs) == 6 and {r.config.attack["eps"] for r in sweep.runs} == {16, 32, 64}
     assert all((r.base_dir / r.config.scene).is_file() for r in sweep.runs)
+
+
+def test_a_process_reads_each_texture_version_once(tiny, tmp_path):
+    from collections import OrderedDict
+
+    store, run_id, ctx = _local_run(tiny, tmp_path, _config(tiny))
+    stages.start(store, lambda _: ctx, run_id, LocalDispatch())
+    cache: OrderedDict = OrderedDict()
+    first = stages.run_batch(store, lambda _: ctx, run_id, "attack", 0, [0, 1], cache)
+    second = stages.run_batch(store, lambda _: ctx, run_id, "attack", 0, [2], cache)
+    texture_bytes = store.blobs.path(f"runs/{run_id}/texture/000000.npy").stat().st_size
+    assert first["bytes_read"] == texture_bytes and second["bytes_read"] == 0
+    assert first["bytes_written"] > 0 and first["done"] == [0, 1] and second["done"] == [2]
+
+
+def test_a_stage_that_crashes_on_a_worker_fails_the_run(eager, tiny, tmp_path):
+    """Not left evaluating for ever: here the output folder cannot be made (a file is in the way)."""
+    from scheduler.submit import Validator, record
+    from workers.dispatch import CeleryDispatch
+
+    (tmp_path / "blocker").write_text("a file, not a folder")
+    prepared = Validator(tmp_path / "work")(_config(tiny, name="crash"), Path("."))
+    (run_id,) = record(eager["store"], [prepared], eager["app"].undream_settings, tmp_path / "blocker" / "out")
+    CeleryDispatch(eager["app"]).start(run_id)
+    run = eager["store"].get_run(run_id)
+    assert run.status == "failed" and run.iteration == 3 and "NotADirectoryError" in run.error

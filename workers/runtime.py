@@ -10,6 +10,7 @@ from __future__ import annotations
 import fcntl
 import logging
 import os
+from collections import OrderedDict
 from pathlib import Path
 from typing import IO, TYPE_CHECKING
 
@@ -43,6 +44,7 @@ class Runtime:
         self.store: Store = open_store(settings.database_url, settings.blob_url)
         self.contexts: ContextCache = ContextCache(self.store, settings.cache_dir, scenes=settings.scene_cache)
         self.dispatch: CeleryDispatch = CeleryDispatch(app)
+        self.textures: OrderedDict[tuple, dict] = OrderedDict()  # texture versions read (run, phase, k)
 
 
 def runtime(app: "Celery") -> Runtime:

@@ -6,14 +6,15 @@ chord's callback). Arrays never travel: jobs read and write the blob store.
 A batch whose jobs failed with attempts left is retried by Celery (the
 attempts are counted in the store, which caps them); a store that cannot be
 reached is retried with back-off; any other error of a stage fails the run
-with that error, so a run never stays running for ever.
+with that error, so a run never stays running for ever (``undream resume``
+starts it again).
 """
 from __future__ import annotations
 
 import logging
 from typing import TYPE_CHECKING, Any, Callable
 
-from undream.errors import StoreError, UndreamError
+from undream.errors import StoreError
 
 if TYPE_CHECKING:
     from celery import Celery, Task
@@ -25,14 +26,14 @@ RETRY_DELAY_S = 0.5
 
 
 def _guard(app: "Celery", run_id: str, fn: Callable[[], Any]) -> Any:
-    """Run a stage; an UndreamError other than the store's fails the run with its message."""
+    """Run a stage; any error but the store's fails the run with its message (`undream resume` restarts it)."""
     from workers.runtime import runtime
 
     try:
         return fn()
     except StoreError:
         raise  # the database or blob store is away: Celery retries with back-off
-    except UndreamError as err:
+    except Exception as err:  # an output folder not writable, the broker gone mid-dispatch, a bug
         error = f"{type(err).__name__}: {' '.join(str(err).split())}"
         log.error("run %s failed: %s", run_id, error)
         runtime(app).store.transition(run_id, ("queued", "running", "evaluating"), "failed", error=error)
@@ -57,7 +58,7 @@ def register_tasks(app: "Celery") -> None:
     @app.task(name="undream.frames", **common)
     def frames(self: "Task", run_id: str, phase: str, k: int, frames: list[int]) -> dict[str, Any]:
         rt = runtime(app)
-        summary = stages.run_batch(rt.store, rt.contexts, run_id, phase, k, frames)
+        summary = stages.run_batch(rt.store, rt.contexts, run_id, phase, k, frames, rt.textures)
         if summary["retry"]:
             raise self.retry(countdown=RETRY_DELAY_S, max_retries=None)
         return summary
