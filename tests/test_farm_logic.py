@@ -273,7 +273,8 @@ def test_eager_run_gives_the_local_runs_texture(eager, tiny, tmp_path):
         assert (eager["out"] / name).is_file(), name
     assert len(list((eager["out"] / "frames_adversarial").glob("*.png"))) == 3
     local = run_local(_config(tiny, name="eager"), tmp_path / "local", progress=False)
-    assert np.array_equal(np.load(eager["out"] / "texture_final.npy"), np.load(tmp_path / "local" / "texture_final.npy"))
+    assert np.array_equal(np.load(eager["out"] / "texture_final.npy"),
+                          np.load(tmp_path / "local" / "texture_final.npy"))
     assert run.results["loss_per_iteration"] == pytest.approx(local["loss_per_iteration"], rel=1e-5)
     assert run.results["benign"] == local["benign"] and run.results["adversarial"] == local["adversarial"]
 

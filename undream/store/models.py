@@ -3,7 +3,8 @@
 Five tables, all owned by :class:`undream.store.Store`; nothing else writes
 them: runs, sweeps (a grid of runs), iteration records, frame jobs (every
 per-frame job of a run: the attack's render-and-gradient jobs and the
-evaluation's render-and-predict jobs) and the schema version. Arrays never live here: textures, gradients and attack states are blobs
+evaluation's render-and-predict jobs) and the schema version. Arrays never
+live here: textures, gradients and attack states are blobs
 (:mod:`undream.store.blobs`) and rows hold their keys. JSON columns are text
 holding strict JSON (non-finite floats are written as null).
 
