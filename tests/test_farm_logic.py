@@ -67,6 +67,8 @@ def test_settings_precedence_and_errors_name_their_source(tmp_path):
         load_settings(write_yaml(tmp_path / "farm.yaml", {"brokr_url": "x"}), env={})
     with pytest.raises(SettingsError, match="--concurrency: must be an integer >= 1, got 0"):
         load_settings(env={}, concurrency=0)
+    with pytest.raises(SettingsError, match=r"UNDREAM_RESULT_BACKEND: rpc:// cannot hold the chords"):
+        load_settings(env={"UNDREAM_RESULT_BACKEND": "rpc://"})
 
 
 def test_frames_per_task_is_one_task_per_slot_unless_set():

@@ -76,6 +76,9 @@ class Settings:
             value = getattr(self, name)
             if value is not None and (not isinstance(value, str) or not value):
                 raise SettingsError(f"{name}: must be a URL or unset, got {value!r}")
+        if self.backend_url.split("://")[0] not in ("redis", "rediss", "memory", "cache+memory"):
+            raise SettingsError(f"result_backend: {self.backend_url.split('://')[0]}:// cannot hold the "
+                                "chords' results; give a Redis URL (redis://host:6379/0)")
         if not self.blob_url:
             object.__setattr__(self, "blob_url", str(_data_home() / "undream" / "farm"))
         if not self.cache_dir:
