@@ -186,13 +186,13 @@ class Farm:
                              f"{self.logs()}")
 
 
-def wait_for(cond: Callable[[], Any], timeout: float, what: str) -> Any:
+def wait_for(cond: Callable[[], Any], timeout: float, what: str, interval: float = 0.1) -> Any:
     end = time.monotonic() + timeout
     while time.monotonic() < end:
         value = cond()
         if value:
             return value
-        time.sleep(0.1)
+        time.sleep(interval)
     raise AssertionError(f"timed out after {timeout} s waiting for {what}")
 
 

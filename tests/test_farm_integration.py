@@ -122,7 +122,7 @@ def test_sigkill_of_a_worker_mid_iteration_loses_nothing(tiny):
             jobs = [j for j in farm.store.jobs(run_id, run.iteration) if j.status == "started" and j.worker]
             return run.iteration >= 1 and jobs and jobs[0]
 
-        job = wait_for(started_job, 90, "a started frame job of iteration >= 1")
+        job = wait_for(started_job, 90, "a started frame job of iteration >= 1", interval=0.005)
         pgid = os.getpgid(int(job.worker.split(":")[1]))
         victim = next(w for w in workers if w.pid == pgid)
         farm.kill_worker(victim)
@@ -178,10 +178,12 @@ def test_a_run_survives_a_broker_restart_with_resume(tiny):
         at_kill = farm.store.get_run(run_id).iteration
         _restart_redis()
         time.sleep(2)
-        assert farm.store.get_run(run_id).status == "running"
+        # A callback that was publishing when Redis died may have gone on by itself (or failed the run
+        # when its publish gave up); queued jobs and chord counters are gone either way.
+        assert farm.store.get_run(run_id).status in ("running", "failed", "done")
         res = farm.cli("resume", run_id)
         assert res.returncode == 0, res.stderr
-        assert f"resumed {run_id}" in res.stdout
+        assert f"resumed {run_id}" in res.stdout or f"run {run_id} is done" in res.stdout
         farm.wait_status(run_id, timeout=90)
         assert [r.k for r in farm.store.iterations(run_id)] == list(range(6)) and at_kill < 6
         assert np.array_equal(final_texture(farm, run_id), reference(tiny, **cfg))
