@@ -69,6 +69,9 @@ class ContextCache:
         scene_dir = unpack_scene(self.store.blobs, run.scene_ref, self.cache_dir)
         ctx = build_context(config, scene_dir, victim=self._victim(config, task_of(config)),
                             scenes=self._scene_cache(scene_dir))
+        from scheduler.transports import BlobTransportShelf
+
+        ctx.gradients.shelf = BlobTransportShelf(self.store.blobs, run.scene_ref)
         self.built["contexts"] += 1
         self._contexts[run_id] = ctx
         while len(self._contexts) > self.sizes["runs"]:

@@ -123,3 +123,41 @@ def test_a_nan_image_gradient_marks_the_frame_non_finite(scene_dir, monkeypatch,
     if mode == "prb":
         assert np.isfinite(res.grad).all()  # what the old check looked at, and let through
     scenes.close()
+
+
+def test_a_shared_shelf_saves_the_second_process_its_captures(scene_dir, tmp_path, monkeypatch):
+    """Two processes (two gradient paths) of one scene: the second reads the first's capture and verdict."""
+    import undream.render.transport as transport
+    from scheduler.transports import BlobTransportShelf
+    from undream.store.blobs import BlobStore
+
+    shelf_a = BlobTransportShelf(BlobStore(tmp_path / "blobs"), "scenes/abc123.tar")
+    shelf_b = BlobTransportShelf(BlobStore(tmp_path / "blobs"), "scenes/abc123.tar")
+    tex, g = _inputs(4)
+    scenes_a, scenes_b = SceneCache(scene_dir), SceneCache(scene_dir)
+    first = GradientPath(scenes_a, "auto", refresh=5, run_seed=2, shelf=shelf_a)
+    ga = first.texture_gradient(1, tex, g, SPP, iteration=6, seed=3)
+    assert shelf_a.misses == 1
+    calls = []
+    monkeypatch.setattr(transport, "capture_transport", lambda *a: calls.append(a))
+    monkeypatch.setattr(transport, "check_linear", lambda *a: calls.append(a))
+    second = GradientPath(scenes_b, "auto", refresh=5, run_seed=2, shelf=shelf_b)
+    gb = second.texture_gradient(1, tex, g, SPP, iteration=7, seed=4)  # same epoch: the same capture
+    assert calls == [] and shelf_b.hits == 1
+    np.testing.assert_array_equal(ga, gb)
+    scenes_a.close()
+    scenes_b.close()
+
+
+def test_transport_save_load_round_trip(scene_dir, tmp_path):
+    from undream.render.transport import Transport, capture_transport
+
+    scenes = SceneCache(scene_dir)
+    t = capture_transport(scenes, 0, SPP, 21)
+    t.save(tmp_path / "t.npz")
+    u = Transport.load(tmp_path / "t.npz")
+    assert (u.image_shape, u.texture_shape, u.seed_grad, u.spp, u.index) == \
+        (t.image_shape, t.texture_shape, t.seed_grad, t.spp, t.index)
+    for a, b in zip(t.jt, u.jt):
+        assert (a != b).nnz == 0 and a.dtype == b.dtype
+    scenes.close()

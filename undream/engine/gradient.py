@@ -14,13 +14,16 @@ gradient, so each frame is captured again with a new seed every
 to a 256-spp reference as one fresh-seed prb gradient, and averaging
 gradients of 4 captures is as close as averaging 4 fresh seeds). The seed of
 a capture depends on the run's seed, the frame and the refresh epoch only,
-so a run is reproducible whichever process computes which frame.
+so a run is reproducible whichever process computes which frame, and a
+capture can be shared: with a :class:`TransportShelf` (the farm gives each
+worker one over the blob store) a process first looks for a frame's
+transport, and its linearity verdict, where another process left them.
 """
 from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
@@ -37,6 +40,20 @@ MODES = ("auto", "transport", "prb")
 MAX_TRANSPORT_BYTES = 4 << 30  # beyond this, further frames use prb (logged once)
 
 
+class TransportShelf(Protocol):
+    """Where processes share captured transports and linearity verdicts of one scene."""
+
+    def get(self, key: str) -> "Transport | None": ...
+
+    def put(self, key: str, transport: "Transport") -> None: ...
+
+    def get_verdict(self, index: int) -> tuple[bool, str | None]:
+        """(known, reason): reason None means the frame is linear."""
+        ...
+
+    def put_verdict(self, index: int, reason: str | None) -> None: ...
+
+
 def capture_seed(run_seed: int, index: int, epoch: int) -> int:
     """``seed_grad`` of frame ``index``'s capture in refresh epoch ``epoch`` (never a render's own seed)."""
     return (run_seed * 1_000_003 + epoch * 7_919 + index * 2 + 1_234_567) % (2**31 - 2) + 1
@@ -50,6 +67,7 @@ class GradientPath:
     mode: str = "auto"
     refresh: int = 5
     run_seed: int = 0
+    shelf: TransportShelf | None = None
     _transports: dict[int, tuple[int, "Transport"]] = field(default_factory=dict)  # index → (epoch, T)
     _refused: dict[int, str] = field(default_factory=dict)
 
@@ -79,7 +97,13 @@ class GradientPath:
             if self.transport_bytes > MAX_TRANSPORT_BYTES:
                 self._refuse(index, f"the transport cache holds {self.transport_bytes >> 20} MiB already")
                 return self.texture_gradient(index, texture_srgb, grad_linear_image, spp, iteration, seed)
-            t = capture_transport(self.scenes, index, spp, capture_seed(self.run_seed, index, epoch))
+            seed_grad = capture_seed(self.run_seed, index, epoch)
+            key = f"{index}-{seed_grad}-{spp}"
+            t = self.shelf.get(key) if self.shelf is not None else None
+            if t is None:
+                t = capture_transport(self.scenes, index, spp, seed_grad)
+                if self.shelf is not None:
+                    self.shelf.put(key, t)
             self._transports[index] = held = (epoch, t)
         return texture_gradient_cached(held[1], texture_srgb, grad_linear_image)
 
@@ -90,7 +114,11 @@ class GradientPath:
             return True
         from undream.render.transport import check_linear
 
-        reason = check_linear(self.scenes, index)
+        known, reason = self.shelf.get_verdict(index) if self.shelf is not None else (False, None)
+        if not known:
+            reason = check_linear(self.scenes, index)
+            if self.shelf is not None:
+                self.shelf.put_verdict(index, reason)
         if reason is None:
             return True
         if self.mode == "transport":

@@ -85,6 +85,24 @@ class Transport:
             out[:, c] = self.jt[c] @ np.ascontiguousarray(g[:, c])
         return out.reshape(*self.texture_shape, 3)
 
+    def save(self, path) -> None:
+        """Write the transport as an uncompressed ``.npz`` (what :meth:`load` reads back exactly)."""
+        arrays = {"meta": np.array([*self.image_shape, *self.texture_shape, self.seed_grad, self.spp, self.index],
+                                   np.int64)}
+        for c, m in enumerate(self.jt):
+            arrays.update({f"data{c}": m.data, f"indices{c}": m.indices, f"indptr{c}": m.indptr})
+        with open(path, "wb") as f:
+            np.savez(f, **arrays)
+
+    @classmethod
+    def load(cls, path) -> "Transport":
+        """A transport written by :meth:`save`."""
+        with np.load(path) as z:
+            h, w, th, tw, seed_grad, spp, index = (int(v) for v in z["meta"])
+            jt = tuple(sp.csr_matrix((z[f"data{c}"], z[f"indices{c}"], z[f"indptr{c}"]), shape=(th * tw, h * w))
+                       for c in range(3))
+        return cls(jt, (h, w), (th, tw), seed_grad, spp, index)  # type: ignore[arg-type]
+
     def forward(self, texture_linear: np.ndarray) -> np.ndarray:
         """``J·t`` (H×W×3, linear radiance) for a LINEAR texture (Ht×Wt×3); the render is this plus ``b``.
 
