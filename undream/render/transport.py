@@ -245,6 +245,9 @@ def _replay(mi: Any, scene: Any, spp: int, seed: int) -> dict[str, np.ndarray]:
     block = film.create_block()
     block.put(pos, ray.wavelengths, mi.Color3f(0.0), mi.Float(0.0), mi.Float(1.0))
     weights = block.tensor()
+    # One kernel for the integrator's samples and the first hits (evaluated apart, each
+    # gather below would trace and run the whole primal pass again).
+    dr.eval(value, hit, si.uv, pos, weights)
     # Only samples whose first hit is the object carry the texture: keep those.
     keep = dr.compress(hit & dr.any(value != 0))
     value, uv, pos = dr.gather(type(value), value, keep), dr.gather(mi.Point2f, si.uv, keep), \
