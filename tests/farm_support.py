@@ -211,3 +211,14 @@ def postgres_database(admin_url: str) -> tuple[str, Callable[[], None]]:
         engine.dispose()
 
     return engine.url.set(database=name).render_as_string(hide_password=False), drop
+
+
+def farm_inputs(tmp_path_factory, name: str, n_frames: int) -> dict:
+    """A tiny victim and an ``n_frames`` scene for farm tests; Redis must answer."""
+    from conftest import service_missing
+
+    reason = redis_up()
+    if reason:
+        service_missing(reason)
+    root = tmp_path_factory.mktemp(name)
+    return {"root": root, "victim": make_victim(root / "victim"), "scene": make_scene(root / "scene", n_frames)}

@@ -10,7 +10,7 @@ import io
 
 import pytest
 
-from farm_support import Farm, make_scene, make_victim, redis_client, redis_up, run_config, write_yaml
+from farm_support import Farm, farm_inputs, redis_client, run_config, write_yaml
 
 SECRET = "s3cret"
 DEAD_BROKER = f"redis://:{SECRET}@127.0.0.1:1/0"
@@ -19,11 +19,7 @@ DEAD_DATABASE = f"postgresql://alice:{SECRET}@127.0.0.1:1/farm"
 
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory, mi):
-    reason = redis_up()
-    if reason:
-        pytest.skip(reason)
-    root = tmp_path_factory.mktemp("farm_cli")
-    return {"root": root, "victim": make_victim(root / "victim"), "scene": make_scene(root / "scene", 2)}
+    return farm_inputs(tmp_path_factory, "farm_cli", 2)
 
 
 @pytest.fixture

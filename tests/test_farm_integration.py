@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import service_missing
 from farm_support import (
-    REDIS_START, Farm, make_scene, make_victim, postgres_database, redis_client, redis_up, run_config,
-    wait_for, write_yaml,
+    REDIS_START, Farm, farm_inputs, postgres_database, redis_client, redis_up, run_config, wait_for, write_yaml,
 )
 
 PG_ADMIN_URL = os.environ.get("UNDREAM_TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/test")
@@ -24,13 +24,7 @@ PG_ADMIN_URL = os.environ.get("UNDREAM_TEST_POSTGRES_URL", "postgresql+psycopg:/
 
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory, mi):
-    reason = redis_up()
-    if reason:
-        pytest.skip(reason)
-    root = tmp_path_factory.mktemp("farm_int")
-    victim = make_victim(root / "victim")
-    scene = make_scene(root / "scene", n_frames=4)
-    return {"root": root, "victim": victim, "scene": scene, "refs": {}}
+    return {**farm_inputs(tmp_path_factory, "farm_int", 4), "refs": {}}
 
 
 def reference(tiny, **cfg) -> np.ndarray:
@@ -142,7 +136,7 @@ def test_a_run_on_postgresql(tiny):
     try:
         url, drop = postgres_database(PG_ADMIN_URL)
     except Exception as exc:
-        pytest.skip(f"PostgreSQL unreachable at {PG_ADMIN_URL}: {str(exc).splitlines()[0]}")
+        service_missing(f"PostgreSQL unreachable at {PG_ADMIN_URL}: {str(exc).splitlines()[0]}")
     farm = Farm(tiny["root"] / "pg", database_url=url)
     farm.root.mkdir()
     try:

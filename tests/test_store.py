@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from conftest import service_missing
 from sqlalchemy import create_engine, text
 from sqlalchemy.engine import make_url
 from sqlalchemy.exc import SQLAlchemyError
@@ -49,8 +51,8 @@ def pg_admin():
             conn.execute(text("SELECT 1"))
     except SQLAlchemyError as exc:
         engine.dispose()
-        pytest.skip(f"PostgreSQL unreachable at {make_url(PG_ADMIN_URL).render_as_string()}: "
-                    f"{str(exc.orig or exc).splitlines()[0]}")
+        service_missing(f"PostgreSQL unreachable at {make_url(PG_ADMIN_URL).render_as_string()}: "
+                        f"{str(exc.orig or exc).splitlines()[0]}")
     yield engine
     engine.dispose()
 
