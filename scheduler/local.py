@@ -16,7 +16,7 @@ from typing import Any
 from scheduler import stages
 from scheduler.texture0 import starting_texture, visibility
 from undream.engine.context import RunContext, build_context
-from undream.errors import SpecError, UndreamError, already_exists
+from undream.errors import SpecError, UndreamError
 from undream.progress import progress as progress_bar
 from undream.spec.run import RunConfig
 
@@ -86,20 +86,26 @@ def run_local(config: RunConfig, out: str | Path, base_dir: Path | None = None, 
               force: bool = False) -> dict[str, Any]:
     """Run an attack end to end in this process and write its outputs to ``out``; returns results.
 
+    Everything is validated before ``out`` is created or replaced
+    (:mod:`scheduler.preflight`): ``force`` only replaces a folder an earlier
+    run wrote, never one holding the run's scene or spec.
+
     A run that fails (every frame non-finite, a frame job failing twice) is
     marked failed in the store with the error, which is raised
     (:class:`scheduler.iteration.AllFramesFailed`, :class:`RunFailed`).
     """
+    from scheduler.preflight import check_output_folder, mark_output, preflight, scene_source
     from undream.store import open_store
 
-    out = Path(out)
+    out, base_dir = Path(out), base_dir or Path.cwd()
+    check_output_folder(out, scene_source(config, base_dir), force)  # cheap refusals first
+    victim = preflight(config, base_dir)  # nothing written or deleted before this passes
     if out.exists() and any(out.iterdir()):
-        if not force:
-            raise already_exists(out)
-        shutil.rmtree(out)
+        shutil.rmtree(out)  # check_output_folder: --force and a folder `undream run` wrote
     out.mkdir(parents=True, exist_ok=True)
-    scene_dir = resolve_scene(config, out, base_dir or Path.cwd())
-    ctx: RunContext = build_context(config, scene_dir)
+    mark_output(out, config)
+    scene_dir = resolve_scene(config, out, base_dir)
+    ctx: RunContext = build_context(config, scene_dir, victim=victim)
     store = open_store(config.store, out / "store")
     n = len(ctx.sequence.frames)
     run_id = stages.create(store, config, n, stages.FarmOptions(frames_per_task=n, **LOCAL_OPTIONS),

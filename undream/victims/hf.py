@@ -129,6 +129,9 @@ def _load(spec: str, task: str, preprocess: PreprocessConfig | None
     _check_task(spec, config, task)
     auto = (transformers.AutoModelForObjectDetection if task == "detection"
             else transformers.AutoModelForImageClassification)
+    # transformers draws a "Loading weights" bar on stderr for every model: a victim loads
+    # quietly, so that a run's error stays one line and its own bar the only one.
+    transformers.utils.logging.disable_progress_bar()
     model, _ = _pretrained(auto.from_pretrained, spec)
     if preprocess is None:
         preprocess = load_hf_preprocess(spec, local_only=local or hf_offline())

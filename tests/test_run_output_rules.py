@@ -1,0 +1,109 @@
+"""``undream run --out``: validated before anything is written; --force replaces only a run's own folder."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from scheduler.preflight import check_output_folder, is_run_output
+from undream.errors import SpecError
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def scene_dir(example_scenes):
+    return example_scenes["bin_park"]
+
+
+def _run(run_yaml: Path, out: Path, force: bool = True) -> subprocess.CompletedProcess:
+    args = [sys.executable, "-m", "undream.cli", "run", str(run_yaml), "--out", str(out), "--no-progress"]
+    return subprocess.run(args + (["--force"] if force else []), capture_output=True, text=True, cwd=ROOT)
+
+
+def _config(tmp_path: Path, scene: Path, **changes) -> Path:
+    cfg = {"name": "rules", "scene": str(scene), "victim": "bundled:classifier", "loss": "ce",
+           "attack": {"name": "pgd", "eps": 8, "steps": 1}, "sim_spp": 1, "grad_spp": 1, "eval_spp": 1, **changes}
+    path = tmp_path / "run.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+def _user_folder(path: Path) -> dict[str, str]:
+    path.mkdir(parents=True)
+    files = {"thesis.tex": "years of work", "data.csv": "1,2,3"}
+    for name, text in files.items():
+        (path / name).write_text(text)
+    return files
+
+
+def _intact(path: Path, files: dict[str, str]) -> bool:
+    return all((path / n).read_text() == t for n, t in files.items())
+
+
+def _one_line(res: subprocess.CompletedProcess, *needles: str) -> str:
+    assert res.returncode == 2, res.stderr
+    line = res.stderr.strip()
+    assert "\n" not in line, line
+    for n in needles:
+        assert n in line, (n, line)
+    return line
+
+
+def test_force_never_deletes_a_folder_undream_did_not_write(scene_dir, tmp_path):
+    out = tmp_path / "mine"
+    files = _user_folder(out)
+    _one_line(_run(_config(tmp_path, scene_dir), out), str(out), "--force", "metadata.json")
+    assert _intact(out, files)
+
+
+def test_a_bad_config_deletes_nothing_even_with_force(scene_dir, tmp_path):
+    """A misspelt attack, with --force on an earlier run's folder: the error comes first, the folder stays."""
+    out = tmp_path / "earlier_run"
+    files = _user_folder(out)
+    (out / "metadata.json").write_text(json.dumps({"run_id": "r-earlier"}))
+    assert is_run_output(out)
+    _one_line(_run(_config(tmp_path, scene_dir, attack={"name": "pgdd", "eps": 8, "steps": 1}), out), "pgdd")
+    assert _intact(out, files)
+
+
+def test_out_must_not_hold_the_scene(scene_dir, tmp_path):
+    for out in (scene_dir, scene_dir.parent):
+        _one_line(_run(_config(tmp_path, scene_dir), out), "holds the run's scene")
+    assert (scene_dir / "sequence.json").is_file()
+
+
+def test_an_unknown_label_is_rejected_before_out_exists(scene_dir, tmp_path):
+    out = tmp_path / "new_out"
+    _one_line(_run(_config(tmp_path, scene_dir, label="giraffe"), out, force=False), "label", "giraffe")
+    assert not out.exists()
+
+
+def test_force_replaces_an_earlier_run_and_marks_the_new_one(scene_dir, tmp_path):
+    out = tmp_path / "again"
+    out.mkdir()
+    (out / "metadata.json").write_text(json.dumps({"undream_output": "run", "status": "started"}))
+    (out / "stale.txt").write_text("from a crashed run")
+    res = _run(_config(tmp_path, scene_dir), out)
+    assert res.returncode == 0, res.stderr
+    assert not (out / "stale.txt").exists()
+    assert is_run_output(out) and (out / "results.json").is_file()
+
+
+def test_check_output_folder_rules(tmp_path):
+    scene = tmp_path / "proj" / "scene"
+    scene.mkdir(parents=True)
+    check_output_folder(tmp_path / "fresh", scene, force=False)  # a new folder is fine
+    with pytest.raises(SpecError, match="holds the run's scene"):
+        check_output_folder(tmp_path / "proj", scene, force=True)
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(SpecError, match="not a folder"):
+        check_output_folder(tmp_path / "file", scene, force=True)
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "a").write_text("x")
+    with pytest.raises(SpecError, match="already exists"):
+        check_output_folder(tmp_path / "full", scene, force=False)
