@@ -11,6 +11,7 @@ with the results), and never one that holds the run's own scene or spec.
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -33,7 +34,7 @@ def scene_source(config: RunConfig, base_dir: Path) -> Path:
 def preflight(config: RunConfig, base_dir: Path) -> "Victim":
     """Validate everything a run needs that rendering does not; returns the loaded victim."""
     from undream.attacks import AttackConfig, make_attack
-    from undream.engine.context import class_id, task_of
+    from undream.engine.context import task_of
     from undream.victims import load_victim
 
     make_attack(AttackConfig.from_dict({**config.attack, "seed": config.attack.get("seed", config.seed)}))
@@ -42,11 +43,27 @@ def preflight(config: RunConfig, base_dir: Path) -> "Victim":
 
         make_engine(config.store).dispose()
     seq = _sequence(scene_source(config, base_dir))
+    check_frames(config, len(seq.frames))
     victim = load_victim(config.victim, device=config.device, task=task_of(config))
-    class_id(victim, config.label or seq.asset.builtin or seq.asset.name, "label")
-    if config.target_label:
-        class_id(victim, config.target_label, "target_label")
+    check_labels(config, seq, victim)
     return victim
+
+
+def check_frames(config: RunConfig, n_frames: int) -> None:
+    """The attack's ``frames_per_step`` fits the sequence."""
+    per_step = config.attack.get("frames_per_step")
+    if isinstance(per_step, int) and per_step > n_frames:
+        raise SpecError(f"attack.frames_per_step: {per_step} is more than the sequence's {n_frames} frames")
+
+
+def check_labels(config: RunConfig, seq: Any, victim: "Victim") -> None:
+    """``label`` and ``target_label`` are the victim's classes, and not the same one."""
+    from undream.engine.context import class_id
+
+    label = class_id(victim, config.label or seq.asset.builtin or seq.asset.name, "label")
+    if config.target_label and class_id(victim, config.target_label, "target_label") == label:
+        raise SpecError(f"target_label: {config.target_label!r} is the object's own class (label); "
+                        "a targeted attack needs another class")
 
 
 def _sequence(src: Path) -> Any:
@@ -74,6 +91,11 @@ def check_output_folder(out: Path, scene_src: Path, force: bool) -> None:
     out = Path(out).resolve()
     if out.exists() and not out.is_dir():
         raise SpecError(f"--out {out}: exists and is not a folder")
+    existing = next(p for p in (out, *out.parents) if p.exists())
+    if not existing.is_dir():
+        raise SpecError(f"--out {out}: {existing} is a file, not a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise SpecError(f"--out {out}: no permission to write in {existing}")
     if out == scene_src or out in scene_src.parents:
         raise SpecError(f"--out {out}: holds the run's scene {scene_src}; choose another output folder")
     if out.exists() and any(out.iterdir()):

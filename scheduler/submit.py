@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any, Sequence
 
 from scheduler import stages
 from scheduler.local import resolve_scene
+from scheduler.preflight import check_frames, check_labels
 from undream.spec.run import RunConfig
 
 if TYPE_CHECKING:
@@ -64,9 +65,11 @@ class Validator:
         if key not in self._frames:
             ctx = build_context(config, scene_dir)
             ctx.scenes.close()
+            check_labels(config, ctx.sequence, ctx.victim)
             self._frames[key] = len(ctx.sequence.frames)
         else:  # same scene and victim: only the attack can differ
             make_attack(AttackConfig.from_dict({**config.attack, "seed": config.attack.get("seed", config.seed)}))
+        check_frames(config, self._frames[key])
         return Prepared(config, scene_dir, self._frames[key])
 
 

@@ -107,3 +107,44 @@ def test_check_output_folder_rules(tmp_path):
     (tmp_path / "full" / "a").write_text("x")
     with pytest.raises(SpecError, match="already exists"):
         check_output_folder(tmp_path / "full", scene, force=False)
+
+
+def _binary(tmp_path: Path) -> Path:
+    p = tmp_path / "binary.yaml"
+    p.write_bytes(bytes(range(256)) * 2)
+    return p
+
+
+BAD_RUNS = {
+    "binary_run_config": (lambda t, s: _binary(t), ["binary.yaml", "not a text file"]),
+    "targeted_at_own_class": (lambda t, s: _config(t, s, loss="targeted_ce", target_label="trash_bin"),
+                              ["target_label", "trash_bin", "own class"]),
+    "frames_per_step_beyond_the_sequence": (
+        lambda t, s: _config(t, s, attack={"name": "pgd", "eps": 8, "steps": 1, "frames_per_step": 50}),
+        ["attack.frames_per_step", "50", "8 frames"]),
+    "cuda_on_a_cpu_build": (lambda t, s: _config(t, s, device="cuda"), ["device", "cuda", "use 'cpu'"]),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_RUNS))
+def test_bad_runs_are_one_line_and_write_nothing(case, scene_dir, tmp_path):
+    import torch
+
+    if case == "cuda_on_a_cpu_build" and torch.cuda.is_available():
+        pytest.skip("this machine has CUDA: the case is about CPU builds of torch")
+    make, needles = BAD_RUNS[case]
+    out = tmp_path / "out"
+    _one_line(_run(make(tmp_path, scene_dir), out, force=False), *needles)
+    assert not out.exists()
+
+
+def test_out_below_a_file_is_one_line(scene_dir, tmp_path):
+    (tmp_path / "afile").write_text("x")
+    _one_line(_run(_config(tmp_path, scene_dir), tmp_path / "afile" / "out", force=False), "afile", "is a file")
+
+
+def test_a_binary_spec_is_one_line_for_init(tmp_path):
+    res = subprocess.run([sys.executable, "-m", "undream.cli", "init", str(_binary(tmp_path)), "--out",
+                          str(tmp_path / "scene")], capture_output=True, text=True, cwd=ROOT)
+    _one_line(res, "binary.yaml", "not a text file")
+    assert not (tmp_path / "scene").exists()

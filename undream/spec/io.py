@@ -16,7 +16,13 @@ from undream.spec.model import Sequence
 def _text(path: Path) -> str:
     if not path.is_file():
         raise SpecError(f"{path}: file not found")
-    return path.read_text()
+    try:
+        return path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as err:
+        raise SpecError(f"{path}: not a text file (byte 0x{err.object[err.start]:02x} at offset {err.start} "
+                        "is not UTF-8)") from None
+    except OSError as err:
+        raise SpecError(f"{path}: cannot read ({err.strerror})") from None
 
 
 def read_json(path: str | Path) -> Any:

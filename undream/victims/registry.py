@@ -46,6 +46,22 @@ def _load_bundled(name: str, task: str | None, device: str | torch.device) -> Vi
     return load_hf_victim(str(path), task=own, device=device)
 
 
+def check_device(device: str | torch.device) -> torch.device:
+    """``device`` as a torch device this torch build can use; else a :class:`VictimError` saying why."""
+    import torch
+
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError) as err:
+        raise VictimError(f"device: {device!r} is not a torch device ({err}); e.g. 'cpu' or 'cuda:0'") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        build = "has no CUDA" if torch.version.cuda is None else "finds no CUDA device"
+        raise VictimError(f"device: {device!r}, but this torch build ({torch.__version__}) {build}; use 'cpu'")
+    if dev.type not in ("cpu", "cuda"):
+        raise VictimError(f"device: {device!r} is not supported; use 'cpu' or 'cuda[:N]'")
+    return dev
+
+
 def load_victim(spec: str, device: str | torch.device = "cpu", task: str | None = None) -> Victim:
     """Load the victim named by ``spec`` (see the module docstring) on ``device``.
 
@@ -56,6 +72,7 @@ def load_victim(spec: str, device: str | torch.device = "cpu", task: str | None 
         raise VictimError(f"victim: must be a hub id, a folder or bundled:<name>, got {spec!r}")
     if task is not None and task not in TASKS:
         raise VictimError(f"task: must be one of {', '.join(TASKS)}, got {task!r}")
+    check_device(device)
     if spec.startswith("bundled:"):
         return _load_bundled(spec[len("bundled:"):], task, device)
     from undream.victims.hf import load_hf_victim
