@@ -420,3 +420,17 @@ def test_bundled_present(monkeypatch, tmp_path, hf_paths):
 def test_bad_device():
     with pytest.raises(VictimError, match="device: 'gpu0' is not a torch device"):
         Classifier(TinyNet(3), LABELS, device="gpu0")
+
+
+def test_truncated_weights_are_one_victim_error(tmp_path):
+    """A half-copied model.safetensors: a VictimError naming the folder, not safetensors' own exception."""
+    import shutil
+
+    from undream.victims import bundled_path
+
+    folder = tmp_path / "trunc"
+    shutil.copytree(bundled_path("classifier"), folder)
+    weights = folder / "model.safetensors"
+    weights.write_bytes(weights.read_bytes()[: weights.stat().st_size // 2])
+    with pytest.raises(VictimError, match=r"trunc.*not a complete save_pretrained checkpoint.*deserializ"):
+        load_victim(str(folder), task="classification")

@@ -45,6 +45,15 @@ def _cannot_load(spec: str, err: BaseException | None = None) -> VictimError:
                        f"cache ({net}); save it with save_pretrained and pass the folder{why}")
 
 
+def _weights_errors() -> tuple[type[BaseException], ...]:
+    """What safetensors raises on a truncated or corrupt weights file."""
+    try:
+        from safetensors import SafetensorError
+    except ImportError:  # pragma: no cover - safetensors comes with transformers
+        return ()
+    return (SafetensorError,)
+
+
 def _pretrained(load: Callable[..., Any], spec: str) -> tuple[Any, bool]:
     """``load(spec, local_files_only=...)``: the cache first, then the hub if allowed.
 
@@ -57,9 +66,10 @@ def _pretrained(load: Callable[..., Any], spec: str) -> tuple[Any, bool]:
                               f"by save_pretrained, or a Hugging Face hub id)")
         try:
             return load(path, local_files_only=True), True
-        except (OSError, ValueError) as err:
+        except (OSError, ValueError, RuntimeError, *_weights_errors()) as err:
+            first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
             raise VictimError(f"cannot load victim {spec!r}: the folder is not a complete "
-                              f"save_pretrained checkpoint ({err})") from err
+                              f"save_pretrained checkpoint ({first})") from None
     try:
         return load(spec, local_files_only=True), True
     except (OSError, ValueError) as err:
