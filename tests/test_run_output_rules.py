@@ -148,3 +148,20 @@ def test_a_binary_spec_is_one_line_for_init(tmp_path):
                           str(tmp_path / "scene")], capture_output=True, text=True, cwd=ROOT)
     _one_line(res, "binary.yaml", "not a text file")
     assert not (tmp_path / "scene").exists()
+
+
+def test_outputs_are_replaced_whole_or_not_at_all(tmp_path):
+    """A write that dies half-way leaves the earlier file as it was, and no temporary file."""
+    from scheduler.outputs import _atomic
+
+    target = tmp_path / "results.json"
+    target.write_text('{"old": true}')
+
+    def dies(f):
+        f.write(b'{"new": ')
+        raise OSError("disk full")
+
+    with pytest.raises(OSError, match="disk full"):
+        _atomic(target, dies)
+    assert target.read_text() == '{"old": true}'
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["results.json"]
