@@ -35,8 +35,8 @@ def _parse(argv=None) -> argparse.Namespace:
 def main(argv=None) -> None:
     args = _parse(argv)
     from scheduler.local import resolve_scene
+    from scheduler.texture0 import starting_texture
     from undream.engine.context import build_context
-    from undream.render.loading import read_texture_srgb
     from undream.engine.job import frame_seed, render_and_grad, victim_loss_and_grad
     from undream.color import linear_to_srgb
     from undream.render.differentiable import srgb_encode_grad
@@ -47,7 +47,7 @@ def main(argv=None) -> None:
                     grad_spp=args.grad_spp, attack={"name": "pgd", "eps": 16, "steps": args.iterations})
     scene_dir = resolve_scene(cfg, tmp, Path.cwd())
     ctx = build_context(cfg, scene_dir)
-    tex = read_texture_srgb(ctx.scenes.mi, scene_dir / "textures" / f"{ctx.sequence.texture.name}.exr")
+    tex = starting_texture(ctx)
     n = len(ctx.sequence.frames)
     for pos in range(n):  # compile every frame's kernels once (not timed)
         render_and_grad(ctx, pos, tex, 0)

@@ -89,8 +89,8 @@ def measure(scene_dir: Path, mode: str, args, start: int = 1) -> dict[str, float
     Iteration 0 is the warm-up; the timed iterations are ``start`` … ``start + iterations − 1``
     (``iteration`` their median, ``iteration_mean`` their mean).
     """
+    from scheduler.texture0 import starting_texture
     from undream.engine.context import build_context
-    from undream.render.loading import read_texture_srgb
     from undream.engine.job import frame_seed, victim_loss_and_grad
     from undream.color import linear_to_srgb
     from undream.engine.gradient import GradientPath
@@ -108,7 +108,7 @@ def measure(scene_dir: Path, mode: str, args, start: int = 1) -> dict[str, float
         ctx.sim = make_backend("mitsuba", scene_dir, scenes=ctx.scenes)
     if mode in ("legacy", "after-prb"):
         ctx.gradients = GradientPath(ctx.scenes, "prb")
-    tex = read_texture_srgb(ctx.scenes.mi, scene_dir / "textures" / f"{ctx.sequence.texture.name}.exr")
+    tex = starting_texture(ctx)
     clock = KernelClock()
     parts = {k: [] for k in ("sim_wall", "sim_kernel", "victim_wall", "grad_wall", "grad_kernel", "job_wall")}
     iters, first_grad = [], []

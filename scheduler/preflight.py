@@ -33,11 +33,10 @@ def scene_source(config: RunConfig, base_dir: Path) -> Path:
 
 def preflight(config: RunConfig, base_dir: Path) -> "Victim":
     """Validate everything a run needs that rendering does not; returns the loaded victim."""
-    from undream.attacks import AttackConfig, make_attack
-    from undream.engine.context import task_of
+    from undream.engine.context import attack_of, class_ids, task_of
     from undream.victims import load_victim
 
-    make_attack(AttackConfig.from_dict({**config.attack, "seed": config.attack.get("seed", config.seed)}))
+    attack_of(config)
     if config.store:
         from undream.store.db import make_engine
 
@@ -45,7 +44,7 @@ def preflight(config: RunConfig, base_dir: Path) -> "Victim":
     seq = _sequence(scene_source(config, base_dir))
     check_frames(config, len(seq.frames))
     victim = load_victim(config.victim, device=config.device, task=task_of(config))
-    check_labels(config, seq, victim)
+    class_ids(config, seq, victim)
     return victim
 
 
@@ -54,16 +53,6 @@ def check_frames(config: RunConfig, n_frames: int) -> None:
     per_step = config.attack.get("frames_per_step")
     if isinstance(per_step, int) and per_step > n_frames:
         raise SpecError(f"attack.frames_per_step: {per_step} is more than the sequence's {n_frames} frames")
-
-
-def check_labels(config: RunConfig, seq: Any, victim: "Victim") -> None:
-    """``label`` and ``target_label`` are the victim's classes, and not the same one."""
-    from undream.engine.context import class_id
-
-    label = class_id(victim, config.label or seq.asset.builtin or seq.asset.name, "label")
-    if config.target_label and class_id(victim, config.target_label, "target_label") == label:
-        raise SpecError(f"target_label: {config.target_label!r} is the object's own class (label); "
-                        "a targeted attack needs another class")
 
 
 def _sequence(src: Path) -> Any:

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any, Sequence
 
 from scheduler import stages
 from scheduler.local import resolve_scene
-from scheduler.preflight import check_frames, check_labels
+from scheduler.preflight import check_frames
 from undream.spec.run import RunConfig
 
 if TYPE_CHECKING:
@@ -57,18 +57,16 @@ class Validator:
         return self._scenes[src]
 
     def __call__(self, config: RunConfig, base_dir: Path) -> Prepared:
-        from undream.attacks import AttackConfig, make_attack
-        from undream.engine.context import build_context
+        from undream.engine.context import attack_of, build_context
 
         scene_dir = self.scene(config, base_dir)
         key = _signature(config, scene_dir)
         if key not in self._frames:
             ctx = build_context(config, scene_dir)
             ctx.scenes.close()
-            check_labels(config, ctx.sequence, ctx.victim)
             self._frames[key] = len(ctx.sequence.frames)
         else:  # same scene and victim: only the attack can differ
-            make_attack(AttackConfig.from_dict({**config.attack, "seed": config.attack.get("seed", config.seed)}))
+            attack_of(config)
         check_frames(config, self._frames[key])
         return Prepared(config, scene_dir, self._frames[key])
 

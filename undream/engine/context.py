@@ -6,7 +6,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from undream.engine.gradient import GradientPath
-from undream.errors import VictimError
+from undream.errors import SpecError, VictimError
 from undream.render.scene_cache import SceneCache
 from undream.scenedir.verify import mask_box, read_mask
 from undream.sim import SimulatorBackend, make_backend
@@ -50,6 +50,26 @@ def class_id(victim: Any, name: str, field: str) -> int:
     return labels.index(name.lower())
 
 
+def class_ids(config: RunConfig, seq: Sequence, victim: Any) -> tuple[int, int | None]:
+    """The victim's class ids of the object (``label``, default: the built-in asset's name) and of
+    ``target_label``; errors name the field, and a target equal to the object's own class is one."""
+    label = class_id(victim, config.label or seq.asset.builtin or seq.asset.name, "label")
+    if not config.target_label:
+        return label, None
+    target = class_id(victim, config.target_label, "target_label")
+    if target == label:
+        raise SpecError(f"target_label: {config.target_label!r} is the object's own class (label); "
+                        "a targeted attack needs another class")
+    return label, target
+
+
+def attack_of(config: RunConfig) -> "Attack":
+    """The run's attack, seeded with the run's seed unless the attack block sets its own."""
+    from undream.attacks import AttackConfig, make_attack
+
+    return make_attack(AttackConfig.from_dict({**config.attack, "seed": config.attack.get("seed", config.seed)}))
+
+
 def task_of(config: RunConfig) -> str:
     """The victim's task that the run's loss belongs to (``classification`` or ``detection``)."""
     return next(t for t, kinds in TASK_LOSSES.items() if config.loss in kinds)
@@ -65,7 +85,6 @@ def build_context(config: RunConfig, scene_dir: Path, *, victim: "Victim | None"
     """
     import torch
 
-    from undream.attacks import AttackConfig, make_attack
     from undream.victims import Target, load_victim
 
     # Small victims on CPU: one thread avoids OpenMP spinning against Dr.Jit's
@@ -76,12 +95,11 @@ def build_context(config: RunConfig, scene_dir: Path, *, victim: "Victim | None"
     task = task_of(config)
     if victim is None:
         victim = load_victim(config.victim, device=config.device, task=task)
-    label = class_id(victim, config.label or seq.asset.builtin or seq.asset.name, "label")
-    target = class_id(victim, config.target_label, "target_label") if config.target_label else None
+    label, target = class_ids(config, seq, victim)
     targets = [Target(label=label, target_label=target,
                       box=mask_box(read_mask(scene_dir, f.index)) if task == "detection" else None)
                for f in seq.frames]
-    attack = make_attack(AttackConfig.from_dict({**config.attack, "seed": config.attack.get("seed", config.seed)}))
+    attack = attack_of(config)
     if scenes is None:
         scenes = SceneCache(scene_dir)
     sim = make_backend("mitsuba", scene_dir, scenes=scenes)

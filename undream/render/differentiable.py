@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from undream.color import linear_to_srgb, srgb_to_linear
+from undream.color import srgb_to_linear
 from undream.errors import RenderError
 from undream.render.scene_cache import ActiveFrame, SceneCache
 
@@ -42,15 +42,10 @@ def render_linear(scenes: SceneCache, index: int, texture_srgb: np.ndarray, spp:
     active.params[active.texture_key] = _linear_texture(scenes, active, texture_srgb)
     active.params.update()
     if scenes.frozen:
-        img = scenes.frozen_call(f"render/{kind}", _sim_render, active.scene, mi.UInt32(seed), spp)
+        img = scenes.frozen_call(f"render/{kind}", _render, active.scene, mi.UInt32(seed), spp)
     else:
         img = mi.render(active.scene, spp=spp, seed=seed)
     return np.array(img, dtype=np.float32)
-
-
-def render_srgb(scenes: SceneCache, index: int, texture_srgb: np.ndarray, spp: int, seed: int) -> np.ndarray:
-    """The simulation render as the camera delivers it: H×W×3 sRGB in [0, 1]."""
-    return linear_to_srgb(render_linear(scenes, index, texture_srgb, spp, seed))
 
 
 def srgb_encode_grad(linear: np.ndarray, grad_srgb: np.ndarray) -> np.ndarray:
@@ -104,7 +99,7 @@ def texture_gradient(scenes: SceneCache, index: int, texture_srgb: np.ndarray, g
     return srgb_decode_grad(texture_srgb, grad_lin)
 
 
-def _sim_render(scene: Any, seed: Any, spp: int) -> Any:
+def _render(scene: Any, seed: Any, spp: int) -> Any:
     import mitsuba as mi
 
     return mi.render(scene, spp=spp, seed=seed)

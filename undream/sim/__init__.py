@@ -43,11 +43,6 @@ def register_backend(name: str) -> Callable[[BackendFactory], BackendFactory]:
     return add
 
 
-def backend_names() -> list[str]:
-    _load_builtin()
-    return sorted(_BACKENDS)
-
-
 def make_backend(name: str, scene_dir: str | Path, **options) -> SimulatorBackend:
     """The backend ``name`` for the scene directory ``scene_dir``; errors name the valid choices."""
     _load_builtin()
