@@ -69,7 +69,8 @@ class GradientPath:
     run_seed: int = 0
     shelf: TransportShelf | None = None
     _transports: dict[int, tuple[int, "Transport"]] = field(default_factory=dict)  # index → (epoch, T)
-    _refused: dict[int, str] = field(default_factory=dict)
+    _verdicts: dict[int, str | None] = field(default_factory=dict)  # index → None (linear) or why not
+    _over_budget: set[int] = field(default_factory=set)  # frames left to prb by MAX_TRANSPORT_BYTES
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -95,8 +96,10 @@ class GradientPath:
         if held is None or held[0] != epoch:
             self._transports.pop(index, None)
             if self.transport_bytes > MAX_TRANSPORT_BYTES:
-                self._refuse(index, f"the transport cache holds {self.transport_bytes >> 20} MiB already")
-                return self.texture_gradient(index, texture_srgb, grad_linear_image, spp, iteration, seed)
+                self._over_budget.add(index)
+                log.warning("frame %d: texture gradient by prb, not the transport cache: it holds %d MiB already",
+                            index, self.transport_bytes >> 20)
+                return texture_gradient(self.scenes, index, texture_srgb, grad_linear_image, spp, seed, seed + 1)
             seed_grad = capture_seed(self.run_seed, index, epoch)
             key = f"{index}-{seed_grad}-{spp}"
             t = self.shelf.get(key) if self.shelf is not None else None
@@ -108,24 +111,20 @@ class GradientPath:
         return texture_gradient_cached(held[1], texture_srgb, grad_linear_image)
 
     def _usable(self, index: int) -> bool:
-        if self.mode == "prb" or index in self._refused:
+        if self.mode == "prb" or index in self._over_budget:
             return False
-        if index in self._transports:
-            return True
-        from undream.render.transport import check_linear
+        if index not in self._verdicts:
+            from undream.render.transport import check_linear
 
-        known, reason = self.shelf.get_verdict(index) if self.shelf is not None else (False, None)
-        if not known:
-            reason = check_linear(self.scenes, index)
-            if self.shelf is not None:
-                self.shelf.put_verdict(index, reason)
-        if reason is None:
-            return True
-        if self.mode == "transport":
+            known, reason = self.shelf.get_verdict(index) if self.shelf is not None else (False, None)
+            if not known:
+                reason = check_linear(self.scenes, index)
+                if self.shelf is not None:
+                    self.shelf.put_verdict(index, reason)
+            self._verdicts[index] = reason
+            if reason is not None and self.mode != "transport":
+                log.warning("frame %d: texture gradient by prb, not the transport cache: %s", index, reason)
+        reason = self._verdicts[index]
+        if reason is not None and self.mode == "transport":
             raise RenderError(f"gradient: transport: frame {index} cannot use the transport cache ({reason})")
-        self._refuse(index, reason)
-        return False
-
-    def _refuse(self, index: int, reason: str) -> None:
-        self._refused[index] = reason
-        log.warning("frame %d: texture gradient by prb, not the transport cache: %s", index, reason)
+        return reason is None

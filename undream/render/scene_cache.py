@@ -133,8 +133,9 @@ class SceneCache:
         gkey = (kind, state.group)
         group = self._groups[gkey]
         active = self._ensure_loaded(kind, gkey, group)
-        self._apply(group, active, state)
-        active.index = index
+        if active.index != index:  # already showing it: nothing to write, no BVH to rebuild
+            self._apply(group, active, state)
+            active.index = index
         return active
 
     # -- frame states -------------------------------------------------------
