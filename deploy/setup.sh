@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Sets up undream on a fresh Debian machine: libLLVM >= 16 for Mitsuba's CPU
-# backend, a virtual environment in .venv, the CPU build of torch 2.13.0 and
-# the project with its test extras. Safe to run again.
+# backend, Chromium and its driver for the dashboard's browser tests, a virtual
+# environment in .venv, the CPU build of torch 2.13.0 and the project with its
+# test extras. Safe to run again.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -17,6 +18,14 @@ if ! have_llvm; then
     SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
     $SUDO apt-get update -qq
     DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq libllvm19 >/dev/null
+fi
+
+# The dashboard's browser tests drive Debian's Chromium through its chromedriver (no downloads at test time).
+if ! command -v chromium >/dev/null || ! command -v chromedriver >/dev/null; then
+    echo "setup: installing chromium and chromium-driver (the dashboard's browser tests)"
+    SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+    $SUDO apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq chromium chromium-driver >/dev/null
 fi
 
 PY=${PYTHON:-python3}

@@ -12,13 +12,13 @@ with the field names below (``--settings FILE`` or ``$UNDREAM_SETTINGS``)::
 
 Environment: ``UNDREAM_`` + the field name in capitals (``UNDREAM_BROKER_URL``,
 ``UNDREAM_RESULT_BACKEND``, ``UNDREAM_DATABASE_URL``, ``UNDREAM_BLOB_URL``,
-``UNDREAM_CACHE_DIR``, ``UNDREAM_DRJIT_THREADS``, ...). Errors name the
-source (file and field, or variable) and the value.
+``UNDREAM_CACHE_DIR``, ``UNDREAM_DRJIT_THREADS``, ``UNDREAM_DASHBOARD_TOKEN``, ...).
+Errors name the source (file and field, or variable) and the value (never a token's).
 """
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -67,6 +67,7 @@ class Settings:
     restore_interval: int = 10  # s between sweeps that re-deliver jobs of lost workers
     scene_cache: int = 2  # scene directories whose Mitsuba scenes a worker process keeps loaded
     connect_timeout: float = 5.0  # s to reach the broker before giving up (CLI commands)
+    dashboard_token: str | None = field(default=None, repr=False)  # cancel/resume need it; None: none
 
     def __post_init__(self) -> None:
         for name in ("broker_url",):
@@ -90,6 +91,10 @@ class Settings:
         for name in ("drjit_threads", "frames_per_task"):
             if getattr(self, name) is not None:
                 _check_int(name, getattr(self, name), 1)
+        token = self.dashboard_token
+        if token is not None and (not isinstance(token, str) or len(token.strip()) < 8):
+            raise SettingsError("dashboard_token: must be a secret of at least 8 characters or unset, "
+                                f"got {'a shorter one' if isinstance(token, str) else repr(token)}")
         if isinstance(self.connect_timeout, bool) or not isinstance(self.connect_timeout, (int, float)) \
                 or not self.connect_timeout > 0:
             raise SettingsError(f"connect_timeout: must be a number of seconds > 0, got {self.connect_timeout!r}")
@@ -119,7 +124,8 @@ _INTS = {"concurrency", "drjit_threads", "torch_threads", "frames_per_task", "fa
 def _coerce(source: str, name: str, value: Any) -> Any:
     """A value from a file or the environment as the field's type; errors name ``source``."""
     if value is None or value == "":
-        return None if name in ("result_backend", "database_url", "drjit_threads", "frames_per_task") \
+        return None if name in ("result_backend", "database_url", "drjit_threads", "frames_per_task",
+                                "dashboard_token") \
             else _FIELDS[name].default
     if name in _INTS:
         if isinstance(value, (bool, float)):
