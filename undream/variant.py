@@ -2,15 +2,25 @@
 
 Mitsuba's JIT is not fork-safe, so only call :func:`mitsuba` in the process
 that renders (a worker child, a CLI command, a test).
+
+Without ``$UNDREAM_MI_VARIANT`` the first working variant of
+:data:`PREFERRED` is used: ``cuda_ad_rgb`` on a machine (or container) that
+has an NVIDIA GPU, its driver and OptiX, else ``llvm_ad_rgb`` on the CPU. A
+fall-back from CUDA is logged (logger ``undream.variant``, level INFO: worker
+logs show it) with the reason CUDA failed, found by :func:`cuda_unusable_reason`.
 """
 from __future__ import annotations
 
+import ctypes
+import logging
 import os
 from types import ModuleType
+from typing import Callable
 
 from undream.errors import RenderError
 
 PREFERRED = ("cuda_ad_rgb", "llvm_ad_rgb")
+log = logging.getLogger(__name__)
 
 
 def mitsuba(variant: str | None = None) -> ModuleType:
@@ -18,7 +28,8 @@ def mitsuba(variant: str | None = None) -> ModuleType:
 
     ``variant`` (or ``$UNDREAM_MI_VARIANT``) forces one; otherwise the first of
     ``cuda_ad_rgb``, ``llvm_ad_rgb`` that works is used. A variant already set
-    is kept when none is asked for.
+    is kept when none is asked for. RenderError naming every variant's reason
+    when none works.
     """
     import mitsuba as mi
 
@@ -26,18 +37,61 @@ def mitsuba(variant: str | None = None) -> ModuleType:
     if wanted is None and mi.variant() is not None:
         return mi
     candidates = (wanted,) if wanted else PREFERRED
-    errors = []
+    failed: list[tuple[str, str]] = []  # (variant, why not)
     for name in candidates:
         if name not in mi.variants():
-            errors.append(f"{name}: not compiled in this mitsuba build")
+            failed.append((name, "not compiled in this mitsuba build"))
             continue
         try:
             mi.set_variant(name)
             if name.startswith("cuda"):
                 import drjit as dr
                 dr.zeros(mi.Float, 1)  # fails here when no GPU/driver is present
-            return mi
         except Exception as err:  # mitsuba raises plain ImportError/RuntimeError
-            errors.append(f"{name}: {err}")
-    raise RenderError("no usable Mitsuba variant (" + "; ".join(errors) +
+            failed.append((name, cuda_unusable_reason(err) if name.startswith("cuda") else _one_line(err)))
+            continue
+        if failed:
+            log.info("falling back to Mitsuba variant %s: %s", name,
+                     "; ".join(f"{n} failed: {why}" for n, why in failed))
+        return mi
+    raise RenderError("no usable Mitsuba variant (" + "; ".join(f"{n}: {why}" for n, why in failed) +
                       "); the CPU variant needs libLLVM >= 16 (Debian: apt-get install libllvm19)")
+
+
+def _one_line(err: BaseException) -> str:
+    return " ".join(str(err).split()) or type(err).__name__
+
+
+def cuda_unusable_reason(err: BaseException, load: Callable[[str], ctypes.CDLL] = ctypes.CDLL) -> str:
+    """Why Dr.Jit's CUDA backend failed, in words: no driver, no device, no OptiX, or Dr.Jit's ``err``.
+
+    Dr.Jit only says that "the CUDA backend hasn't been initialized"; this asks
+    the driver library itself (``$DRJIT_LIBCUDA_PATH`` or ``libcuda.so.1``, as
+    Dr.Jit does) and OptiX's (``libnvoptix.so.1``, which the NVIDIA container
+    toolkit mounts only with the ``graphics`` driver capability). ``load`` opens
+    a shared library (injectable for tests).
+    """
+    driver = os.environ.get("DRJIT_LIBCUDA_PATH") or "libcuda.so.1"
+    try:
+        cuda = load(driver)
+    except OSError:
+        return (f"no NVIDIA driver ({driver} cannot be loaded: no GPU here, or a container started "
+                "without the NVIDIA runtime: docker --gpus, a nvidia.com/gpu resource on Kubernetes)")
+    try:
+        status = cuda.cuInit(0)
+        count = ctypes.c_int(0)
+        if status == 0:
+            status = cuda.cuDeviceGetCount(ctypes.byref(count))
+    except (AttributeError, OSError) as exc:
+        return f"{driver} is not a usable CUDA driver ({_one_line(exc)})"
+    if status != 0:
+        return f"the NVIDIA driver failed to start (CUDA error {status}; {_one_line(err)})"
+    if count.value == 0:
+        visible = os.environ.get("CUDA_VISIBLE_DEVICES")
+        return "no CUDA device visible" + (f" (CUDA_VISIBLE_DEVICES={visible!r})" if visible is not None else "")
+    try:
+        load("libnvoptix.so.1")
+    except OSError:
+        return ("OptiX (libnvoptix.so.1) is missing; in a container set "
+                "NVIDIA_DRIVER_CAPABILITIES=compute,utility,graphics")
+    return _one_line(err)
