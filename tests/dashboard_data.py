@@ -1,0 +1,189 @@
+"""A farm's database built through the Store API, for the dashboard's tests and benchmark.
+
+No rendering: textures are tiny random arrays, gradients 2×2×3, frames
+small uint8 images. :func:`build_farm` makes one run in every state
+(queued, running, evaluating, done, failed, cancelled) and a sweep over
+attack × ε whose runs are done; :func:`add_run` makes one run of any size.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+WORKERS = ("node-a:101", "node-a:102", "node-b:201")
+LABELS = ["car", "sphere", "stop_sign", "traffic_cone", "trash_bin", "umbrella"]
+TRUE_LABEL = 4  # trash_bin
+
+
+@dataclass
+class RunShape:
+    """What :func:`add_run` makes: ``status``; ``done_steps`` of ``steps`` taken; ``frames`` per iteration."""
+
+    name: str
+    status: str
+    frames: int = 4
+    steps: int = 6
+    done_steps: int = 0
+    attack: str = "pgd"
+    eps: float = 32.0
+    texture: tuple[int, int] = (16, 32)  # height, width in texels
+    frame_px: int = 24
+    sweep_id: str | None = None
+    error: str | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def config(shape: RunShape) -> dict[str, Any]:
+    """A run config as the farm stores it (plain JSON)."""
+    return {"name": shape.name, "scene": "examples/bin_park.yaml", "victim": "bundled:classifier",
+            "loss": "ce", "attack": {"name": shape.attack, "eps": shape.eps, "steps": shape.steps},
+            "sim_spp": 16, "grad_spp": 8, "eval_spp": 32, "seed": 0, **shape.extra}
+
+
+def _grad() -> np.ndarray:
+    return np.full((2, 2, 3), 0.01, np.float32)
+
+
+def _frame(rng: np.random.Generator, px: int) -> np.ndarray:
+    return (rng.random((px, px, 3)) * 255).astype(np.uint8)
+
+
+def _iteration(store: Any, run_id: str, k: int, frames: int, rng: np.random.Generator,
+               slow: set[tuple[int, int]]) -> float:
+    """Iteration ``k``'s attack jobs, all succeeded (``slow`` (k, frame) pairs take 5× longer); mean loss."""
+    store.queue_jobs(run_id, k, range(frames))
+    losses = []
+    for f in range(frames):
+        worker = WORKERS[(k + f) % len(WORKERS)]
+        store.job_started(run_id, k, f, worker=worker)
+        loss = 0.1 + 0.4 * k + 0.05 * f + 0.01 * float(rng.random())
+        total = 0.4 * (5.0 if (k, f) in slow else 1.0) + 0.02 * float(rng.random())
+        store.job_succeeded(run_id, k, f, _grad(), loss, True,
+                            {"sim_render": total * 0.4, "victim": total * 0.2,
+                             "grad_render": total * 0.4, "total": total})
+        losses.append(loss)
+    return float(np.mean(losses))
+
+
+def _advance(store: Any, run_id: str, k: int, texture: np.ndarray, loss: float, frames: int) -> np.ndarray:
+    nxt = np.clip(texture + 0.05 * np.sign(np.sin(texture * 40 + k)), 0.0, 1.0).astype(np.float32)
+    record = {"loss_mean": loss, "n_ok": frames, "n_bad": 0, "dropped_frames": [],
+              "grad_norm": 0.5 + 0.1 * k, "step_seconds": 0.01}
+    assert store.advance(run_id, k, nxt, {"t": k + 1}, record)
+    return nxt
+
+
+def _evaluate(store: Any, run_id: str, shape: RunShape, rng: np.random.Generator, phase: str,
+              labels: list[int]) -> None:
+    k = shape.done_steps
+    store.queue_jobs(run_id, k, range(shape.frames), phase)
+    for f in range(shape.frames):
+        store.job_started(run_id, k, f, phase, worker=WORKERS[f % len(WORKERS)])
+        store.eval_succeeded(run_id, k, f, phase, {"prediction": {"label": labels[f], "score": 0.9}},
+                             _frame(rng, shape.frame_px), {"total": 0.3})
+
+
+def _adversarial_labels(shape: RunShape) -> list[int]:
+    """Predictions on the adversarial frames: more frames fooled at a larger ε (mifgsm a little more)."""
+    strength = min(1.0, shape.eps / 32.0 * (1.0 if shape.attack == "mifgsm" else 0.75))
+    fooled = round(shape.frames * strength)
+    return [(TRUE_LABEL + 1 + f % 2) % len(LABELS) if f < fooled else TRUE_LABEL for f in range(shape.frames)]
+
+
+def _results(shape: RunShape, losses: list[float], benign: list[int], adv: list[int]) -> dict[str, Any]:
+    def judged(preds: list[int]) -> dict[str, Any]:
+        rows = [{"frame": f, "prediction": p, "class": LABELS[p], "correct": p == TRUE_LABEL}
+                for f, p in enumerate(preds)]
+        return {"metric": "accuracy", "value": float(np.mean([p == TRUE_LABEL for p in preds])),
+                "per_frame": rows}
+    fooled = float(np.mean([p != TRUE_LABEL for p in adv]))
+    return {"task": "classification", "victim": "bundled:classifier", "label": LABELS[TRUE_LABEL],
+            "attack": {"name": shape.attack, "eps": shape.eps}, "benign": judged(benign),
+            "adversarial": judged(adv), "attack_success": {"aggregate": {"success_rate": fooled}},
+            "loss_per_iteration": losses}
+
+
+def add_run(store: Any, shape: RunShape, rng: np.random.Generator) -> str:
+    """One run in ``shape.status`` with ``shape.done_steps`` iterations taken; returns its id."""
+    h, w = shape.texture
+    T0 = rng.random((h, w, 3)).astype(np.float32)
+    visible = np.zeros((h, w), bool)
+    visible[:, : w * 3 // 4] = True  # the last quarter of the texels: no frame sees them
+    started = shape.status != "queued"
+    run_id = store.create_run(shape.name, config(shape), shape.frames, 0,
+                              texture0=T0 if started else None,
+                              attack_state0={"t": 0} if started else None,
+                              arrays0={"T0": T0, "visible": visible} if started else None,
+                              sweep_id=shape.sweep_id)
+    if not started:
+        return run_id
+    store.set_status(run_id, "running")
+    texture, losses = T0, []
+    slow = {(1, shape.frames - 1), (shape.done_steps // 2, 0)}
+    for k in range(shape.done_steps):
+        losses.append(_iteration(store, run_id, k, shape.frames, rng, slow))
+        texture = _advance(store, run_id, k, texture, losses[-1], shape.frames)
+    if shape.status in ("running", "failed", "cancelled"):
+        _current_iteration(store, run_id, shape)
+    if shape.status in ("evaluating", "done"):
+        store.set_status(run_id, "evaluating")
+        benign = [TRUE_LABEL] * shape.frames
+        adv = _adversarial_labels(shape)
+        _evaluate(store, run_id, shape, rng, "pre", benign)
+        store.put_final_texture(run_id, np.round(texture * 255) / 255)
+        if shape.status == "done":
+            _evaluate(store, run_id, shape, rng, "adversarial", adv)
+            store.set_results(run_id, _results(shape, losses, benign, adv))
+            store.set_status(run_id, "done")
+    if shape.status in ("failed", "cancelled"):
+        error = shape.error or ("cancelled by the user" if shape.status == "cancelled" else
+                                f"frame 1 of iteration {shape.done_steps} failed 3 times")
+        store.set_status(run_id, shape.status, error=error)
+    return run_id
+
+
+def _current_iteration(store: Any, run_id: str, shape: RunShape) -> None:
+    """The unfinished iteration of an active (or stopped) run: done, failed, retried, started, queued jobs."""
+    k = shape.done_steps
+    store.queue_jobs(run_id, k, range(shape.frames))
+    for f in range(shape.frames):
+        worker = WORKERS[f % len(WORKERS)]
+        if f == 0:
+            store.job_started(run_id, k, f, worker=worker)
+            store.job_succeeded(run_id, k, f, _grad(), 0.5, True, {"total": 0.41})
+        elif f == 1:
+            store.job_started(run_id, k, f, worker=worker)
+            store.job_failed(run_id, k, f, "RenderError: Mitsuba ran out of memory on frame 1",
+                             will_retry=shape.status == "running")
+        elif f == 2:
+            store.job_started(run_id, k, f, worker=worker)
+
+
+@dataclass
+class Farm:
+    """The ids :func:`build_farm` made: one run per state, the sweep and its runs."""
+
+    runs: dict[str, str]
+    sweep_id: str
+    sweep_runs: list[str]
+
+
+def build_farm(store: Any, seed: int = 0, frames: int = 4, steps: int = 6) -> Farm:
+    """One run in every state and a sweep (pgd and mifgsm × ε 8, 16, 32) of done runs."""
+    rng = np.random.default_rng(seed)
+    runs = {}
+    plan = {"queued": 0, "running": steps // 2, "evaluating": steps, "done": steps,
+            "failed": steps // 2, "cancelled": 1}
+    for status, done_steps in plan.items():
+        runs[status] = add_run(store, RunShape(f"bin-{status}", status, frames, steps, done_steps), rng)
+    spec = {"name": "eps-sweep", "run": "runs/bin_park_pgd.yaml",
+            "grid": {"attack.name": ["pgd", "mifgsm"], "attack.eps": [8, 16, 32]}}
+    sweep_id = store.create_sweep("eps-sweep", spec)
+    sweep_runs = []
+    for i, (attack, eps) in enumerate((a, e) for a in ("pgd", "mifgsm") for e in (8, 16, 32)):
+        shape = RunShape(f"eps-sweep-{i:03d}", "done", frames, 3, 3, attack=attack, eps=float(eps),
+                         sweep_id=sweep_id)
+        sweep_runs.append(add_run(store, shape, rng))
+    return Farm(runs, sweep_id, sweep_runs)

@@ -1,0 +1,129 @@
+"""Charts with axes and units, drawn on the server by matplotlib (PNG bytes), and sparkline points.
+
+matplotlib's object API (a :class:`~matplotlib.figure.Figure` per chart, no
+pyplot state) is safe to use from the server's threads. Every chart takes
+plain data from :mod:`undream.dashboard.query` / :mod:`~undream.dashboard.sweeps`.
+"""
+from __future__ import annotations
+
+import io
+import math
+from typing import Any, Sequence
+
+SIZE_IN = (5.6, 2.7)  # width, height in inches
+DPI = 100  # so a chart is 560×270 px
+COLORS = ("#1f6fb2", "#d1495b", "#2a9d8f", "#e9a03b", "#6a4c93", "#555555")
+
+
+def _figure() -> tuple[Any, Any]:
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=SIZE_IN, dpi=DPI, layout="constrained")
+    ax = fig.add_subplot()
+    ax.tick_params(labelsize=8)
+    ax.grid(True, color="#e4e4e4", linewidth=0.6)
+    for side in ("top", "right"):
+        ax.spines[side].set_visible(False)
+    return fig, ax
+
+
+def _png(fig: Any) -> bytes:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    buf = io.BytesIO()
+    FigureCanvasAgg(fig).print_png(buf)
+    return buf.getvalue()
+
+
+def _empty(ax: Any, text: str) -> None:
+    ax.text(0.5, 0.5, text, ha="center", va="center", transform=ax.transAxes, color="#777", fontsize=9)
+
+
+def loss_chart(iterations: Sequence[dict[str, Any]], loss_kind: str | None) -> bytes:
+    """Mean loss over the kept frames per iteration; iterations that dropped frames marked in red."""
+    fig, ax = _figure()
+    points = [(r["k"], r["loss_mean"]) for r in iterations if r["loss_mean"] is not None]
+    if points:
+        ks, ys = zip(*points)
+        ax.plot(ks, ys, color=COLORS[0], linewidth=1.4, marker="o" if len(ks) < 40 else None, markersize=3)
+        bad = [(r["k"], r["loss_mean"]) for r in iterations if r["n_bad"] and r["loss_mean"] is not None]
+        if bad:
+            ax.scatter(*zip(*bad), color=COLORS[1], zorder=3, s=14, label="frames dropped")
+            ax.legend(fontsize=8, frameon=False)
+    else:
+        _empty(ax, "no iteration finished yet")
+    ax.set_xlabel("iteration k (attack step)", fontsize=9)
+    ax.set_ylabel(f"mean loss ({loss_kind or 'loss'})", fontsize=9)
+    ax.set_title("attack loss per iteration (higher fools more)", fontsize=10)
+    return _png(fig)
+
+
+def seconds_chart(iterations: Sequence[dict[str, Any]]) -> bytes:
+    """Wall seconds per iteration (from one iteration record to the next; the first from the run's creation)."""
+    fig, ax = _figure()
+    if iterations:
+        ax.bar([r["k"] for r in iterations], [r["seconds"] for r in iterations], color=COLORS[2], width=0.8)
+    else:
+        _empty(ax, "no iteration finished yet")
+    ax.set_xlabel("iteration k", fontsize=9)
+    ax.set_ylabel("wall time (s)", fontsize=9)
+    ax.set_title("seconds per iteration", fontsize=10)
+    return _png(fig)
+
+
+def _metric_name(metric: str | None) -> str:
+    return {"accuracy": "accuracy", "ap50": "AP@0.5"}.get(metric or "", metric or "metric")
+
+
+def metric_chart(evaluation: dict[str, Any], steps: int | None) -> bytes:
+    """Accuracy or AP@0.5 (%) before the attack (iteration 0) and after its last step (iteration N)."""
+    fig, ax = _figure()
+    name = _metric_name(evaluation.get("metric"))
+    values = [(0, evaluation.get("benign"), "benign"), (steps or 1, evaluation.get("adversarial"), "adversarial")]
+    known = [(x, 100.0 * v, label) for x, v, label in values if v is not None]
+    if known:
+        ax.plot([p[0] for p in known], [p[1] for p in known], color="#999", linestyle="--", linewidth=1)
+        for (x, y, label), color in zip(known, (COLORS[2], COLORS[1])):
+            ax.scatter([x], [y], color=color, s=40, zorder=3, label=f"{label}: {y:.1f} %")
+        ax.legend(fontsize=8, frameon=False, loc="best")
+    else:
+        _empty(ax, "measured at evaluation: not evaluated yet")
+    ax.set_ylim(-5, 105)
+    ax.set_xlabel("iteration k (0: benign texture, N: final texture)", fontsize=9)
+    ax.set_ylabel(f"{name} (%)", fontsize=9)
+    ax.set_title(f"victim {name}, evaluated on every frame", fontsize=10)
+    return _png(fig)
+
+
+def sweep_chart(series: dict[str, list[dict[str, Any]]]) -> bytes:
+    """Adversarial accuracy / AP@0.5 (%) against ε (0–255 sRGB units), one line per attack."""
+    fig, ax = _figure()
+    metrics = {p["metric"] for points in series.values() for p in points}
+    for (attack, points), color in zip(series.items(), COLORS * 4):
+        ax.plot([p["eps"] for p in points], [100.0 * p["adversarial"] for p in points], color=color,
+                marker="o", markersize=4, linewidth=1.4, label=attack)
+    benign = [p["benign"] for points in series.values() for p in points if p["benign"] is not None]
+    if benign:
+        ax.axhline(100.0 * sum(benign) / len(benign), color="#999", linestyle="--", linewidth=1,
+                   label="benign (mean)")
+    if series:
+        ax.legend(fontsize=8, frameon=False, title="attack", title_fontsize=8)
+    else:
+        _empty(ax, "no run of this sweep has results yet")
+    name = _metric_name(metrics.pop() if len(metrics) == 1 else None)
+    ax.set_ylim(-5, 105)
+    ax.set_xlabel("ε (0–255 sRGB units)", fontsize=9)
+    ax.set_ylabel(f"adversarial {name} (%)", fontsize=9)
+    ax.set_title(f"adversarial {name} against ε", fontsize=10)
+    return _png(fig)
+
+
+def sparkline(values: Sequence[float | None], width: int = 120, height: int = 24) -> str:
+    """SVG polyline points ("x,y x,y ...") of the finite ``values`` scaled into width × height px."""
+    pts = [(i, v) for i, v in enumerate(values) if v is not None and math.isfinite(v)]
+    if len(pts) < 2:
+        return ""
+    lo, hi = min(v for _, v in pts), max(v for _, v in pts)
+    span, last = (hi - lo) or 1.0, max(len(values) - 1, 1)
+    return " ".join(f"{i * (width - 2) / last + 1:.1f},{height - 1 - (v - lo) * (height - 2) / span:.1f}"
+                    for i, v in pts)

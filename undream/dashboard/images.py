@@ -1,0 +1,89 @@
+"""The run's pictures as PNG bytes: texture versions (unseen texels marked) and evaluation frames.
+
+Textures are H×W×3 sRGB in [0, 1] (the store's convention); frames are
+H×W×3 uint8 sRGB. Both are enlarged with nearest-neighbour sampling to at
+least :data:`MIN_SIDE` pixels so that texels and pixels stay visible.
+"""
+from __future__ import annotations
+
+import io
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from undream.errors import StoreError
+
+if TYPE_CHECKING:
+    from undream.store import Store
+
+MIN_SIDE = 256  # px: pictures smaller than this are enlarged by a whole factor
+UNSEEN_RGB = (255, 0, 255)  # the hatching over texels no frame sees
+HATCH = 6  # px between hatching lines
+
+
+def _enlarge(img: np.ndarray) -> tuple[np.ndarray, int]:
+    factor = max(1, -(-MIN_SIDE // max(1, min(img.shape[:2]))))
+    return np.repeat(np.repeat(img, factor, axis=0), factor, axis=1), factor
+
+
+def _png(img: np.ndarray) -> bytes:
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(img).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def seen_mask(store: "Store", run_id: str) -> np.ndarray | None:
+    """H×W bool: texels some frame sees, or None when unknown.
+
+    From the starting attack state's ``visible`` array (runs with a random
+    start), else the texels where some frame's gradient of iteration 0 is
+    not zero.
+    """
+    state0 = store.attack_state(run_id, 0) or {}
+    visible = state0.get("visible")
+    if isinstance(visible, np.ndarray) and visible.ndim == 2 and visible.any():
+        return visible.astype(bool)
+    seen = None
+    for job in store.jobs(run_id, 0, "attack"):
+        if job.status != "succeeded" or job.grad_ref is None:
+            continue
+        grad = store.blobs.get_array(job.grad_ref)
+        if grad.ndim != 3:
+            continue
+        hit = np.any(grad != 0, axis=2)
+        seen = hit if seen is None else (seen | hit if seen.shape == hit.shape else seen)
+    return seen
+
+
+def texture_png(texture: np.ndarray, seen: np.ndarray | None) -> bytes:
+    """A texture (H×W×3 sRGB, 0–1) enlarged, texels outside ``seen`` hatched in magenta."""
+    img = (np.clip(np.nan_to_num(texture), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    big, factor = _enlarge(img)
+    if seen is not None and seen.shape == texture.shape[:2] and not seen.all():
+        unseen = np.repeat(np.repeat(~seen, factor, axis=0), factor, axis=1)
+        yy, xx = np.indices(unseen.shape)
+        big[unseen & ((xx + yy) % HATCH < 2)] = UNSEEN_RGB
+    return _png(big)
+
+
+def frame_png(frame: np.ndarray, prediction: dict[str, Any] | None) -> bytes:
+    """An evaluation frame (H×W×3 uint8) enlarged; a detector's boxes (frame pixels) drawn on it."""
+    if frame.dtype != np.uint8 or frame.ndim != 3 or frame.shape[2] != 3:
+        raise StoreError(f"evaluation frame: expected an H×W×3 uint8 array, got {frame.dtype} {frame.shape}")
+    big, factor = _enlarge(frame)
+    boxes = (prediction or {}).get("boxes") or []
+    if not boxes:
+        return _png(big)
+    from PIL import Image, ImageDraw
+
+    pic = Image.fromarray(big)
+    draw = ImageDraw.Draw(pic)
+    scores = (prediction or {}).get("scores") or [None] * len(boxes)
+    for box, score in zip(boxes, scores):
+        x0, y0, x1, y1 = (float(v) * factor for v in box)
+        draw.rectangle((x0, y0, x1, y1), outline=(255, 210, 0), width=2)
+        if score is not None:
+            draw.text((x0 + 3, y0 + 2), f"{float(score):.2f}", fill=(255, 210, 0))
+    return _png(np.asarray(pic))

@@ -1,0 +1,171 @@
+"""What the dashboard shows, as plain JSON-ready data read through the store (no HTTP here).
+
+Every function takes the :class:`~undream.store.Store` and returns dicts of
+strings, numbers, lists and None; the pages render them and the JSON API
+returns them as they are. Times are ISO 8601 UTC strings, durations seconds,
+losses the run's loss (its ``loss`` config: ``ce`` in nats, ...), metric
+values fractions in [0, 1] (accuracy, or AP at IoU 0.5), ε in 0–255 sRGB
+units. A missing run or sweep raises the store's ``StoreError`` (mapped at
+the edge by :func:`undream.dashboard.errors.from_store_error`).
+"""
+from __future__ import annotations
+
+import datetime as dt
+import statistics
+from typing import TYPE_CHECKING, Any
+
+from scheduler.query import current_phase
+from undream.dashboard.errors import BadRequest
+from undream.store import RUN_STATUSES
+
+if TYPE_CHECKING:
+    from undream.store import IterationSnapshot, JobSnapshot, RunSnapshot, Store
+
+ACTIVE_STATUSES = ("queued", "running", "evaluating")
+EVAL_VIEWS = {"benign": "pre", "adversarial": "adversarial"}  # URL name → job phase
+SLOW_FACTOR = 2.0  # a job this many times the run's median job time is slow
+
+
+def iso(stamp: dt.datetime | None) -> str | None:
+    return None if stamp is None else stamp.isoformat()
+
+
+def steps_of(run: "RunSnapshot") -> int | None:
+    """The run's attack steps (N), None when its config does not say."""
+    steps = (run.config.get("attack") or {}).get("steps")
+    return steps if isinstance(steps, int) and not isinstance(steps, bool) else None
+
+
+def check_status(status: str | None) -> str | None:
+    if status not in (None, "", *RUN_STATUSES):
+        raise BadRequest(f"status {status!r}: not a run status; valid statuses are {', '.join(RUN_STATUSES)}")
+    return status or None
+
+
+def _frames_per_iteration(run: "RunSnapshot", phase: str) -> int:
+    per_step = (run.config.get("attack") or {}).get("frames_per_step")
+    if phase == "attack" and isinstance(per_step, int) and 0 < per_step < run.n_frames:
+        return per_step
+    return run.n_frames
+
+
+def _eta(run: "RunSnapshot", iters: list["IterationSnapshot"], now: dt.datetime) -> float | None:
+    """Seconds until the last attack step at the median pace of the steps so far; None when unknown."""
+    steps = steps_of(run)
+    if run.status != "running" or steps is None or not iters or run.iteration >= steps:
+        return None
+    stamps = [run.created] + [r.created for r in iters]
+    pace = statistics.median((b - a).total_seconds() for a, b in zip(stamps, stamps[1:]))
+    since_last = (now - stamps[-1]).total_seconds()
+    return max(0.0, pace * (steps - run.iteration) - since_last)
+
+
+def run_summary(store: "Store", run: "RunSnapshot", now: dt.datetime) -> dict[str, Any]:
+    """One row of the runs list: state, progress, losses (for the sparkline), age and ETA."""
+    phase, k = current_phase(store, run)
+    jobs = store.jobs(run.id, k, phase) if run.status != "done" else []
+    iters = store.iterations(run.id)
+    attack = run.config.get("attack") or {}
+    evaluation = _evaluation(run)
+    return {
+        "id": run.id, "name": run.name, "status": run.status, "sweep_id": run.sweep_id,
+        "victim": run.config.get("victim"), "loss_kind": run.config.get("loss"),
+        "attack": attack.get("name"), "eps": attack.get("eps"),
+        "iteration": run.iteration, "steps": steps_of(run), "n_frames": run.n_frames, "phase": phase,
+        "frames_done": sum(j.status == "succeeded" for j in jobs), "frames_total":
+            _frames_per_iteration(run, phase) if run.status != "done" else run.n_frames,
+        "loss": [r.loss_mean for r in iters], "created": iso(run.created), "updated": iso(run.updated),
+        "age_s": (now - run.created).total_seconds(), "eta_s": _eta(run, iters, now),
+        "failures": run.failures, "error": run.error,
+        "metric": evaluation["metric"], "benign": evaluation["benign"],
+        "adversarial": evaluation["adversarial"],
+        "owner": getattr(run, "owner", None), "heartbeat": iso(getattr(run, "heartbeat", None)),
+    }
+
+
+def runs_overview(store: "Store", status: str | None = None, sweep_id: str | None = None,
+                  now: dt.datetime | None = None) -> list[dict[str, Any]]:
+    """Every run (with ``status``, of sweep ``sweep_id``), newest first, as :func:`run_summary` rows."""
+    now = now or dt.datetime.now(dt.timezone.utc)
+    runs = store.runs(status=check_status(status), sweep_id=sweep_id or None)
+    return [run_summary(store, run, now) for run in reversed(runs)]
+
+
+def sweep_names(store: "Store", runs: list[dict[str, Any]]) -> dict[str, str]:
+    """Sweep id → name for the sweeps the rows ``runs`` belong to."""
+    ids = sorted({r["sweep_id"] for r in runs if r["sweep_id"]})
+    return {i: store.find_sweep(i).name for i in ids}
+
+
+def _evaluation(run: "RunSnapshot") -> dict[str, Any]:
+    res = run.results or {}
+    benign, adv = res.get("benign") or {}, res.get("adversarial") or {}
+    success = ((res.get("attack_success") or {}).get("aggregate") or {}).get("success_rate")
+    return {"metric": benign.get("metric"), "benign": benign.get("value"),
+            "adversarial": adv.get("value"), "success_rate": success, "label": res.get("label")}
+
+
+def _iteration_rows(run: "RunSnapshot", iters: list["IterationSnapshot"]) -> list[dict[str, Any]]:
+    stamps = [run.created] + [r.created for r in iters]
+    return [{"k": r.k, "loss_mean": r.loss_mean, "n_ok": r.n_ok, "n_bad": r.n_bad,
+             "dropped_frames": r.dropped_frames, "grad_norm": r.grad_norm, "step_seconds": r.step_seconds,
+             "seconds": (stamps[i + 1] - stamps[i]).total_seconds(), "finished": iso(r.created)}
+            for i, r in enumerate(iters)]
+
+
+def texture_versions(run: "RunSnapshot", most: int = 8) -> list[int]:
+    """The iterations whose textures the strip shows: 0, the latest, and evenly between (at most ``most``)."""
+    last = run.iteration
+    if last + 1 <= most:
+        return list(range(last + 1))
+    return sorted({round(i * last / (most - 1)) for i in range(most)})
+
+
+def _prediction(job: "JobSnapshot | None", names: dict[int, str]) -> dict[str, Any] | None:
+    """An evaluation job's prediction: class id, name (when the results give it) and score, or boxes."""
+    if job is None or job.status != "succeeded" or not job.result:
+        return None
+    pred = dict(job.result.get("prediction") or {})
+    if "label" in pred:
+        pred["name"] = names.get(int(pred["label"]))
+    return pred
+
+
+def _class_names(run: "RunSnapshot") -> dict[int, str]:
+    """Class id → name, from the per-frame rows of the results (the store keeps ids only)."""
+    names: dict[int, str] = {}
+    for side in ("benign", "adversarial"):
+        for row in ((run.results or {}).get(side) or {}).get("per_frame") or []:
+            if "prediction" in row and "class" in row:
+                names[int(row["prediction"])] = str(row["class"])
+    return names
+
+
+def eval_frames(store: "Store", run: "RunSnapshot") -> list[dict[str, Any]]:
+    """Per frame: the benign and adversarial predictions and whether each frame image exists."""
+    names = _class_names(run)
+    label = (run.results or {}).get("label")
+    views = {view: {j.frame: j for j in store.jobs(run.id, run.iteration, phase)}
+             for view, phase in EVAL_VIEWS.items()}
+    rows = []
+    for f in range(run.n_frames):
+        row: dict[str, Any] = {"frame": f}
+        for view, jobs in views.items():
+            pred = _prediction(jobs.get(f), names)
+            if pred is not None and label is not None and pred.get("name") is not None:
+                pred["correct"] = pred["name"] == label
+            row[view] = pred
+        if row["benign"] or row["adversarial"]:
+            rows.append(row)
+    return rows
+
+
+def run_detail(store: "Store", run_id: str, now: dt.datetime | None = None) -> dict[str, Any]:
+    """The run page: its summary, iteration records, evaluation, frames, texture versions and config."""
+    now = now or dt.datetime.now(dt.timezone.utc)
+    run = store.get_run(run_id)
+    return {**run_summary(store, run, now), "seed": run.seed, "config": run.config,
+            "farm": run.farm, "out_dir": run.out_dir,
+            "iterations": _iteration_rows(run, store.iterations(run_id)),
+            "evaluation": _evaluation(run), "frames": eval_frames(store, run),
+            "textures": texture_versions(run), "final_texture": store.final_texture(run_id) is not None}

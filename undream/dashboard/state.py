@@ -1,0 +1,71 @@
+"""What the dashboard's views share: the settings, the store (opened lazily) and a picture cache."""
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from typing import TYPE_CHECKING, Any, Callable
+
+from undream.dashboard.errors import Unavailable
+from undream.errors import StoreError
+
+if TYPE_CHECKING:
+    from undream.settings import Settings
+    from undream.store import Store
+
+EXTENSION = "undream"  # the key of the app's Farm in ``app.extensions``
+CACHE_ITEMS = 256  # PNGs kept in memory (textures, frames, charts), least recently used dropped
+
+
+class PictureCache:
+    """PNG bytes by key (the key names the run's state, so a changed run makes new keys)."""
+
+    def __init__(self, size: int = CACHE_ITEMS) -> None:
+        self._items: OrderedDict[tuple[Any, ...], bytes] = OrderedDict()
+        self._size = size
+        self._lock = threading.Lock()
+
+    def get(self, key: tuple[Any, ...], make: Callable[[], bytes]) -> bytes:
+        with self._lock:
+            if key in self._items:
+                self._items.move_to_end(key)
+                return self._items[key]
+        data = make()
+        with self._lock:
+            self._items[key] = data
+            while len(self._items) > self._size:
+                self._items.popitem(last=False)
+        return data
+
+
+class Farm:
+    """What the views share: the settings, the store (opened lazily) and the picture cache."""
+
+    def __init__(self, settings: "Settings", opener: Callable[[str | None, str], "Store"]) -> None:
+        self.settings = settings
+        self.pictures = PictureCache()
+        self._opener = opener
+        self._store: "Store | None" = None
+        self._lock = threading.Lock()
+
+    def store(self) -> "Store":
+        """The store; :class:`Unavailable` (one line) while the database cannot be opened."""
+        with self._lock:
+            if self._store is None:
+                try:
+                    self._store = self._opener(self.settings.database_url, self.settings.blob_url)
+                except StoreError as err:
+                    raise Unavailable(" ".join(str(err).split())) from None
+            return self._store
+
+    def close(self) -> None:
+        with self._lock:
+            if self._store is not None:
+                self._store.close()
+                self._store = None
+
+
+def farm() -> Farm:
+    """The current app's :class:`Farm`."""
+    from flask import current_app
+
+    return current_app.extensions[EXTENSION]
