@@ -22,8 +22,8 @@ from undream.spec.run import RunConfig
 
 log = logging.getLogger(__name__)
 
-__all__ = ["LocalDispatch", "RunFailed", "drain", "resolve_scene", "run_local", "starting_texture",
-           "visibility"]
+__all__ = ["LocalDispatch", "RunFailed", "drain", "resolve_scene", "resume_local", "run_local",
+           "starting_texture", "visibility"]
 
 # In one process a failure is rarely transient: one retry, then the run fails with the error.
 LOCAL_OPTIONS = {"max_attempts": 2, "failure_budget": 0}
@@ -83,13 +83,16 @@ def drain(store: Any, contexts: stages.Contexts, dispatch: LocalDispatch,
 
 
 def run_local(config: RunConfig, out: str | Path, base_dir: Path | None = None, progress: bool = True,
-              force: bool = False) -> dict[str, Any]:
+              force: bool = False, resume: bool = False) -> dict[str, Any]:
     """Run an attack end to end in this process and write its outputs to ``out``; returns results.
 
     Everything is validated before ``out`` is created or replaced
     (:mod:`scheduler.preflight`): ``force`` only replaces a folder an earlier
-    run wrote, never one holding the run's scene or spec.
+    run wrote, never one holding the run's scene or spec. ``resume``
+    continues the run recorded in ``out`` instead (see :func:`resume_local`).
 
+    The process holds the run's lease while it runs (:class:`scheduler.lease.Lease`),
+    so a run whose process is killed is found stale, marked failed and can be resumed.
     A run that fails (every frame non-finite, a frame job failing twice) is
     marked failed in the store with the error, which is raised
     (:class:`scheduler.iteration.AllFramesFailed`, :class:`RunFailed`).
@@ -97,7 +100,11 @@ def run_local(config: RunConfig, out: str | Path, base_dir: Path | None = None, 
     from scheduler.preflight import check_output_folder, mark_output, preflight, scene_source
     from undream.store import open_store
 
-    out, base_dir = Path(out), base_dir or Path.cwd()
+    out, base_dir = Path(out).resolve(), base_dir or Path.cwd()
+    if resume:
+        if force:
+            raise SpecError("--resume continues the run in --out and --force replaces it: give one of them")
+        return resume_local(config, out, base_dir, progress)
     check_output_folder(out, scene_source(config, base_dir), force)  # cheap refusals first
     victim = preflight(config, base_dir)  # nothing written or deleted before this passes
     if out.exists() and any(out.iterdir()):
@@ -110,24 +117,84 @@ def run_local(config: RunConfig, out: str | Path, base_dir: Path | None = None, 
     n = len(ctx.sequence.frames)
     run_id = stages.create(store, config, n, stages.FarmOptions(frames_per_task=n, **LOCAL_OPTIONS),
                            out_dir=str(out))
-    bar = progress_bar(ctx.attack.config.steps, "attack", "it", progress)
+    return _drive(store, ctx, run_id, progress, lambda dispatch: dispatch.start(run_id))
 
-    def on_collect(run_id: str, phase: str, k: int, outcome: str) -> None:
-        if phase == "attack" and outcome == "stepped":
-            rec = store.iterations(run_id)[-1]
-            bar.update(1)
-            bar.set_postfix(loss="n/a" if rec.loss_mean is None else f"{rec.loss_mean:.4f}", bad=rec.n_bad)
+
+def resume_local(config: RunConfig, out: Path, base_dir: Path, progress: bool = True) -> dict[str, Any]:
+    """Continue the run that ``undream run`` recorded in ``out`` (after a crash, a kill or Ctrl-C).
+
+    The run config must be the one the run was started with. A run whose
+    process is gone is marked failed first (:func:`scheduler.lease.expire_stale`);
+    one still driven by a live process is refused. The run goes on from its
+    last completed iteration with the same seeds, so it ends where an
+    uninterrupted run would. A run already done returns its results.
+    """
+    from scheduler.lease import expire_stale
+    from scheduler.preflight import is_run_output, preflight
+    from undream.store import open_store
+
+    if not is_run_output(out):
+        raise SpecError(f"--out {out}: --resume continues a run that `undream run` started there, "
+                        "and this folder has none (no metadata.json of a run)")
+    victim = preflight(config, base_dir)
+    store = open_store(config.store, out / "store")
+    run = _recorded_run(store, config, out)
+    expire_stale(store, [run])
+    run = store.get_run(run.id)
+    if run.status == "done":
+        return run.results or {}
+    src = Path(config.scene) if Path(config.scene).is_absolute() else base_dir / config.scene
+    scene_dir = src if (src / "sequence.json").is_file() else \
+        out / "scene" if (out / "scene" / "sequence.json").is_file() else resolve_scene(config, out, base_dir)
+    ctx = build_context(config, scene_dir, victim=victim)
+    return _drive(store, ctx, run.id, progress, lambda dispatch: stages.resume(store, run.id, dispatch),
+                  done=run.iteration)
+
+
+def _recorded_run(store: Any, config: RunConfig, out: Path) -> Any:
+    """The run of ``config`` that ``undream run`` recorded for ``out``; SpecError naming what differs."""
+    runs = [r for r in store.runs() if r.out_dir and Path(r.out_dir).resolve() == out]
+    if not runs:
+        raise SpecError(f"--out {out}: no run is recorded for this folder in its store; nothing to resume")
+    run = runs[-1]
+    wanted = config.to_json()
+    changed = sorted(k for k in set(run.config) | set(wanted) if run.config.get(k) != wanted.get(k))
+    if changed:
+        raise SpecError(f"--out {out}: run {run.id} was started with another config "
+                        f"({', '.join(changed)} differ); resume it with the config it started with")
+    return run
+
+
+def _drive(store: Any, ctx: RunContext, run_id: str, progress: bool,
+           first: Any, done: int = 0) -> dict[str, Any]:
+    """Hold the run's lease and drain its stages from ``first(dispatch)``; the run's results.
+
+    A failure while the lease is held marks the run failed with the error; a
+    lease refused (a live process drives the run) touches nothing.
+    """
+    from scheduler.lease import Lease
 
     dispatch = LocalDispatch()
-    dispatch.start(run_id)
-    try:
-        drain(store, lambda _: ctx, dispatch, on_collect)
-    except BaseException as exc:
-        error = f"{type(exc).__name__}: {' '.join(str(exc).split())}"
-        store.transition(run_id, ("queued", "running", "evaluating"), "failed", error=error)
-        raise
-    finally:
-        bar.close()
+    with Lease(store, run_id):
+        bar = progress_bar(ctx.attack.config.steps, "attack", "it", progress)
+        bar.update(done)
+
+        def on_collect(run_id: str, phase: str, k: int, outcome: str) -> None:
+            if phase == "attack" and outcome == "stepped":
+                rec = store.iterations(run_id)[-1]
+                bar.update(1)
+                bar.set_postfix(loss="n/a" if rec.loss_mean is None else f"{rec.loss_mean:.4f}",
+                                bad=rec.n_bad)
+
+        try:
+            first(dispatch)
+            drain(store, lambda _: ctx, dispatch, on_collect)
+        except BaseException as exc:
+            error = f"{type(exc).__name__}: {' '.join(str(exc).split())}"
+            store.transition(run_id, ("queued", "running", "evaluating"), "failed", error=error)
+            raise
+        finally:
+            bar.close()
     run = store.get_run(run_id)
     if run.status != "done":
         raise RunFailed(f"run {run_id}: {run.status}: {run.error}")

@@ -41,15 +41,17 @@ def init_cmd(spec: Path, out: Path, force: bool, verify_spp: int, scene_spp: int
 @click.argument("run_yaml", type=click.Path(path_type=Path))
 @out_option("Output directory.")
 @force_option
+@click.option("--resume", is_flag=True,
+              help="Continue the run recorded in --out (after a crash or Ctrl-C) from its last iteration.")
 @progress_option
 @one_line_errors
-def run_cmd(run_yaml: Path, out: Path, force: bool, progress: bool) -> None:
+def run_cmd(run_yaml: Path, out: Path, force: bool, resume: bool, progress: bool) -> None:
     """Run the attack of RUN_YAML in this process (embedded defaults: Mitsuba, SQLite)."""
     from scheduler.local import run_local
     from undream.spec.run import load_run_config
 
     config = load_run_config(run_yaml)
-    res = run_local(config, out, base_dir=run_yaml.parent, progress=progress, force=force)
+    res = run_local(config, out, base_dir=run_yaml.parent, progress=progress, force=force, resume=resume)
     b, a = res["benign"], res["adversarial"]
     click.echo(f"{b['metric']}: benign {_fmt(b['value'])} → adversarial {_fmt(a['value'])}; "
                f"results in {out / 'results.json'}")

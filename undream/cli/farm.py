@@ -150,13 +150,20 @@ def worker_cmd(concurrency: int | None, threads: int | None, loglevel: str,
 
 @click.command("status")
 @click.argument("run", required=False)
+@click.option("--out", "out", type=click.Path(path_type=Path), default=None,
+              help="An `undream run` output folder: show the run recorded in its store.")
 @settings_options
 @one_line_errors
-def status_cmd(run: str | None, settings: Callable[..., "Settings"]) -> None:
-    """Every run as a table, or RUN (an id or its first characters) with its current jobs."""
+def status_cmd(run: str | None, out: Path | None, settings: Callable[..., "Settings"]) -> None:
+    """Every run as a table, or RUN (an id or its first characters) with its current jobs.
+
+    Runs whose process is gone (see `undream run`) are marked failed first, with the reason.
+    """
+    from scheduler.lease import expire_stale
     from scheduler.query import job_rows, run_rows
 
-    store = _store(settings())
+    store = _run_store(out) if out is not None else _store(settings())
+    expire_stale(store)
     if run is None:
         click.echo(_table(run_rows(store, store.runs())))
         return
@@ -167,6 +174,20 @@ def status_cmd(run: str | None, settings: Callable[..., "Settings"]) -> None:
     phase, k, rows = job_rows(store, snap)
     click.echo(f"\n{phase} jobs, k={k}:")
     click.echo(_table(rows))
+
+
+def _run_store(out: Path) -> "Store":
+    """The store of an `undream run` output folder (its database URL from the folder's metadata.json)."""
+    import json
+
+    from scheduler.preflight import METADATA, is_run_output
+    from undream.errors import SpecError
+    from undream.store import open_store
+
+    if not is_run_output(out) or not (out / "store").is_dir():
+        raise SpecError(f"--out {out}: not an output folder of `undream run` (no {METADATA} and store/)")
+    config = json.loads((out / METADATA).read_text()).get("config") or {}
+    return open_store(config.get("store"), out / "store")
 
 
 @click.command("cancel")
@@ -191,12 +212,18 @@ def cancel_cmd(run: str, settings: Callable[..., "Settings"]) -> None:
 @one_line_errors
 def resume_cmd(run: str, settings: Callable[..., "Settings"]) -> None:
     """Send RUN's current work to the farm again, from what the store says (after any crash)."""
+    from scheduler.lease import expire_stale
     from scheduler.stages import resume
+    from undream.errors import StoreError
 
     cfg = settings()
     app = _app(cfg)
     store = _store(cfg)
     snap = store.find_run(run)
+    expire_stale(store, [snap])
+    owner = store.get_run(snap.id).owner
+    if owner is not None:
+        raise StoreError(f"run {snap.id}: being run by {owner}, which is alive; it needs no resume")
     phase: list[str] = []
     _send(f"run {snap.id}", lambda: phase.append(resume(store, snap.id, _dispatch(app))))
     click.echo(f"run {snap.id} is done" if phase == ["done"] else f"resumed {snap.id}: {phase[0]}")

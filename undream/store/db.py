@@ -104,21 +104,48 @@ def _schema_version(conn: Any) -> int | None:
     return 1 if "runs" in names else None
 
 
-def create_tables(engine: Engine, url: str) -> None:
-    """Create the store's tables if missing and check their schema version.
+def _add_columns(conn: Any, table: str, names: tuple[str, ...]) -> None:
+    """``ALTER TABLE table ADD COLUMN`` for each of ``names``, typed as the model declares them."""
+    columns = Base.metadata.tables[table].c
+    for name in names:
+        kind = columns[name].type.compile(dialect=conn.dialect)
+        conn.execute(text(f"ALTER TABLE {table} ADD COLUMN {name} {kind}"))
 
-    StoreError naming the URL (password hidden) when the database is
-    unreachable, or when its tables were made by an undream with another schema.
+
+# In-place upgrades: version → what turns a database of that version into the next one.
+MIGRATIONS = {2: lambda conn: _add_columns(conn, "runs", ("owner", "heartbeat"))}
+
+
+def _migrate(conn: Any, found: int, url: str) -> None:
+    """Upgrade tables of schema ``found`` to ``SCHEMA_VERSION`` step by step, in the caller's transaction."""
+    for version in range(found, SCHEMA_VERSION):
+        if version not in MIGRATIONS:
+            raise StoreError(
+                f"the run database at {mask_url(url)!r} has schema version {found}, this undream "
+                f"needs version {SCHEMA_VERSION} and cannot upgrade from {version}; use a new database")
+        MIGRATIONS[version](conn)
+        conn.execute(insert(SchemaVersion).values(version=version + 1))
+
+
+def create_tables(engine: Engine, url: str) -> None:
+    """Create the store's tables if missing, upgrade older ones, and check their schema version.
+
+    Tables of an older schema are upgraded in place, in one transaction
+    (``MIGRATIONS``: 2 → 3 adds the run lease columns). StoreError naming the
+    URL (password hidden) when the database is unreachable, or when its
+    tables were made by a newer undream or by one too old to upgrade.
     """
     try:
         with engine.execution_options(**{WRITE_OPTION: "BEGIN IMMEDIATE"}).begin() as conn:
             if engine.dialect.name == "postgresql":
                 conn.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": _CREATE_LOCK})
             found = _schema_version(conn)
-            if found is not None and found != SCHEMA_VERSION:
+            if found is not None and found > SCHEMA_VERSION:
                 raise StoreError(
-                    f"the run database at {mask_url(url)!r} has schema version {found}, this undream "
-                    f"needs version {SCHEMA_VERSION}; use a new database (no migrations yet)")
+                    f"the run database at {mask_url(url)!r} has schema version {found}, newer than "
+                    f"this undream's {SCHEMA_VERSION}; upgrade undream")
+            if found is not None and found < SCHEMA_VERSION:
+                _migrate(conn, found, url)
             Base.metadata.create_all(conn)
             if found is None:
                 conn.execute(insert(SchemaVersion).values(version=SCHEMA_VERSION))

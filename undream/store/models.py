@@ -33,7 +33,8 @@ from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 RUN_STATUSES = ("queued", "running", "evaluating", "done", "failed", "cancelled")
 JOB_STATUSES = ("queued", "started", "succeeded", "failed", "retried")
 JOB_PHASES = ("attack", "pre", "adversarial")  # iteration jobs; evaluation before and after the final pick
-SCHEMA_VERSION = 2  # 1: runs, iterations, frame_jobs without phases; 2: the farm (sweeps, scenes, phases)
+SCHEMA_VERSION = 3  # 1: runs, iterations, frame_jobs without phases; 2: the farm (sweeps, scenes, phases);
+#                    3: run leases (runs.owner, runs.heartbeat; migrated in place from 2)
 
 _NAMING = {
     "ix": "ix_%(column_0_label)s",
@@ -90,6 +91,10 @@ class Run(Base):
     sweep_id: Mapped[str | None] = mapped_column(ForeignKey("sweeps.id", ondelete="SET NULL"), index=True)
     farm_json: Mapped[str] = mapped_column(Text, default="{}")  # scheduling options fixed at submit
     failures: Mapped[int] = mapped_column(Integer, default=0)  # frame jobs given up on (failure budget)
+    # The lease of a run that one process drives (``undream run``): host:pid and its last heartbeat.
+    # Farm runs have no owner (their jobs are redelivered by the broker instead).
+    owner: Mapped[str | None] = mapped_column(String(200))
+    heartbeat: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
 
 
 class Sweep(Base):

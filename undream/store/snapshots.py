@@ -78,6 +78,8 @@ class RunSnapshot:
     sweep_id: str | None = None
     farm: dict[str, Any] = field(default_factory=dict)
     failures: int = 0
+    owner: str | None = None  # host:pid of the process holding the run's lease (``undream run``)
+    heartbeat: dt.datetime | None = None  # that process's last heartbeat (UTC)
 
     @classmethod
     def of(cls, row: Run) -> "RunSnapshot":
@@ -86,7 +88,8 @@ class RunSnapshot:
                    created=_utc(row.created), updated=_utc(row.updated),  # type: ignore[arg-type]
                    error=row.error, attack_state_ref=row.attack_state_ref,
                    results=loads(row.results_json), scene_ref=row.scene_ref, out_dir=row.out_dir,
-                   sweep_id=row.sweep_id, farm=loads(row.farm_json) or {}, failures=row.failures or 0)
+                   sweep_id=row.sweep_id, farm=loads(row.farm_json) or {}, failures=row.failures or 0,
+                   owner=row.owner, heartbeat=_utc(row.heartbeat))
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,8 @@
 """The run store: every read and write of an attack run's state, one short transaction each.
 
 The farm's per-frame job and its reduce-and-step callback, the in-process
-runner, the CLI and the dashboard touch run state only through :class:`Store`.
+runner, the CLI and the dashboard touch run state only through :class:`Store`
+(frame jobs: :mod:`undream.store.jobs`; run leases: :mod:`undream.store.leases`).
 Rows live in the database (:mod:`undream.store.models`); arrays and attack
 states live in blobs (:mod:`undream.store.blobs`) whose keys the rows hold.
 
@@ -38,6 +39,7 @@ from undream.store.blobs import (
 )
 from undream.store.checks import MAX_SEED, RECORD_FIELDS, integer, mapping, record_values, texture
 from undream.store.jobs import JobTables
+from undream.store.leases import LeaseMethods
 from undream.store.models import JOB_STATUSES, RUN_STATUSES, FrameJob, IterationRecord, Run, Sweep
 from undream.store.snapshots import IterationSnapshot, RunSnapshot, SweepSnapshot, dumps
 
@@ -71,7 +73,7 @@ def _state_doc(blobs: BlobStore, run_id: str, field: str, state: Any,
     return doc
 
 
-class Store(JobTables):
+class Store(JobTables, LeaseMethods):
     """Run state in a SQL database plus a blob folder; see :func:`undream.store.open_store`."""
 
     def __init__(self, engine: Engine, blobs: BlobStore) -> None:
