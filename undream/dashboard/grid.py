@@ -42,7 +42,7 @@ def job_grid(store: "Store", run_id: str) -> dict[str, Any]:
     times = [s for j in attack if j.status == "succeeded" and (s := _seconds(j)) is not None]
     median = statistics.median(times) if times else None
     slow_after = None if median is None else SLOW_FACTOR * median
-    n_iter = max([run.iteration + 1] + [j.k + 1 for j in attack]) if attack else run.iteration
+    n_iter = max((j.k + 1 for j in attack), default=0)
     columns = [str(k) for k in range(n_iter)]
     grid: list[list[dict[str, Any] | None]] = [[None] * n_iter for _ in range(run.n_frames)]
     for job in attack:

@@ -1,0 +1,221 @@
+"""The dashboard's query logic, charts and pictures, without HTTP: plain data read through the store."""
+from __future__ import annotations
+
+import datetime as dt
+import io
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from dashboard_data import WORKERS, RunShape, add_run, build_farm  # noqa: E402
+
+from undream.dashboard import charts, fleet, grid, images, query, sweeps  # noqa: E402
+from undream.dashboard.errors import BadRequest, NotFound, Unavailable, from_store_error  # noqa: E402
+from undream.errors import StoreError  # noqa: E402
+from undream.store import RUN_STATUSES, open_store  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def farm_store(tmp_path_factory):
+    store = open_store(None, tmp_path_factory.mktemp("dash") / "blobs")
+    farm = build_farm(store)
+    yield store, farm
+    store.close()
+
+
+def _png_size(data: bytes) -> tuple[int, int]:
+    from PIL import Image
+
+    return Image.open(io.BytesIO(data)).size
+
+
+def test_runs_overview_has_every_state_newest_first(farm_store):
+    store, farm = farm_store
+    rows = query.runs_overview(store)
+    assert {r["status"] for r in rows} == set(RUN_STATUSES)
+    assert len(rows) == 6 + len(farm.sweep_runs)
+    created = [r["created"] for r in rows]
+    assert created == sorted(created, reverse=True)
+    by_id = {r["id"]: r for r in rows}
+    running = by_id[farm.runs["running"]]
+    assert (running["iteration"], running["steps"], running["phase"]) == (3, 6, "attack")
+    assert (running["frames_done"], running["frames_total"]) == (1, 4)
+    assert len(running["loss"]) == 3 and running["loss"] == sorted(running["loss"])
+    assert running["eta_s"] is not None and running["eta_s"] >= 0
+    assert by_id[farm.runs["done"]]["eta_s"] is None
+    assert by_id[farm.runs["failed"]]["error"].startswith("frame 1 of iteration 3")
+    evaluating = by_id[farm.runs["evaluating"]]
+    assert (evaluating["phase"], evaluating["frames_done"]) == ("adversarial", 0)
+    queued = by_id[farm.runs["queued"]]
+    assert (queued["iteration"], queued["loss"], queued["frames_done"]) == (0, [], 0)
+
+
+def test_runs_overview_filters_by_state_and_sweep(farm_store):
+    store, farm = farm_store
+    assert [r["id"] for r in query.runs_overview(store, status="failed")] == [farm.runs["failed"]]
+    in_sweep = query.runs_overview(store, sweep_id=farm.sweep_id)
+    assert sorted(r["id"] for r in in_sweep) == sorted(farm.sweep_runs)
+    assert query.runs_overview(store, status="running", sweep_id=farm.sweep_id) == []
+    with pytest.raises(BadRequest, match="'bogus': not a run status; valid statuses are queued"):
+        query.runs_overview(store, status="bogus")
+
+
+def test_eta_follows_the_median_pace(farm_store):
+    store, farm = farm_store
+    run = store.get_run(farm.runs["running"])
+    iters = store.iterations(run.id)
+    last = iters[-1].created
+    stamps = [run.created] + [r.created for r in iters]
+    pace = sorted((b - a).total_seconds() for a, b in zip(stamps, stamps[1:]))[1]
+    assert query._eta(run, iters, last) == pytest.approx(pace * 3)
+    assert query._eta(run, iters, last + dt.timedelta(days=1)) == 0.0
+
+
+def test_run_detail_has_iterations_frames_textures_and_config(farm_store):
+    store, farm = farm_store
+    detail = query.run_detail(store, farm.runs["done"])
+    assert [r["k"] for r in detail["iterations"]] == list(range(6))
+    assert all(r["seconds"] >= 0 for r in detail["iterations"])
+    assert detail["textures"] == [0, 1, 2, 3, 4, 5, 6] and detail["final_texture"]
+    assert detail["config"]["attack"] == {"name": "pgd", "eps": 32.0, "steps": 6}
+    assert detail["evaluation"]["metric"] == "accuracy"
+    assert detail["evaluation"]["benign"] == 1.0 and detail["evaluation"]["adversarial"] == 0.25
+    frames = detail["frames"]
+    assert [f["frame"] for f in frames] == [0, 1, 2, 3]
+    assert frames[0]["benign"] == {"label": 4, "score": 0.9, "name": "trash_bin", "correct": True}
+    assert frames[0]["adversarial"]["name"] == "umbrella" and frames[0]["adversarial"]["correct"] is False
+    assert frames[3]["adversarial"]["correct"] is True
+    with pytest.raises(StoreError, match="not found"):
+        query.run_detail(store, "00000000-0000-4000-8000-000000000000")
+
+
+def test_texture_versions_keep_the_first_and_latest():
+    class Run:
+        iteration = 99
+    picked = query.texture_versions(Run(), most=8)  # type: ignore[arg-type]
+    assert picked[0] == 0 and picked[-1] == 99 and len(picked) == 8
+    Run.iteration = 3
+    assert query.texture_versions(Run()) == [0, 1, 2, 3]  # type: ignore[arg-type]
+
+
+def test_job_grid_marks_failed_retried_started_and_slow_jobs(farm_store):
+    store, farm = farm_store
+    g = grid.job_grid(store, farm.runs["running"])
+    assert g["columns"] == ["0", "1", "2", "3"] and len(g["rows"]) == 4
+    current = [row[3] for row in g["rows"]]
+    assert [c["status"] for c in current] == ["succeeded", "retried", "started", "queued"]
+    assert current[1]["error"].startswith("RenderError: Mitsuba ran out of memory") and current[1]["attempts"] == 1
+    assert current[2]["worker"] == WORKERS[2]
+    slow = {(f, k) for f, row in enumerate(g["rows"]) for k, c in enumerate(row) if c and c["slow"]}
+    assert slow == {(3, 1), (0, 1)}  # the two jobs made 5× slower (k = 1, frame 3; k = 3 // 2, frame 0)
+    assert g["slow_after_seconds"] == pytest.approx(2 * g["median_seconds"])
+    assert g["counts"] == {"succeeded": 13, "retried": 1, "started": 1, "queued": 1}
+
+
+def test_job_grid_ends_with_the_evaluation_columns(farm_store):
+    store, farm = farm_store
+    g = grid.job_grid(store, farm.runs["done"])
+    assert g["columns"][-2:] == ["benign", "adversarial"] and g["n_iterations"] == 6
+    assert all(row[-1]["status"] == "succeeded" and not row[-1]["slow"] for row in g["rows"])
+    assert grid.job_grid(store, farm.runs["queued"])["rows"] == [[], [], [], []]
+
+
+def test_sweep_detail_and_eps_series(farm_store):
+    store, farm = farm_store
+    detail = sweeps.sweep_detail(store, farm.sweep_id)
+    assert detail["name"] == "eps-sweep" and sorted(detail["grid"]) == ["attack.eps", "attack.name"]
+    assert [r["run"] for r in detail["rows"]] == farm.sweep_runs
+    assert detail["statuses"] == {"done": 6}
+    assert {(r["attack.name"], r["attack.eps"]) for r in detail["rows"]} == \
+        {(a, e) for a in ("pgd", "mifgsm") for e in (8, 16, 32)}
+    series = detail["series"]
+    assert list(series) == ["mifgsm", "pgd"]
+    assert [p["eps"] for p in series["pgd"]] == [8.0, 16.0, 32.0]
+    adv = [p["adversarial"] for p in series["pgd"]]
+    assert adv == sorted(adv, reverse=True) and adv[0] > adv[-1]
+    assert sweeps.sweeps_overview(store) == [{"id": farm.sweep_id, "name": "eps-sweep",
+                                              "created": detail["created"], "runs": 6, "statuses": {"done": 6}}]
+
+
+def test_workers_overview_from_the_store(farm_store):
+    store, farm = farm_store
+    now = dt.datetime.now(dt.timezone.utc)
+    data = fleet.workers_overview(store, now=now)
+    rows = {w["worker"]: w for w in data["workers"]}
+    assert set(rows) == set(WORKERS)
+    busy = rows[WORKERS[2]]
+    assert busy["state"] == "busy" and busy["alive"]
+    assert [(c["run_id"], c["phase"], c["k"], c["frame"]) for c in busy["current"]] == \
+        [(farm.runs["running"], "attack", 3, 2)]
+    assert sum(w["finished"] for w in rows.values()) > 0
+    assert rows[WORKERS[0]]["jobs_per_minute"] == pytest.approx(rows[WORKERS[0]]["finished"] / 10)
+    later = fleet.workers_overview(store, now=now + dt.timedelta(minutes=5), window_s=3600, alive_s=120)
+    states = {w["worker"]: w["state"] for w in later["workers"]}
+    assert states[WORKERS[2]] == "busy" and states[WORKERS[0]] == "silent"
+    assert fleet.workers_overview(store, now=now + dt.timedelta(days=1))["workers"][0]["state"] == "busy"
+
+
+def test_store_errors_map_to_404_or_503():
+    assert isinstance(from_store_error(StoreError("run 'x': not found")), NotFound)
+    try:
+        try:
+            raise OSError("disk gone")
+        except OSError as exc:
+            raise StoreError("get_run: database error at 'sqlite:///x': disk I/O error") from exc
+    except StoreError as err:
+        mapped = from_store_error(err)
+    assert isinstance(mapped, Unavailable) and mapped.status == 503 and "\n" not in str(mapped)
+
+
+def test_texture_png_enlarges_and_hatches_unseen_texels():
+    from PIL import Image
+
+    tex = np.full((8, 16, 3), 0.5, np.float32)
+    seen = np.ones((8, 16), bool)
+    seen[:, 12:] = False
+    data = images.texture_png(tex, seen)
+    img = np.asarray(Image.open(io.BytesIO(data)))
+    assert img.shape == (256, 512, 3)  # 32× so that the short side reaches 256 px
+    magenta = np.all(img == images.UNSEEN_RGB, axis=2)
+    assert not magenta[:, : 12 * 32].any() and magenta[:, 12 * 32:].mean() == pytest.approx(2 / 6, abs=0.02)
+    assert np.all(img[0, 0] == 128)
+
+
+def test_seen_mask_from_state_or_gradients(farm_store):
+    store, farm = farm_store
+    seen = images.seen_mask(store, farm.runs["done"])
+    assert seen.shape == (16, 32) and seen[:, :24].all() and not seen[:, 24:].any()
+    rng = np.random.default_rng(1)
+    no_state = add_run(store, RunShape("no-visible", "running", frames=2, steps=3, done_steps=1), rng)
+    assert images.seen_mask(store, no_state) is not None  # from state; gradients are the fallback
+
+
+def test_frame_png_draws_detector_boxes():
+    from PIL import Image
+
+    frame = np.zeros((32, 32, 3), np.uint8)
+    data = images.frame_png(frame, {"boxes": [[4, 4, 20, 20]], "scores": [0.8], "labels": [1]})
+    img = np.asarray(Image.open(io.BytesIO(data)))
+    assert img.shape == (256, 256, 3) and img[32, 80].tolist() == [255, 210, 0]
+    assert np.asarray(Image.open(io.BytesIO(images.frame_png(frame, {"label": 1})))).max() == 0
+    with pytest.raises(StoreError, match="H×W×3 uint8"):
+        images.frame_png(np.zeros((4, 4), np.float32), None)
+
+
+def test_charts_are_pngs_with_their_size(farm_store):
+    store, farm = farm_store
+    detail = query.run_detail(store, farm.runs["done"])
+    for data in (charts.loss_chart(detail["iterations"], "ce"), charts.seconds_chart(detail["iterations"]),
+                 charts.metric_chart(detail["evaluation"], 6), charts.loss_chart([], None),
+                 charts.sweep_chart(sweeps.eps_series(store, farm.sweep_id)), charts.sweep_chart({})):
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and _png_size(data) == (560, 270)
+
+
+def test_sparkline_scales_into_the_box():
+    pts = [tuple(map(float, p.split(","))) for p in charts.sparkline([1.0, None, 3.0, 2.0], 120, 24).split()]
+    assert [p[0] for p in pts] == [1.0, pytest.approx(79.667, abs=0.05), 119.0]
+    assert [p[1] for p in pts] == [23.0, 1.0, 12.0]
+    assert charts.sparkline([1.0]) == "" and charts.sparkline([float("nan"), None]) == ""
