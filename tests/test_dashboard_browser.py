@@ -1,0 +1,235 @@
+"""The dashboard in a real headless Chromium: runs list → run page → sweep page, clicking through.
+
+``undream dashboard`` runs as a subprocess on a database holding a run in
+every state and a sweep (tests/dashboard_data.py); Debian's ``chromium`` and
+``chromium-driver`` drive it through selenium (no Selenium Manager, no
+network). Screenshots go to the test's tmp dir (``<tmp>/screens/*.png``).
+Without Chromium the tests skip saying why, and fail under
+``UNDREAM_REQUIRE_SERVICES`` (CI).
+"""
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from conftest import service_missing  # noqa: E402
+from dashboard_data import build_farm  # noqa: E402
+
+from undream.store import open_store  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+CHROMIUM = "/usr/bin/chromium"
+CHROMEDRIVER = "/usr/bin/chromedriver"
+TOKEN = "browser-secret-0123"
+WAIT_S = 20.0
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def site(tmp_path_factory):
+    """The dashboard of a fresh farm database, served by ``undream dashboard``: (base URL, ids, blobs)."""
+    root = tmp_path_factory.mktemp("dash-browser")
+    blobs = root / "blobs"
+    with open_store(None, blobs) as store:
+        ids = build_farm(store, frames=6, steps=8)
+    port = _free_port()
+    env = {**os.environ, "UNDREAM_DASHBOARD_TOKEN": TOKEN, "UNDREAM_BLOB_URL": str(blobs)}
+    log = open(root / "dashboard.log", "w")
+    proc = subprocess.Popen([sys.executable, "-m", "undream.cli", "dashboard", "--port", str(port)],
+                            cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT)
+    base = f"http://127.0.0.1:{port}"
+    end = time.monotonic() + 60
+    while True:
+        try:
+            urllib.request.urlopen(base + "/api/health", timeout=5).read()
+            break
+        except OSError:
+            assert proc.poll() is None and time.monotonic() < end, (root / "dashboard.log").read_text()
+            time.sleep(0.2)
+    yield base, ids, blobs
+    proc.terminate()
+    proc.wait(20)
+    log.close()
+
+
+@pytest.fixture(scope="module")
+def browser(site, tmp_path_factory):
+    missing = [p for p in (CHROMIUM, CHROMEDRIVER) if not os.access(p, os.X_OK)]
+    if missing:
+        service_missing(f"{' and '.join(missing)} missing (apt-get install chromium chromium-driver; "
+                        "deploy/setup.sh does)")
+    pytest.importorskip("selenium", reason="selenium not installed (pip install 'undream[test]')")
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    profile = tmp_path_factory.mktemp("chromium-profile")
+    options = webdriver.ChromeOptions()
+    options.binary_location = CHROMIUM
+    for flag in ("--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+                 "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                 "--no-first-run", f"--user-data-dir={profile}", "--window-size=1400,1000"):
+        options.add_argument(flag)
+    options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
+    driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=options)
+    driver.set_page_load_timeout(60)
+    yield driver
+    driver.quit()
+
+
+@pytest.fixture
+def shots(tmp_path):
+    folder = tmp_path / "screens"
+    folder.mkdir()
+    return folder
+
+
+def _wait(cond, what: str, timeout: float = WAIT_S):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        value = cond()
+        if value:
+            return value
+        time.sleep(0.1)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+
+
+def _images_loaded(driver) -> bool:
+    return driver.execute_script(
+        "return Array.from(document.images).every(i => i.complete && i.naturalWidth > 0);")
+
+
+def _screenshot(driver, folder: Path, name: str) -> Path:
+    """A screenshot of the whole page (the window grown to the page's height)."""
+    height = driver.execute_script("return document.documentElement.scrollHeight")
+    driver.set_window_size(1400, min(max(int(height) + 40, 800), 6000))
+    path = folder / f"{name}.png"
+    assert driver.save_screenshot(str(path))
+    driver.set_window_size(1400, 1000)
+    return path
+
+
+def _no_console_errors(driver) -> None:
+    errors = [e for e in driver.get_log("browser") if e["level"] == "SEVERE"]
+    assert errors == [], errors
+
+
+def _by(driver, css: str):
+    from selenium.webdriver.common.by import By
+
+    return driver.find_elements(By.CSS_SELECTOR, css)
+
+
+def test_runs_list_to_run_page_to_sweep_page(site, browser, shots):
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.support.ui import Select
+
+    base, ids, _ = site
+    browser.get(base + "/")
+    rows = _by(browser, "#runs-table tbody tr")
+    assert len(rows) == 12
+    assert {r.get_attribute("data-status") for r in rows} == \
+        {"queued", "running", "evaluating", "done", "failed", "cancelled"}
+    assert len(_by(browser, "#runs-table svg.spark polyline")) == 10  # not queued (no loss) nor cancelled (one)
+    _screenshot(browser, shots, "01_runs")
+
+    Select(_by(browser, "#filter-status")[0]).select_by_value("failed")
+    _by(browser, "#filters button")[0].click()
+    _wait(lambda: len(_by(browser, "#runs-table tbody tr")) == 1, "the failed runs only")
+    assert _by(browser, "#runs-table tbody tr")[0].get_attribute("data-run") == ids.runs["failed"]
+    _screenshot(browser, shots, "02_runs_failed")
+
+    browser.get(base + "/")
+    _by(browser, f'tr[data-run="{ids.runs["running"]}"] a.run-link')[0].click()
+    _wait(lambda: _by(browser, "#job-grid"), "the run page")
+    _wait(lambda: _images_loaded(browser), "the run page's charts and textures")
+    assert "iteration 4 of 8" in _by(browser, "#run-progress")[0].text
+    assert len(_by(browser, "#texture-strip img")) == 5
+    retried = _by(browser, "#job-grid td.s-retried")[0]
+    ActionChains(browser).move_to_element(retried).perform()
+    info = _wait(lambda: "retried" in _by(browser, "#cell-info")[0].text and _by(browser, "#cell-info")[0].text,
+                 "the hovered job's details")
+    assert "worker node-" in info and "1 attempt" in info and "error: RenderError: Mitsuba ran out of memory" in info
+    assert len(_by(browser, "#job-grid td.slow")) == 2
+    _screenshot(browser, shots, "03_run_running")
+
+    browser.get(base + "/?sweep=" + ids.sweep_id)
+    assert len(_by(browser, "#runs-table tbody tr")) == 6
+    _by(browser, "#runs-table a.run-link")[0].click()
+    _wait(lambda: _by(browser, "#sweep-link"), "a sweep run's page")
+    _by(browser, "#sweep-link")[0].click()
+    _wait(lambda: _by(browser, "#results-table"), "the sweep page")
+    _wait(lambda: _images_loaded(browser), "the sweep chart")
+    assert browser.execute_script("return document.getElementById('sweep-chart').naturalWidth") == 560
+    assert len(_by(browser, "#results-table tbody tr")) == 6
+    _screenshot(browser, shots, "04_sweep")
+
+    _by(browser, "#results-table a.run-link")[-1].click()
+    _wait(lambda: _by(browser, "#frames"), "a done run's frames")
+    _wait(lambda: _images_loaded(browser), "the frames")
+    captions = [c.text for c in _by(browser, "#frames figcaption")]
+    benign, adversarial = captions[0::2], captions[1::2]
+    assert len(benign) == len(adversarial) == 6 and all(c.endswith("trash_bin 0.9 ✓") for c in benign)
+    assert adversarial[0] == "adversarial · frame 0: umbrella 0.9 ✗" and "car 0.9 ✗" in adversarial[1]
+    assert "adversarial" in _by(browser, "#headline")[0].text
+    assert browser.execute_script("return document.querySelector('#frames img').getBoundingClientRect().width") == 256
+    _screenshot(browser, shots, "05_run_done")
+
+    _by(browser, "#nav-workers")[0].click()
+    _wait(lambda: _by(browser, "#workers-table"), "the workers page")
+    assert "busy" in _by(browser, "#workers-table")[0].text
+    _screenshot(browser, shots, "06_workers")
+    _no_console_errors(browser)
+
+
+def _finish_iteration(blobs: Path, run_id: str) -> None:
+    """The running run's current iteration completes and the attack steps (through the Store API)."""
+    with open_store(None, blobs) as store:
+        run = store.get_run(run_id)
+        k = run.iteration
+        for f in range(run.n_frames):
+            store.job_succeeded(run_id, k, f, np.full((2, 2, 3), 0.01, np.float32), 2.0, True, {"total": 0.4})
+        record = {"loss_mean": 2.0, "n_ok": run.n_frames, "n_bad": 0, "dropped_frames": [],
+                  "grad_norm": 1.0, "step_seconds": 0.01}
+        assert store.advance(run_id, k, store.texture(run_id, k), {"t": k + 1}, record)
+
+
+def test_an_active_run_page_refreshes_itself_and_cancels_with_the_token(site, browser, shots):
+    base, ids, blobs = site
+    run_id = ids.runs["running"]
+    browser.get(f"{base}/runs/{run_id}")
+    assert browser.find_element("tag name", "body").get_attribute("data-refresh") == "5"
+    marker = browser.execute_script("window.__sameDocument = 1; return window.__sameDocument;")
+    _finish_iteration(blobs, run_id)
+    _wait(lambda: "iteration 5 of 8" in _by(browser, "#run-progress")[0].text, "the refreshed progress", 30)
+    assert browser.execute_script("return window.__sameDocument") == marker  # refreshed in place, not reloaded
+    _by(browser, "#token")[0].send_keys("wrong-token-123")
+    _by(browser, "#cancel")[0].click()
+    _wait(lambda: _by(browser, "#error-line"), "the refusal")
+    assert _by(browser, "#error-line")[0].text == "wrong dashboard token"
+    _screenshot(browser, shots, "07_wrong_token")
+    browser.get(f"{base}/runs/{run_id}")
+    _by(browser, "#token")[0].send_keys(TOKEN)
+    _by(browser, "#cancel")[0].click()
+    _wait(lambda: _by(browser, "h1 .badge") and _by(browser, "h1 .badge")[0].text == "cancelled", "the cancelled run")
+    assert _by(browser, "#resume") and not _by(browser, "#cancel")
+    _screenshot(browser, shots, "08_cancelled")
+    with open_store(None, blobs) as store:
+        assert store.get_run(run_id).status == "cancelled"
+    keep = os.environ.get("UNDREAM_DASHBOARD_SCREENS")  # a folder to copy the screenshots to, for a look
+    if keep:
+        shutil.copytree(shots.parent, keep, dirs_exist_ok=True)
