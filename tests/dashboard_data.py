@@ -29,7 +29,7 @@ class RunShape:
     attack: str = "pgd"
     eps: float = 32.0
     texture: tuple[int, int] = (16, 32)  # height, width in texels
-    frame_px: int = 24
+    frame_px: int = 64
     sweep_id: str | None = None
     error: str | None = None
     extra: dict[str, Any] = field(default_factory=dict)
@@ -46,8 +46,22 @@ def _grad() -> np.ndarray:
     return np.full((2, 2, 3), 0.01, np.float32)
 
 
-def _frame(rng: np.random.Generator, px: int) -> np.ndarray:
-    return (rng.random((px, px, 3)) * 255).astype(np.uint8)
+def _frame(texture: np.ndarray, px: int) -> np.ndarray:
+    """A px × px uint8 picture: sky, ground and a box wearing ``texture`` (H×W×3, 0–1)."""
+    rows = np.linspace(0.0, 1.0, px)[:, None, None]
+    img = np.where(rows < 0.6, [0.55, 0.72, 0.92] + 0.35 * rows, [0.42, 0.45, 0.40]) * np.ones((px, px, 3))
+    top, left, size = px // 4, px // 3, px // 2
+    yy = np.arange(size) * texture.shape[0] // size
+    xx = np.arange(size) * texture.shape[1] // size
+    img[top:top + size, left:left + size] = texture[yy][:, xx]
+    return (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)
+
+
+def _texture0(h: int, w: int) -> np.ndarray:
+    """A smooth starting texture (sRGB, 0–1): stripes across, a ramp down."""
+    y, x = np.mgrid[0:h, 0:w]
+    return np.stack([0.5 + 0.35 * np.sin(2 * np.pi * x / w * 2), y / max(h - 1, 1),
+                     np.full((h, w), 0.45)], axis=2).astype(np.float32)
 
 
 def _iteration(store: Any, run_id: str, k: int, frames: int, rng: np.random.Generator,
@@ -58,7 +72,7 @@ def _iteration(store: Any, run_id: str, k: int, frames: int, rng: np.random.Gene
     for f in range(frames):
         worker = WORKERS[(k + f) % len(WORKERS)]
         store.job_started(run_id, k, f, worker=worker)
-        loss = 0.1 + 0.4 * k + 0.05 * f + 0.01 * float(rng.random())
+        loss = 0.1 + 3.0 * (1 - np.exp(-k / 3)) + 0.05 * f + 0.01 * float(rng.random())
         total = 0.4 * (5.0 if (k, f) in slow else 1.0) + 0.02 * float(rng.random())
         store.job_succeeded(run_id, k, f, _grad(), loss, True,
                             {"sim_render": total * 0.4, "victim": total * 0.2,
@@ -67,22 +81,24 @@ def _iteration(store: Any, run_id: str, k: int, frames: int, rng: np.random.Gene
     return float(np.mean(losses))
 
 
-def _advance(store: Any, run_id: str, k: int, texture: np.ndarray, loss: float, frames: int) -> np.ndarray:
-    nxt = np.clip(texture + 0.05 * np.sign(np.sin(texture * 40 + k)), 0.0, 1.0).astype(np.float32)
+def _advance(store: Any, run_id: str, k: int, texture: np.ndarray, loss: float, frames: int,
+             seen: np.ndarray) -> np.ndarray:
+    step = 0.06 * np.sign(np.sin(texture * 40 + k)) * seen[:, :, None]  # texels no frame sees stay put
+    nxt = np.clip(texture + step, 0.0, 1.0).astype(np.float32)
     record = {"loss_mean": loss, "n_ok": frames, "n_bad": 0, "dropped_frames": [],
               "grad_norm": 0.5 + 0.1 * k, "step_seconds": 0.01}
     assert store.advance(run_id, k, nxt, {"t": k + 1}, record)
     return nxt
 
 
-def _evaluate(store: Any, run_id: str, shape: RunShape, rng: np.random.Generator, phase: str,
+def _evaluate(store: Any, run_id: str, shape: RunShape, texture: np.ndarray, phase: str,
               labels: list[int]) -> None:
     k = shape.done_steps
     store.queue_jobs(run_id, k, range(shape.frames), phase)
     for f in range(shape.frames):
         store.job_started(run_id, k, f, phase, worker=WORKERS[f % len(WORKERS)])
         store.eval_succeeded(run_id, k, f, phase, {"prediction": {"label": labels[f], "score": 0.9}},
-                             _frame(rng, shape.frame_px), {"total": 0.3})
+                             _frame(texture, shape.frame_px), {"total": 0.3})
 
 
 def _adversarial_labels(shape: RunShape) -> list[int]:
@@ -108,7 +124,7 @@ def _results(shape: RunShape, losses: list[float], benign: list[int], adv: list[
 def add_run(store: Any, shape: RunShape, rng: np.random.Generator) -> str:
     """One run in ``shape.status`` with ``shape.done_steps`` iterations taken; returns its id."""
     h, w = shape.texture
-    T0 = rng.random((h, w, 3)).astype(np.float32)
+    T0 = _texture0(h, w)
     visible = np.zeros((h, w), bool)
     visible[:, : w * 3 // 4] = True  # the last quarter of the texels: no frame sees them
     started = shape.status != "queued"
@@ -124,17 +140,18 @@ def add_run(store: Any, shape: RunShape, rng: np.random.Generator) -> str:
     slow = {(1, shape.frames - 1), (shape.done_steps // 2, 0)}
     for k in range(shape.done_steps):
         losses.append(_iteration(store, run_id, k, shape.frames, rng, slow))
-        texture = _advance(store, run_id, k, texture, losses[-1], shape.frames)
+        texture = _advance(store, run_id, k, texture, losses[-1], shape.frames, visible)
     if shape.status in ("running", "failed", "cancelled"):
         _current_iteration(store, run_id, shape)
     if shape.status in ("evaluating", "done"):
         store.set_status(run_id, "evaluating")
         benign = [TRUE_LABEL] * shape.frames
         adv = _adversarial_labels(shape)
-        _evaluate(store, run_id, shape, rng, "pre", benign)
-        store.put_final_texture(run_id, np.round(texture * 255) / 255)
+        _evaluate(store, run_id, shape, T0, "pre", benign)
+        final = (np.round(texture * 255) / 255).astype(np.float32)
+        store.put_final_texture(run_id, final)
         if shape.status == "done":
-            _evaluate(store, run_id, shape, rng, "adversarial", adv)
+            _evaluate(store, run_id, shape, final, "adversarial", adv)
             store.set_results(run_id, _results(shape, losses, benign, adv))
             store.set_status(run_id, "done")
     if shape.status in ("failed", "cancelled"):

@@ -114,12 +114,16 @@ def _images_loaded(driver) -> bool:
 
 
 def _screenshot(driver, folder: Path, name: str) -> Path:
-    """A screenshot of the whole page (the window grown to the page's height)."""
-    height = driver.execute_script("return document.documentElement.scrollHeight")
-    driver.set_window_size(1400, min(max(int(height) + 40, 800), 6000))
+    """A screenshot of the whole page, 1400 CSS px wide (Chromium's DevTools protocol sizes the view)."""
+    driver.execute_script("window.scrollTo(0, 0)")
+    size = driver.execute_cdp_cmd("Page.getLayoutMetrics", {})["cssContentSize"]
+    driver.execute_cdp_cmd("Emulation.setDeviceMetricsOverride", {
+        "width": 1400, "height": min(int(size["height"]) + 1, 8000), "deviceScaleFactor": 1, "mobile": False})
     path = folder / f"{name}.png"
-    assert driver.save_screenshot(str(path))
-    driver.set_window_size(1400, 1000)
+    try:
+        assert driver.save_screenshot(str(path))
+    finally:
+        driver.execute_cdp_cmd("Emulation.clearDeviceMetricsOverride", {})
     return path
 
 
@@ -183,8 +187,8 @@ def test_runs_list_to_run_page_to_sweep_page(site, browser, shots):
     _wait(lambda: _images_loaded(browser), "the frames")
     captions = [c.text for c in _by(browser, "#frames figcaption")]
     benign, adversarial = captions[0::2], captions[1::2]
-    assert len(benign) == len(adversarial) == 6 and all(c.endswith("trash_bin 0.9 ✓") for c in benign)
-    assert adversarial[0] == "adversarial · frame 0: umbrella 0.9 ✗" and "car 0.9 ✗" in adversarial[1]
+    assert len(benign) == len(adversarial) == 6 and all(c.endswith("trash_bin 0.90 ✓") for c in benign)
+    assert adversarial[0] == "adversarial #0: umbrella 0.90 ✗" and "car 0.90 ✗" in adversarial[1]
     assert "adversarial" in _by(browser, "#headline")[0].text
     assert browser.execute_script("return document.querySelector('#frames img').getBoundingClientRect().width") == 256
     _screenshot(browser, shots, "05_run_done")

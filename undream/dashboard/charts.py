@@ -17,10 +17,12 @@ COLORS = ("#1f6fb2", "#d1495b", "#2a9d8f", "#e9a03b", "#6a4c93", "#555555")
 
 def _figure() -> tuple[Any, Any]:
     from matplotlib.figure import Figure
+    from matplotlib.ticker import MaxNLocator
 
     fig = Figure(figsize=SIZE_IN, dpi=DPI, layout="constrained")
     ax = fig.add_subplot()
     ax.tick_params(labelsize=8)
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.grid(True, color="#e4e4e4", linewidth=0.6)
     for side in ("top", "right"):
         ax.spines[side].set_visible(False)
@@ -89,6 +91,7 @@ def metric_chart(evaluation: dict[str, Any], steps: int | None) -> bytes:
     else:
         _empty(ax, "measured at evaluation: not evaluated yet")
     ax.set_ylim(-5, 105)
+    ax.set_xlim(-0.05 * (steps or 1), 1.05 * (steps or 1))
     ax.set_xlabel("iteration k (0: benign texture, N: final texture)", fontsize=9)
     ax.set_ylabel(f"{name} (%)", fontsize=9)
     ax.set_title(f"victim {name}, evaluated on every frame", fontsize=10)
