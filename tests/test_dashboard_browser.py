@@ -121,6 +121,7 @@ def _screenshot(driver, folder: Path, name: str) -> Path:
         "width": 1400, "height": min(int(size["height"]) + 1, 8000), "deviceScaleFactor": 1, "mobile": False})
     path = folder / f"{name}.png"
     try:
+        _wait(lambda: _images_loaded(driver), f"every picture of {name} (lazy ones too, the view is the page)")
         assert driver.save_screenshot(str(path))
     finally:
         driver.execute_cdp_cmd("Emulation.clearDeviceMetricsOverride", {})
@@ -184,6 +185,7 @@ def test_runs_list_to_run_page_to_sweep_page(site, browser, shots):
 
     _by(browser, "#results-table a.run-link")[-1].click()
     _wait(lambda: _by(browser, "#frames"), "a done run's frames")
+    browser.execute_script("document.getElementById('frames').scrollIntoView()")  # frames load lazily
     _wait(lambda: _images_loaded(browser), "the frames")
     captions = [c.text for c in _by(browser, "#frames figcaption")]
     benign, adversarial = captions[0::2], captions[1::2]

@@ -80,7 +80,7 @@ def run_chart(run_id: str, name: str) -> Any:
     run = store.get_run(run_id)
 
     def make() -> bytes:
-        detail = query.run_detail(store, run_id)
+        detail = query.chart_data(store, run_id)
         if name == "loss":
             return charts.loss_chart(detail["iterations"], detail["loss_kind"])
         if name == "seconds":

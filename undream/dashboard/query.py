@@ -160,6 +160,13 @@ def eval_frames(store: "Store", run: "RunSnapshot") -> list[dict[str, Any]]:
     return rows
 
 
+def chart_data(store: "Store", run_id: str) -> dict[str, Any]:
+    """What the run's charts need: iteration rows, the evaluation, the loss kind and the steps."""
+    run = store.get_run(run_id)
+    return {"iterations": _iteration_rows(run, store.iterations(run_id)), "evaluation": _evaluation(run),
+            "loss_kind": run.config.get("loss"), "steps": steps_of(run)}
+
+
 def run_detail(store: "Store", run_id: str, now: dt.datetime | None = None) -> dict[str, Any]:
     """The run page: its summary, iteration records, evaluation, frames, texture versions and config."""
     now = now or dt.datetime.now(dt.timezone.utc)
