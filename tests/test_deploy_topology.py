@@ -1,0 +1,230 @@
+"""The deployed topology as plain processes: two ``undream worker`` processes, ``undream dashboard``,
+the real Redis and PostgreSQL, a blob folder they all share (the compose stack's and the manifests'
+shape, without containers); a sweep runs to completion and the dashboard's JSON API reports it;
+then one worker is SIGKILLed and the broker restarted in turn while a second sweep runs, which
+still finishes (and the dashboard reports that too).
+
+The broker restart kills the machine's Redis (every database of it): run this file alone, never
+beside the other farm tests. Services missing: skipped, or failed under UNDREAM_REQUIRE_SERVICES.
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import urllib.request
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from conftest import service_missing
+from farm_support import (
+    REDIS_START, Farm, farm_inputs, postgres_database, redis_client, redis_up, run_config, wait_for, write_yaml,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+HEALTHCHECK = ROOT / "deploy" / "docker" / "healthcheck.py"
+PG_ADMIN_URL = os.environ.get("UNDREAM_TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/test")
+
+
+@pytest.fixture(scope="module")
+def topology(tmp_path_factory, mi):
+    """Two one-core workers on PostgreSQL and Redis, sharing one blob folder; the tiny inputs."""
+    pytest.importorskip("psycopg", reason="psycopg not installed (pip install 'undream[postgres]')")
+    inputs = farm_inputs(tmp_path_factory, "topology", 4)
+    try:
+        url, drop = postgres_database(PG_ADMIN_URL)
+    except Exception as exc:
+        service_missing(f"PostgreSQL unreachable at {PG_ADMIN_URL}: {str(exc).splitlines()[0]}")
+    farm = Farm(inputs["root"] / "farm", database_url=url)
+    farm.root.mkdir()
+    dashboard = None
+    try:
+        farm.start_worker()
+        farm.start_worker()
+        dashboard = Dashboard(farm)
+        yield farm, inputs, dashboard
+    finally:
+        if dashboard is not None:
+            dashboard.stop()
+        if redis_up() is not None:
+            _restart_redis()
+        farm.stop()
+        drop()
+
+
+class Dashboard:
+    """``undream dashboard`` on a free loopback port, with the farm's settings; its JSON API."""
+
+    def __init__(self, farm: Farm) -> None:
+        with socket.socket() as sock:
+            sock.bind(("127.0.0.1", 0))
+            self.port = sock.getsockname()[1]
+        self.log = farm.root / "dashboard.log"
+        self.proc = subprocess.Popen([sys.executable, "-m", "undream.cli", "dashboard", "--host", "127.0.0.1",
+                                      "--port", str(self.port)], cwd=ROOT, env=farm.env,
+                                     stdout=self.log.open("w"), stderr=subprocess.STDOUT, start_new_session=True)
+        self.url = f"http://127.0.0.1:{self.port}"
+
+        def up() -> bool:
+            assert self.proc.poll() is None, self.log.read_text()[-3000:]
+            try:
+                return self.get("/api/health")["status"] == "ok"
+            except OSError:
+                return False
+
+        wait_for(up, 60, "the dashboard to answer", interval=0.2)
+
+    def get(self, path: str) -> Any:
+        with urllib.request.urlopen(self.url + path, timeout=10) as resp:
+            assert resp.status == 200, path
+            return json.loads(resp.read())
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGTERM)
+            try:
+                self.proc.wait(10)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+                self.proc.wait(10)
+
+
+def sweep(farm: Farm, inputs: dict, name: str, grid: dict, **cfg) -> tuple[str, list[str]]:
+    """Submit a sweep over the tiny scene with ``undream sweep``; its id and its runs' ids."""
+    base = run_config(inputs["scene"], inputs["victim"], name=name, **cfg)
+    path = write_yaml(farm.root / f"{name}.yaml", {"name": name, "base": base, "grid": grid})
+    res = farm.cli("sweep", str(path))
+    assert res.returncode == 0, res.stderr
+    sweep_id = res.stdout.splitlines()[0].strip()
+    runs = [r.id for r in farm.store.runs(sweep_id=sweep_id)]
+    assert len(runs) == len(next(iter(grid.values()))), res.stdout
+    return sweep_id, runs
+
+
+def healthcheck(farm: Farm, pid: int) -> subprocess.CompletedProcess:
+    """deploy/docker/healthcheck.py (the images' undream-healthcheck) on the worker ``pid``."""
+    return subprocess.run([sys.executable, str(HEALTHCHECK), "worker", "--pid", str(pid), "--timeout", "5"],
+                          capture_output=True, text=True, cwd=ROOT, env=farm.env, timeout=60)
+
+
+def results(farm: Farm, sweep_name: str) -> list[dict[str, str]]:
+    """``undream results SWEEP --csv`` as rows."""
+    import csv
+    import io
+
+    res = farm.cli("results", sweep_name, "--csv")
+    assert res.returncode == 0, res.stderr
+    return list(csv.DictReader(io.StringIO(res.stdout)))
+
+
+def _restart_redis() -> None:
+    Path("/var/lib/redis").mkdir(parents=True, exist_ok=True)
+    Path("/var/log/redis").mkdir(parents=True, exist_ok=True)
+    subprocess.run(REDIS_START, check=True, capture_output=True)
+    wait_for(lambda: redis_up() is None, 20, "Redis to answer again")
+
+
+def check_dashboard(dashboard: Dashboard, sweep_id: str, runs: list[str], steps: int) -> None:
+    """The dashboard's JSON API reports the sweep and each of its runs as done, with every step."""
+    health = dashboard.get("/api/health")
+    assert health["status"] == "ok" and health["database"].startswith("postgresql")
+    sweep = dashboard.get(f"/api/sweeps/{sweep_id}")
+    assert sweep["id"] == sweep_id and sweep["statuses"] == {"done": len(runs)}
+    assert sorted(r["run"] for r in sweep["rows"]) == sorted(runs)
+    listed = dashboard.get(f"/api/runs?sweep={sweep_id}")
+    assert sorted(r["id"] for r in listed["runs"]) == sorted(runs) and listed["active"] == 0
+    for run_id in runs:
+        detail = dashboard.get(f"/api/runs/{run_id}")
+        assert detail["status"] == "done" and [r["k"] for r in detail["iterations"]] == list(range(steps))
+        assert detail["final_texture"] and detail["evaluation"]["adversarial"] is not None
+
+
+def test_a_sweep_runs_to_completion_on_two_workers(topology):
+    farm, _, dashboard = topology
+    assert dashboard.get("/api/health")["runs"] == 0
+    for worker in farm.workers:
+        res = healthcheck(farm, worker.pid)
+        assert res.returncode == 0 and res.stdout.strip() == "healthy", res.stderr
+    res = subprocess.run([sys.executable, str(HEALTHCHECK), "http", f"{dashboard.url}/api/health"],
+                         capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0 and res.stdout.strip() == "healthy", res.stderr
+    sweep_id, runs = sweep(farm, topology[1], "topo", {"seed": [0, 1, 2]}, steps=3)
+    for run_id in runs:
+        run = farm.wait_status(run_id, timeout=120)
+        assert [r.k for r in farm.store.iterations(run_id)] == [0, 1, 2]
+        out = Path(run.out_dir) if run.out_dir else farm.blobs / "outputs" / f"{run.name}-{run_id[:8]}"
+        assert (out / "texture_final.npy").is_file(), out  # in the shared blob folder
+    assert farm.store.engine.dialect.name == "postgresql"
+    rows = results(farm, "topo")
+    assert sorted(r["seed"] for r in rows) == ["0", "1", "2"] and {r["status"] for r in rows} == {"done"}
+    workers = {j.worker for rid in runs for j in farm.store.jobs(rid)}
+    assert len(workers) >= 2, f"every job ran in one worker process: {workers}"
+    check_dashboard(dashboard, sweep_id, runs, 3)
+    seen = {w["worker"] for w in dashboard.get("/api/workers")["workers"]}
+    assert workers <= seen, (workers, seen)
+    if not _driver_present():  # the GPU image's fall-back, as a worker logs it
+        for log in sorted(farm.root.glob("worker*.log")):
+            assert "falling back to Mitsuba variant llvm_ad_rgb: cuda_ad_rgb failed: no NVIDIA driver" \
+                in log.read_text(), log
+
+
+def _driver_present() -> bool:
+    import ctypes
+
+    try:
+        ctypes.CDLL("libcuda.so.1")
+        return True
+    except OSError:
+        return False
+
+
+def test_a_sweep_finishes_after_a_worker_is_killed_and_the_broker_restarted(topology):
+    farm, inputs, dashboard = topology
+    assert len(farm.workers) == 2 and all(w.poll() is None for w in farm.workers)
+    sweep_id, runs = sweep(farm, inputs, "crash", {"seed": [3, 4]}, steps=8, sim_spp=16, grad_spp=16)
+
+    def started_job():
+        for run_id in runs:
+            run = farm.store.get_run(run_id)
+            jobs = [j for j in farm.store.jobs(run_id, run.iteration) if j.status == "started" and j.worker]
+            if run.iteration >= 1 and jobs:
+                return run_id, jobs[0]
+        return None
+
+    # 1. SIGKILL the worker (parent and child) that holds a frame job; its job runs again on the other.
+    run_id, job = wait_for(started_job, 90, "a started frame job of iteration >= 1", interval=0.005)
+    pgid = os.getpgid(int(job.worker.split(":")[1]))
+    victim = next(w for w in farm.workers if w.pid == pgid)
+    survivor = next(w for w in farm.workers if w.pid != pgid)
+    farm.kill_worker(victim)
+    assert healthcheck(farm, victim.pid).returncode == 1
+    assert healthcheck(farm, survivor.pid).returncode == 0
+
+    def ran_again():
+        again = next(j for j in farm.store.jobs(run_id, job.k) if j.frame == job.frame)
+        return again.status == "succeeded" and again.attempts >= 2
+
+    wait_for(ran_again, 60, "the killed worker's job to run again on the other worker")
+
+    # 2. SIGKILL the broker mid-sweep and start it again (empty); `undream resume` sends the runs again.
+    wait_for(lambda: any(farm.store.get_run(r).status == "running" for r in runs), 60, "a run still running")
+    os.kill(redis_client().info("server")["process_id"], signal.SIGKILL)
+    wait_for(lambda: redis_up() is not None, 10, "Redis to go away")
+    assert dashboard.get("/api/health")["status"] == "ok"  # the dashboard reads the store, not the broker
+    _restart_redis()
+    for run_id in runs:
+        res = farm.cli("resume", run_id)
+        assert res.returncode == 0, res.stderr
+        assert f"resumed {run_id}" in res.stdout or f"run {run_id} is done" in res.stdout, res.stdout
+    for run_id in runs:
+        farm.wait_status(run_id, timeout=120)
+        assert [r.k for r in farm.store.iterations(run_id)] == list(range(8))
+    rows = results(farm, "crash")
+    assert sorted(r["seed"] for r in rows) == ["3", "4"] and {r["status"] for r in rows} == {"done"}
+    assert healthcheck(farm, survivor.pid).returncode == 0  # reconnected to the new broker
+    check_dashboard(dashboard, sweep_id, runs, 8)
