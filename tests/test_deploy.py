@@ -445,6 +445,9 @@ def test_healthcheck_finds_the_oldest_undream_worker_process(tmp_path):
         (tmp_path / str(pid)).mkdir()
         (tmp_path / str(pid) / "cmdline").write_bytes(b"\0".join(a.encode() for a in argv) + b"\0")
 
+    proc(1, "/sbin/docker-init", "--", "undream", "worker", "--concurrency", "1")  # compose's init: true
+    proc(4, "/bin/sh", "-c", "undream worker")
+    proc(6, "/opt/venv/bin/python", "/opt/venv/bin/undream-healthcheck", "worker")
     proc(7, "/opt/venv/bin/python", "/opt/venv/bin/undream", "worker", "--concurrency", "1")
     proc(9, "/opt/venv/bin/python", "/opt/venv/bin/undream", "worker", "--concurrency", "1")  # its child
     proc(3, "/opt/venv/bin/python", "/opt/venv/bin/undream", "dashboard")

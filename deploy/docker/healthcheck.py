@@ -25,8 +25,25 @@ import urllib.request
 from pathlib import Path
 
 
+def is_undream_worker(args: list[str]) -> bool:
+    """Whether a command line is a Python running ``undream worker`` (the console script or
+    ``python -m undream.cli``); an init process that started it (``docker-init -- undream worker``)
+    is not."""
+    if not args or not Path(args[0]).name.startswith("python"):
+        return False
+    rest = args[1:]
+    if rest[:2] == ["-m", "undream.cli"]:
+        rest = rest[2:]
+    elif rest and Path(rest[0]).name == "undream":
+        rest = rest[1:]
+    else:
+        return False
+    return rest[:1] == ["worker"]
+
+
 def worker_pid(proc: Path = Path("/proc")) -> int | None:
-    """The oldest (lowest) pid on this host whose command line runs ``undream worker``."""
+    """The oldest (lowest) pid on this host whose command line runs ``undream worker``: the prefork
+    parent (its children are forked from it later, with the same command line)."""
     pids = []
     for entry in proc.iterdir():
         if not entry.name.isdigit():
@@ -35,9 +52,7 @@ def worker_pid(proc: Path = Path("/proc")) -> int | None:
             argv = (entry / "cmdline").read_bytes().split(b"\0")
         except OSError:  # gone meanwhile, or not ours to read
             continue
-        args = [a.decode(errors="replace") for a in argv if a]
-        program = any(Path(a).name == "undream" or a == "undream.cli" for a in args[:3])
-        if program and "worker" in args[1:4]:
+        if is_undream_worker([a.decode(errors="replace") for a in argv if a]):
             pids.append(int(entry.name))
     return min(pids) if pids else None
 
