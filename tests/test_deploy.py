@@ -18,6 +18,7 @@ import hashlib
 import importlib.util
 import json
 import re
+import shutil
 import subprocess
 import sys
 import threading
@@ -193,6 +194,28 @@ def test_kustomization_applies_every_manifest_but_the_optional_ones():
     assert set(kustomization["resources"]) == set(manifests()) - OPTIONAL_MANIFESTS
     assert all(d["metadata"]["namespace"] == kustomization["namespace"]
                for d in objects() if d["kind"] != "Namespace")
+
+
+@pytest.mark.skipif(shutil.which("kubectl") is None, reason="kubectl (with its built-in kustomize) is not installed")
+def test_kustomize_renders_the_manifests_and_a_registry_keeps_the_image_tags(tmp_path):
+    """`kubectl kustomize` (offline) on an overlay like the README's: every object, images renamed."""
+    shutil.copytree(K8S, tmp_path / "base")
+    (tmp_path / "kustomization.yaml").write_text(yaml.safe_dump({
+        "apiVersion": "kustomize.config.k8s.io/v1beta1", "kind": "Kustomization", "resources": ["base"],
+        "images": [{"name": "undream", "newName": "registry.example.org/undream"}]}))
+    res = subprocess.run(["kubectl", "kustomize", str(tmp_path)], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    rendered = [d for d in yaml.safe_load_all(res.stdout) if d]
+    applied = [d for name, docs in manifests().items() if name not in OPTIONAL_MANIFESTS for d in docs]
+    key = lambda d: (d["kind"], d["metadata"]["name"])  # noqa: E731
+    assert sorted(map(key, rendered)) == sorted(map(key, applied))
+    images = set()
+    for doc in rendered:
+        kubernetes_validate.validate(doc, K8S_VERSIONS[-1], strict=True)
+        spec = doc.get("spec", {}).get("template", {}).get("spec", {})
+        images |= {c["image"] for c in spec.get("initContainers", []) + spec.get("containers", [])}
+    assert {"registry.example.org/undream:cpu", "registry.example.org/undream:gpu"} <= images
+    assert not {i for i in images if i.startswith("undream:")}
 
 
 def test_manifest_references_resolve():
