@@ -22,7 +22,7 @@ from undream.spec.run import RunConfig
 
 log = logging.getLogger(__name__)
 
-__all__ = ["LocalDispatch", "RunFailed", "drain", "resolve_scene", "resume_local", "run_local",
+__all__ = ["LocalDispatch", "RunFailed", "check_run", "drain", "resolve_scene", "resume_local", "run_local",
            "starting_texture", "visibility"]
 
 # In one process a failure is rarely transient: one retry, then the run fails with the error.
@@ -83,13 +83,14 @@ def drain(store: Any, contexts: stages.Contexts, dispatch: LocalDispatch,
 
 
 def run_local(config: RunConfig, out: str | Path, base_dir: Path | None = None, progress: bool = True,
-              force: bool = False, resume: bool = False) -> dict[str, Any]:
+              force: bool = False, resume: bool = False, source: Path | None = None) -> dict[str, Any]:
     """Run an attack end to end in this process and write its outputs to ``out``; returns results.
 
     Everything is validated before ``out`` is created or replaced
     (:mod:`scheduler.preflight`): ``force`` only replaces a folder an earlier
     run wrote, never one holding the run's scene or spec. ``resume``
     continues the run recorded in ``out`` instead (see :func:`resume_local`).
+    ``source``: the run config's file, named in validation errors.
 
     The process holds the run's lease while it runs (:class:`scheduler.lease.Lease`),
     so a run whose process is killed is found stale, marked failed and can be resumed.
@@ -104,9 +105,9 @@ def run_local(config: RunConfig, out: str | Path, base_dir: Path | None = None, 
     if resume:
         if force:
             raise SpecError("--resume continues the run in --out and --force replaces it: give one of them")
-        return resume_local(config, out, base_dir, progress)
+        return resume_local(config, out, base_dir, progress, source)
     check_output_folder(out, scene_source(config, base_dir), force)  # cheap refusals first
-    victim = preflight(config, base_dir)  # nothing written or deleted before this passes
+    victim = preflight(config, base_dir, source).victim  # nothing written or deleted before this passes
     if out.exists() and any(out.iterdir()):
         shutil.rmtree(out)  # check_output_folder: --force and a folder `undream run` wrote
     out.mkdir(parents=True, exist_ok=True)
@@ -120,7 +121,19 @@ def run_local(config: RunConfig, out: str | Path, base_dir: Path | None = None, 
     return _drive(store, ctx, run_id, progress, lambda dispatch: dispatch.start(run_id))
 
 
-def resume_local(config: RunConfig, out: Path, base_dir: Path, progress: bool = True) -> dict[str, Any]:
+def check_run(config: RunConfig, out: str | Path, base_dir: Path | None = None,
+              force: bool = False, source: Path | None = None) -> Any:
+    """``undream run --check``: every check :func:`run_local` makes before it writes, nothing
+    written; the run's estimate (:class:`undream.render.budget.Estimate`)."""
+    from scheduler.preflight import check_output_folder, preflight, scene_source
+
+    out, base_dir = Path(out).resolve(), base_dir or Path.cwd()
+    check_output_folder(out, scene_source(config, base_dir), force)
+    return preflight(config, base_dir, source).estimate
+
+
+def resume_local(config: RunConfig, out: Path, base_dir: Path, progress: bool = True,
+                 source: Path | None = None) -> dict[str, Any]:
     """Continue the run that ``undream run`` recorded in ``out`` (after a crash, a kill or Ctrl-C).
 
     The run config must be the one the run was started with. A run whose
@@ -136,7 +149,7 @@ def resume_local(config: RunConfig, out: Path, base_dir: Path, progress: bool = 
     if not is_run_output(out):
         raise SpecError(f"--out {out}: --resume continues a run that `undream run` started there, "
                         "and this folder has none (no metadata.json of a run)")
-    victim = preflight(config, base_dir)
+    victim = preflight(config, base_dir, source).victim
     store = open_store(config.store, out / "store")
     run = _recorded_run(store, config, out)
     expire_stale(store, [run])

@@ -11,14 +11,17 @@ with the results), and never one that holds the run's own scene or spec.
 from __future__ import annotations
 
 import json
-import os
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from undream.errors import SpecError, already_exists
+from undream.errors import SpecError, StoreError, UndreamError, already_exists
+from undream.spec.io import check_writable_target
 from undream.spec.run import RunConfig
 
 if TYPE_CHECKING:
+    from undream.render.budget import Estimate
+    from undream.spec import Sequence
     from undream.victims import Victim
 
 METADATA = "metadata.json"
@@ -31,9 +34,37 @@ def scene_source(config: RunConfig, base_dir: Path) -> Path:
     return (src if src.is_absolute() else Path(base_dir) / src).resolve()
 
 
-def preflight(config: RunConfig, base_dir: Path) -> "Victim":
-    """Validate everything a run needs that rendering does not; returns the loaded victim."""
+@dataclass(frozen=True)
+class Checked:
+    """What :func:`preflight` found: the loaded victim, the sequence and the run's estimate."""
+
+    victim: "Victim"
+    sequence: "Sequence"
+    estimate: "Estimate"
+
+
+def preflight(config: RunConfig, base_dir: Path, source: str | Path | None = None) -> Checked:
+    """Validate everything a run needs that rendering does not, cheapest first.
+
+    The attack, the store URL, the scene (a spec file gets every check of
+    ``undream init``: meshes with UVs, the texture, its verification renders'
+    memory), the frames per step, the renders' memory (:mod:`undream.render.budget`),
+    then the victim (loaded) and its labels. ``source``: the run config's
+    file, named at the start of every error.
+    """
+    if source is None:
+        return _preflight(config, base_dir)
+    try:
+        return _preflight(config, base_dir)
+    except StoreError:
+        raise
+    except UndreamError as err:
+        raise type(err)(f"{source}: {err}") from None
+
+
+def _preflight(config: RunConfig, base_dir: Path) -> Checked:
     from undream.engine.context import attack_of, class_ids, task_of
+    from undream.render.budget import run_estimate
     from undream.victims import load_victim
 
     attack_of(config)
@@ -43,9 +74,10 @@ def preflight(config: RunConfig, base_dir: Path) -> "Victim":
         make_engine(config.store).dispose()
     seq = _sequence(scene_source(config, base_dir))
     check_frames(config, len(seq.frames))
+    estimate = run_estimate(seq, config)
     victim = load_victim(config.victim, device=config.device, task=task_of(config))
     class_ids(config, seq, victim)
-    return victim
+    return Checked(victim, seq, estimate)
 
 
 def check_frames(config: RunConfig, n_frames: int) -> None:
@@ -55,15 +87,15 @@ def check_frames(config: RunConfig, n_frames: int) -> None:
         raise SpecError(f"attack.frames_per_step: {per_step} is more than the sequence's {n_frames} frames")
 
 
-def _sequence(src: Path) -> Any:
-    from undream.scene.sources import sequence_from_file
+def _sequence(src: Path) -> "Sequence":
+    from undream.scenedir.init import check_source
     from undream.spec import load_sequence
 
     if (src / "sequence.json").is_file():
         return load_sequence(src / "sequence.json")
     if not src.is_file():
         raise SpecError(f"scene: {src} is neither a scene directory nor a spec file")
-    return sequence_from_file(src)
+    return check_source(src).sequence  # what `undream init` checks before writing OUT/scene
 
 
 def is_run_output(folder: Path) -> bool:
@@ -78,13 +110,7 @@ def is_run_output(folder: Path) -> bool:
 def check_output_folder(out: Path, scene_src: Path, force: bool) -> None:
     """Refuse an ``--out`` the run must not use (see the module docstring); nothing is touched."""
     out = Path(out).resolve()
-    if out.exists() and not out.is_dir():
-        raise SpecError(f"--out {out}: exists and is not a folder")
-    existing = next(p for p in (out, *out.parents) if p.exists())
-    if not existing.is_dir():
-        raise SpecError(f"--out {out}: {existing} is a file, not a folder")
-    if not os.access(existing, os.W_OK | os.X_OK):
-        raise SpecError(f"--out {out}: no permission to write in {existing}")
+    check_writable_target(out)
     if out == scene_src or out in scene_src.parents:
         raise SpecError(f"--out {out}: holds the run's scene {scene_src}; choose another output folder")
     if out.exists() and any(out.iterdir()):

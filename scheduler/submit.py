@@ -47,7 +47,7 @@ class Validator:
     def __init__(self, work_dir: Path) -> None:
         self.work_dir = Path(work_dir)
         self._scenes: dict[Path, Path] = {}
-        self._frames: dict[str, int] = {}
+        self._sequences: dict[str, Any] = {}
 
     def scene(self, config: RunConfig, base_dir: Path) -> Path:
         src = Path(config.scene) if Path(config.scene).is_absolute() else Path(base_dir) / config.scene
@@ -58,17 +58,20 @@ class Validator:
 
     def __call__(self, config: RunConfig, base_dir: Path) -> Prepared:
         from undream.engine.context import attack_of, build_context
+        from undream.render.budget import run_estimate
 
         scene_dir = self.scene(config, base_dir)
         key = _signature(config, scene_dir)
-        if key not in self._frames:
+        if key not in self._sequences:
             ctx = build_context(config, scene_dir)
             ctx.scenes.close()
-            self._frames[key] = len(ctx.sequence.frames)
+            self._sequences[key] = ctx.sequence
         else:  # same scene and victim: only the attack can differ
             attack_of(config)
-        check_frames(config, self._frames[key])
-        return Prepared(config, scene_dir, self._frames[key])
+        sequence = self._sequences[key]
+        check_frames(config, len(sequence.frames))
+        run_estimate(sequence, config)  # the renders fit in memory; one line naming the field if not
+        return Prepared(config, scene_dir, len(sequence.frames))
 
 
 def record(store: "Store", runs: Sequence[Prepared], settings: "Settings", out: Path | None = None,

@@ -11,7 +11,7 @@ from pathlib import Path
 import click
 
 from undream.cli.errors import one_line_errors
-from undream.cli.options import force_option, out_option, progress_option, spp_option
+from undream.cli.options import check_option, force_option, out_option, progress_option, spp_option
 
 
 @click.group()
@@ -26,14 +26,20 @@ def main() -> None:
 @force_option
 @spp_option("--verify-spp", 16, "Samples per pixel of the verification renders.")
 @spp_option("--scene-spp", 64, "Default samples per pixel written into the scene XML files.", most=65536)
+@check_option
 @progress_option
 @one_line_errors
-def init_cmd(spec: Path, out: Path, force: bool, verify_spp: int, scene_spp: int, progress: bool) -> None:
+def init_cmd(spec: Path, out: Path, force: bool, verify_spp: int, scene_spp: int, check: bool,
+             progress: bool) -> None:
     """Write the scene directory of SPEC (trajectory YAML, Unreal export JSON or sequence.json)."""
-    from undream.scenedir.init import InitOptions, init_scene
+    from undream.scenedir.init import InitOptions, check_init, init_scene
 
-    done = init_scene(spec, out, InitOptions(force=force, verify_spp=verify_spp,
-                                             scene_spp=scene_spp, progress=progress))
+    options = InitOptions(force=force, verify_spp=verify_spp, scene_spp=scene_spp, progress=progress)
+    if check:
+        click.echo(f"ok: {spec} can be written to {out}: {check_init(spec, out, options).describe()}; "
+                   "nothing written")
+        return
+    done = init_scene(spec, out, options)
     click.echo(f"wrote {done} (contact sheet: {done / 'verify' / 'contact_sheet.png'})")
 
 
@@ -43,15 +49,21 @@ def init_cmd(spec: Path, out: Path, force: bool, verify_spp: int, scene_spp: int
 @force_option
 @click.option("--resume", is_flag=True,
               help="Continue the run recorded in --out (after a crash or Ctrl-C) from its last iteration.")
+@check_option
 @progress_option
 @one_line_errors
-def run_cmd(run_yaml: Path, out: Path, force: bool, resume: bool, progress: bool) -> None:
+def run_cmd(run_yaml: Path, out: Path, force: bool, resume: bool, check: bool, progress: bool) -> None:
     """Run the attack of RUN_YAML in this process (embedded defaults: Mitsuba, SQLite)."""
-    from scheduler.local import run_local
+    from scheduler.local import check_run, run_local
     from undream.spec.run import load_run_config
 
     config = load_run_config(run_yaml)
-    res = run_local(config, out, base_dir=run_yaml.parent, progress=progress, force=force, resume=resume)
+    if check:
+        estimate = check_run(config, out, base_dir=run_yaml.parent, force=force, source=run_yaml)
+        click.echo(f"ok: {run_yaml} is valid: {estimate.describe()}; nothing written")
+        return
+    res = run_local(config, out, base_dir=run_yaml.parent, progress=progress, force=force, resume=resume,
+                    source=run_yaml)
     b, a = res["benign"], res["adversarial"]
     click.echo(f"{b['metric']}: benign {_fmt(b['value'])} → adversarial {_fmt(a['value'])}; "
                f"results in {out / 'results.json'}")

@@ -9,6 +9,8 @@ import click
 Decorator = Callable[[Callable[..., Any]], Callable[..., Any]]
 
 force_option: Decorator = click.option("--force", is_flag=True, help="Replace OUT if it exists.")
+check_option: Decorator = click.option(
+    "--check", is_flag=True, help="Validate everything and print the memory and time estimate; write nothing.")
 progress_option: Decorator = click.option("--progress/--no-progress", default=True,
                                           help="Show a progress bar.")
 seed_option: Decorator = click.option("--seed", default=0, show_default=True,

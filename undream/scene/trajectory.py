@@ -46,7 +46,10 @@ def sequence_from_trajectory(spec: Mapping[str, Any], base_dir: Path | None = No
         asset = _asset(c.require(obj, "asset"), base_dir, adversarial=True)
         obj_poses = _object_path(obj, n)
     actors, actor_poses = [], []
-    for i, a in enumerate(spec.get("actors") or []):
+    actor_specs = spec.get("actors")
+    if actor_specs is not None and not isinstance(actor_specs, list):
+        raise c.fail("actors", actor_specs, "must be a list of actors ({asset, path, ...} each)")
+    for i, a in enumerate(actor_specs or []):
         with c.at(f"actors[{i}]"):
             a = c.mapping("actor", a)
             actors.append(_asset(c.require(a, "asset"), base_dir, adversarial=False))
@@ -93,7 +96,7 @@ def _cameras(d: Mapping[str, Any], n: int, obj_poses: np.ndarray) -> list[Camera
 
 
 def _targets(d: Mapping[str, Any], path: Mapping[str, Any], n: int, obj_poses: np.ndarray) -> np.ndarray:
-    if path.get("type") == "keyframes" and any("look_at" in k for k in path.get("keys", [])):
+    if path.get("type") == "keyframes" and any("look_at" in k for k in _keys(path)):
         with c.at("path"):
             return _keyframed(path, n, "look_at")
     look = d.get("look_at", "object")
@@ -113,7 +116,7 @@ def _object_path(d: Mapping[str, Any], n: int) -> np.ndarray:
 
 
 def _rotations(d: Mapping[str, Any], path: Mapping[str, Any], positions: np.ndarray, n: int) -> Rotation:
-    if path.get("type") == "keyframes" and any(("yaw" in k or "rotation" in k) for k in path["keys"]):
+    if path.get("type") == "keyframes" and any(("yaw" in k or "rotation" in k) for k in _keys(path)):
         return _keyframed_rotations(path, n)
     base = Rotation.from_euler("xyz", c.vector("rotation", d["rotation"], 3), degrees=True) \
         if "rotation" in d else poses.yaw_rotation(c.finite("yaw", d.get("yaw", 0.0)))
@@ -154,6 +157,12 @@ def _positions(path: Mapping[str, Any], n: int) -> np.ndarray:
             p0[1] = p1[1] = c.positive("altitude", c.require(path, "altitude"))
         return p0 + (p1 - p0) * u[:, None]
     return _keyframed(path, n, "position")
+
+
+def _keys(path: Mapping[str, Any]) -> list[Mapping[str, Any]]:
+    """The keyframes that are mappings (a malformed ``keys`` is reported by :func:`_key_frames`)."""
+    keys = path.get("keys")
+    return [k for k in keys if isinstance(k, Mapping)] if isinstance(keys, list) else []
 
 
 def _key_frames(path: Mapping[str, Any], n: int) -> tuple[list[Mapping[str, Any]], np.ndarray]:

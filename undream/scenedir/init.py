@@ -29,10 +29,12 @@ from PIL import Image
 from undream.color import linear_to_srgb, srgb_to_linear, to_uint8
 from undream.errors import AssetError, SpecError, already_exists
 from undream.progress import progress
+from undream.render.budget import Estimate, init_estimate
 from undream.scene.layout import frame_name, frame_xml, mask_png
 from undream.scene.mitsuba_scene import OBJECT_ID, ScenePaths, scene_dict
 from undream.scene.xml import to_xml
 from undream.spec import Sequence, TextureParam, save_sequence
+from undream.spec.io import check_writable_target
 
 
 @dataclass(frozen=True)
@@ -45,26 +47,57 @@ class InitOptions:
     progress: bool = False  # show a progress bar
 
 
-def init_scene(source: str | Path | Sequence, out: str | Path, options: InitOptions = InitOptions(),
-               spec_text: str | None = None) -> Path:
-    """Write the scene directory of ``source`` to ``out`` and return its path.
+@dataclass(frozen=True)
+class CheckedSource:
+    """A spec that passed every check ``undream init`` makes before it writes: what it would write from."""
 
-    ``source`` is a spec file (YAML trajectory, Unreal export JSON, canonical
-    sequence.json) or a :class:`Sequence`. Nothing is left behind on error,
-    and an existing ``out`` is only replaced with ``options.force``.
+    sequence: Sequence
+    base_dir: Path | None  # relative mesh and texture paths resolve against it (the spec's folder)
+    spec_text: str | None
+    meshes: dict[str, object]  # mesh id → mesh (the object's under OBJECT_ID)
+    texture: np.ndarray  # the starting texture, H×W×3 sRGB in [0, 1]
+    estimate: Estimate  # memory and samples of the verification renders
+
+
+def check_source(source: str | Path | Sequence, options: InitOptions = InitOptions(),
+                 spec_text: str | None = None) -> CheckedSource:
+    """Everything ``undream init`` checks before it writes: the spec parsed, meshes (with UVs)
+    and the texture loaded, the verification renders' memory checked. Writes nothing.
+
+    Mesh and texture paths may point anywhere (relative ones resolve against
+    the spec's folder, ``..`` included): their content is copied into the
+    scene directory, which never refers to a file outside itself, and
+    ``metadata.json`` records where each mesh came from.
     """
-    out = Path(out)
-    _check_target(out, options.force)
     seq, base_dir, spec_text = _resolve_source(source, spec_text)
     try:
         meshes = _load_meshes(seq, base_dir)
         texture = texture_from_spec(seq.texture, base_dir)
     except AssetError as err:
         raise AssetError(f"{source}: {err}" if not isinstance(source, Sequence) else str(err)) from None
+    try:
+        estimate = init_estimate(seq, options.verify_spp)
+    except SpecError as err:
+        raise SpecError(f"{source}: {err}" if not isinstance(source, Sequence) else str(err)) from None
+    return CheckedSource(seq, base_dir, spec_text, meshes, texture, estimate)
+
+
+def init_scene(source: str | Path | Sequence, out: str | Path, options: InitOptions = InitOptions(),
+               spec_text: str | None = None) -> Path:
+    """Write the scene directory of ``source`` to ``out`` and return its path.
+
+    ``source`` is a spec file (YAML trajectory, Unreal export JSON, canonical
+    sequence.json) or a :class:`Sequence`. Everything is checked first
+    (:func:`check_source`); nothing is left behind on error, and an existing
+    ``out`` is only replaced with ``options.force``.
+    """
+    out = Path(out)
+    _check_target(out, options.force)
+    checked = check_source(source, options, spec_text)
     tmp = out.parent / f".{out.name}.tmp-{os.getpid()}-{time.monotonic_ns()}"
     out.parent.mkdir(parents=True, exist_ok=True)
     try:
-        _write(seq, meshes, texture, tmp, options, spec_text)
+        _write(checked, tmp, options)
         _check_target(out, options.force)
         _swap_into_place(tmp, out)
     except BaseException:
@@ -73,11 +106,16 @@ def init_scene(source: str | Path | Sequence, out: str | Path, options: InitOpti
     return out
 
 
+def check_init(source: str | Path, out: str | Path, options: InitOptions = InitOptions()) -> Estimate:
+    """``undream init --check``: every check of :func:`init_scene`, nothing written; the estimate."""
+    _check_target(Path(out), options.force)
+    return check_source(source, options).estimate
+
+
 def _check_target(out: Path, force: bool) -> None:
     if out.exists() and not force:
         raise already_exists(out)
-    if out.exists() and not out.is_dir():
-        raise SpecError(f"{out}: exists and is not a directory")
+    check_writable_target(out.parent if out.is_dir() else out)
 
 
 def _resolve_source(source: str | Path | Sequence, spec_text: str | None) -> tuple[Sequence, Path | None, str | None]:
@@ -122,12 +160,12 @@ def texture_from_spec(tex: TextureParam, base_dir: Path | None) -> np.ndarray:
     return np.asarray(img, dtype=np.float32) / 255.0
 
 
-def _write(seq: Sequence, meshes: dict, texture: np.ndarray, root: Path, opt: InitOptions,
-           spec_text: str | None) -> None:
+def _write(checked: CheckedSource, root: Path, opt: InitOptions) -> None:
     from undream.variant import mitsuba
     from undream.scenedir.verify import contact_sheet, render_mask, render_white, save_mask, save_rgb
     from undream.scene.mesh import write_ply
 
+    seq, meshes, texture = checked.sequence, checked.meshes, checked.texture
     mi = mitsuba()
     for sub in ("meshes", "textures", "frames", "verify"):
         (root / sub).mkdir(parents=True)
@@ -149,16 +187,28 @@ def _write(seq: Sequence, meshes: dict, texture: np.ndarray, root: Path, opt: In
         save_mask(mask, mask_png(root, frame.index))
         tiles.append((f"frame {frame.index}", to_uint8(linear_to_srgb(white)), mask))
     contact_sheet(tiles, root / "verify" / "contact_sheet.png")
-    _write_metadata(seq, root, opt, spec_text, mi)
+    _write_metadata(checked, root, opt, mi)
 
 
-def _write_metadata(seq: Sequence, root: Path, opt: InitOptions, spec_text: str | None, mi) -> None:
+def _mesh_sources(seq: Sequence, base_dir: Path | None) -> dict[str, str]:
+    """Where each mesh came from: ``builtin:NAME`` or the file's absolute path."""
+    out = {}
+    for key, asset in [(OBJECT_ID, seq.asset)] + [(a.name, a) for a in seq.actors]:
+        path = Path(asset.mesh)
+        out[key] = asset.mesh if asset.builtin is not None else \
+            str((path if path.is_absolute() or base_dir is None else base_dir / path).resolve())
+    return out
+
+
+def _write_metadata(checked: CheckedSource, root: Path, opt: InitOptions, mi) -> None:
     from undream import __version__
     from undream.versions import versions
 
+    seq, spec_text = checked.sequence, checked.spec_text
     meta = {
         "undream": __version__, "created_unix": time.time(), "seed": seq.seed, "source": seq.source,
         "spec": spec_text, "frames": len(seq.frames), "object_id": OBJECT_ID,
+        "mesh_sources": _mesh_sources(seq, checked.base_dir),
         "texture": {"name": seq.texture.name, "file": f"textures/{seq.texture.name}.exr",
                     "space": "linear (raw)", "srgb_preview": f"textures/{seq.texture.name}.png"},
         "verify_spp": opt.verify_spp, "scene_spp": opt.scene_spp, "variant": mi.variant(),

@@ -1,4 +1,4 @@
-"""Reading spec files (JSON, YAML) and writing the canonical ``sequence.json``.
+"""Reading spec files (JSON, YAML), writing the canonical ``sequence.json``, checking an output folder.
 
 Errors are one :class:`~undream.errors.SpecError` line naming the file (and
 the line of a syntax error), whichever reader finds them.
@@ -6,6 +6,7 @@ the line of a syntax error), whichever reader finds them.
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import Any
 
@@ -59,3 +60,25 @@ def load_sequence(path: str | Path) -> Sequence:
 def save_sequence(seq: Sequence, path: str | Path) -> None:
     """Write ``seq`` as canonical JSON (the exact inverse of :func:`load_sequence`)."""
     Path(path).write_text(json.dumps(seq.to_json(), indent=1) + "\n")
+
+
+def check_writable_target(out: str | Path, option: str = "--out") -> None:
+    """Refuse an output folder that cannot be created or written, before anything is written.
+
+    One SpecError line naming ``option`` and the folder: a file in the way
+    (``out`` itself or a parent), a read-only file system, no write permission.
+    """
+    out = Path(out).absolute()
+    if out.exists() and not out.is_dir():
+        raise SpecError(f"{option} {out}: exists and is not a folder")
+    existing = next(p for p in (out, *out.parents) if p.exists())
+    if not existing.is_dir():
+        raise SpecError(f"{option} {out}: {existing} is a file, not a folder")
+    try:
+        read_only = bool(os.statvfs(existing).f_flag & os.ST_RDONLY)
+    except OSError:
+        read_only = False
+    if read_only:
+        raise SpecError(f"{option} {out}: {existing} is on a read-only file system")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise SpecError(f"{option} {out}: no permission to write in {existing}")

@@ -1,0 +1,177 @@
+"""Malformed specs and run configs, generated, and what ``undream`` does with each.
+
+Inputs start from a valid trajectory spec or run config and are broken the
+way users break them: a field deleted, an unknown field added, a value of the
+wrong type or an extreme number put anywhere (NaN, ±inf, 1e308, 2⁶³, huge
+strings, nested lists), the file cut short, or bytes that are not text at
+all. Each input goes through the real command line in-process
+(``undream init SPEC --check`` / ``undream run RUN --check``, click's test
+runner), which runs every check the real command makes before writing.
+
+:func:`outcome` classifies what happened; an input may work (exit 0) or be
+refused (exit 2 with one line that names the input file), and must leave the
+folder exactly as it was. Anything else (a traceback, several lines, a
+message that does not name the file, a file written) is a failure.
+Used by ``tests/test_fuzz_inputs.py`` (300 inputs) and
+``scripts/fuzz_inputs.py`` (as many as asked, with a table of outcomes).
+"""
+from __future__ import annotations
+
+import copy
+import math
+import os
+import traceback
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+from hypothesis import strategies as st
+
+SPEC: dict[str, Any] = {
+    "name": "fuzz", "seed": 0, "frames": 2, "fps": 2,
+    "camera": {"fov": 40, "resolution": [16, 16], "path": {"type": "orbit", "center": [0, 0.5, 0],
+                                                           "radius": 3, "height": 1.2, "start_deg": 0,
+                                                           "end_deg": 90},
+               "look_at": "object"},
+    "object": {"asset": {"name": "ball", "mesh": "builtin:sphere",
+                         "texture": {"resolution": [16, 8], "uv_scale": 1, "init": [0.5, 0.5, 0.5]}},
+               "path": {"type": "static", "position": [0, 0, 0]}, "yaw": 15},
+    "actors": [],
+    "environment": {"weather": "clear", "time_of_day": 15.5, "background": "plain"},
+}
+
+# The same with an extra actor and the environment given per frame.
+SPEC_ACTORS: dict[str, Any] = {
+    **SPEC, "actors": [{"asset": {"name": "cone", "mesh": "builtin:traffic_cone"},
+                        "path": {"type": "dolly", "start": [1, 0, -1], "end": [1, 0, 1]}}],
+    "environment": [{"weather": "fog", "time_of_day": 9}, {"weather": "night", "time_of_day": 22}]}
+
+
+def run_doc(scene: str) -> dict[str, Any]:
+    """A valid run config on ``scene`` (a scene directory or a spec file)."""
+    return {"name": "fuzz", "scene": scene, "victim": "bundled:classifier", "loss": "ce",
+            "attack": {"name": "pgd", "eps": 16, "steps": 2}, "sim_spp": 2, "grad_spp": 2,
+            "eval_spp": 2, "seed": 0, "gradient": "auto", "transport_refresh": 5}
+
+
+# -- generation ------------------------------------------------------------------------------------
+
+EXTREMES = [0, -1, 1, 2**31, 2**63, -(2**63), 10**30, 1e308, -1e308, 1e-308, math.nan, math.inf,
+            -math.inf, 0.5, -0.0, "", " ", "x" * 5000, "../../etc/passwd", "builtin:nope", "\x00", "é≈∂",
+            True, False, None, [], {}, [[]], [None], [1e308, -1e308, 0]]
+# Each kind of value equally likely (st.one_of leans towards its first, simplest branches).
+scalars = st.sampled_from([st.none(), st.booleans(), st.integers(-(2**70), 2**70),
+                           st.floats(allow_nan=True, allow_infinity=True), st.text(max_size=12),
+                           st.sampled_from(EXTREMES)]).flatmap(lambda kind: kind)
+values = st.sampled_from([scalars, scalars, st.lists(scalars, max_size=4),
+                          st.dictionaries(st.text(max_size=6), scalars, max_size=3)]).flatmap(lambda kind: kind)
+
+
+def paths(doc: Any, prefix: tuple = ()) -> list[tuple]:
+    """Every path to a value inside ``doc`` (dict keys and list positions)."""
+    out = [prefix] if prefix else []
+    if isinstance(doc, dict):
+        for key, value in doc.items():
+            out += paths(value, prefix + (key,))
+    elif isinstance(doc, list):
+        for i, value in enumerate(doc):
+            out += paths(value, prefix + (i,))
+    return out
+
+
+def _parent(doc: Any, path: tuple) -> Any:
+    for step in path[:-1]:
+        doc = doc[step]
+    return doc
+
+
+@st.composite
+def mutated(draw: Any, base: dict[str, Any]) -> dict[str, Any] | list | Any:
+    """``base`` with one to three edits: a value replaced, a field deleted or an unknown one added."""
+    doc = copy.deepcopy(base)
+    for _ in range(draw(st.integers(1, 3))):
+        where = paths(doc)
+        if not where or not isinstance(doc, dict):
+            break
+        depth = draw(st.sampled_from(sorted({len(p) for p in where})))  # shallow fields as often as deep
+        path = draw(st.sampled_from([p for p in where if len(p) == depth]))
+        parent = _parent(doc, path)
+        op = draw(st.sampled_from(["replace", "replace", "delete", "add"]))
+        if op == "replace":
+            parent[path[-1]] = copy.deepcopy(draw(values))
+        elif op == "delete" and isinstance(parent, dict):
+            del parent[path[-1]]
+        elif op == "add" and isinstance(parent, dict):
+            parent[draw(st.text(min_size=1, max_size=8))] = copy.deepcopy(draw(values))
+    return doc
+
+
+@dataclass(frozen=True)
+class Input:
+    """One generated input file: what it is (for the table) and its bytes."""
+
+    kind: str  # "spec" or "run"
+    how: str  # "edited", "truncated", "binary", "not a mapping"
+    data: bytes
+
+
+def dump(doc: Any) -> bytes:
+    return yaml.safe_dump(doc, allow_unicode=True, sort_keys=False).encode("utf-8")
+
+
+@st.composite
+def inputs(draw: Any, kind: str, base: dict[str, Any]) -> Input:
+    """An input file of ``kind`` broken one of the ways in the module docstring."""
+    how = draw(st.sampled_from(["edited"] * 6 + ["truncated", "binary", "not a mapping"]))
+    if how == "edited":
+        return Input(kind, how, dump(draw(mutated(base))))
+    if how == "truncated":
+        text = dump(base)
+        return Input(kind, how, text[:draw(st.integers(0, len(text) - 1))])
+    if how == "binary":
+        return Input(kind, how, draw(st.binary(min_size=1, max_size=200)))
+    return Input(kind, how, dump(draw(st.one_of(st.lists(scalars, max_size=3), scalars))))
+
+
+# -- running one --------------------------------------------------------------------------------------
+
+
+def snapshot(folder: Path) -> dict[str, tuple[int, int]]:
+    """Every file and folder under ``folder`` with its size and modification time."""
+    out = {}
+    for root, dirs, files in os.walk(folder):
+        for name in dirs + files:
+            p = Path(root) / name
+            st_ = p.lstat()
+            out[str(p.relative_to(folder))] = (st_.st_size, st_.st_mtime_ns)
+    return out
+
+
+def outcome(item: Input, work: Path, runner: Any) -> str:
+    """Run ``item`` through the command line in ``work``; ``ok`` / ``refused`` or ``FAIL: why``."""
+    from undream.cli import main
+
+    path = work / ("spec.yaml" if item.kind == "spec" else "run.yaml")
+    path.write_bytes(item.data)
+    out = work / "out"
+    before = snapshot(work)
+    command = "init" if item.kind == "spec" else "run"
+    try:
+        result = runner.invoke(main, [command, str(path), "--out", str(out), "--check"], catch_exceptions=True)
+    finally:
+        after = snapshot(work)
+        path.unlink()
+    if result.exception is not None and not isinstance(result.exception, SystemExit):
+        tb = "".join(traceback.format_exception(result.exception))
+        return f"FAIL: traceback {type(result.exception).__name__}: {result.exception}\n{tb}"
+    if after != before:
+        return f"FAIL: left files behind: {sorted(set(after) ^ set(before))}"
+    if result.exit_code == 0:
+        return "ok"
+    lines = result.stderr.strip().splitlines()
+    if result.exit_code != 2 or len(lines) != 1:
+        return f"FAIL: exit {result.exit_code}, {len(lines)} line(s): {result.stderr!r}"
+    if not lines[0].startswith("undream: error: ") or str(path) not in lines[0]:
+        return f"FAIL: the error does not name the file {path}: {lines[0]!r}"
+    return "refused"
