@@ -11,7 +11,7 @@ from typing import Any
 
 from flask import Blueprint, jsonify, request, url_for
 
-from undream.dashboard import fleet, grid, query, sweeps
+from undream.dashboard import fleet, query, sweeps
 from undream.dashboard.actions import TOKEN_HEADER, act
 from undream.dashboard.state import farm
 
@@ -46,7 +46,8 @@ def health() -> Any:
 
 @api.get("/runs")
 def runs() -> Any:
-    rows = query.runs_overview(farm().store(), request.args.get("status"), request.args.get("sweep"))
+    rows = query.runs_overview(farm().store(), request.args.get("status"), request.args.get("sweep"),
+                               memo=farm().cache.get)
     return jsonify({"runs": rows, "active": sum(r["status"] in query.ACTIVE_STATUSES for r in rows)})
 
 
@@ -58,7 +59,7 @@ def run(run_id: str) -> Any:
 
 @api.get("/runs/<id:run_id>/jobs")
 def jobs(run_id: str) -> Any:
-    return jsonify(grid.job_grid(farm().store(), run_id))
+    return jsonify(farm().grid(run_id))
 
 
 @api.get("/sweeps")

@@ -16,10 +16,11 @@ from flask import Flask, jsonify, render_template, request
 from werkzeug.exceptions import HTTPException
 from werkzeug.routing import BaseConverter
 
-from undream.dashboard import filters
+from undream.dashboard import charts, filters
 from undream.dashboard.api import api
 from undream.dashboard.artifacts import artifacts
 from undream.dashboard.errors import DashboardError, from_store_error
+from undream.dashboard.markup import job_grid_html
 from undream.dashboard.pages import pages
 from undream.dashboard.state import EXTENSION, Farm
 from undream.errors import StoreError
@@ -87,6 +88,7 @@ def create_app(settings: "Settings", opener: Callable[[str | None, str], "Store"
     app.url_map.strict_slashes = False
     app.extensions[EXTENSION] = Farm(settings, opener)
     app.jinja_env.filters.update(filters.FILTERS)
+    app.jinja_env.filters["job_grid_html"] = job_grid_html
     app.jinja_env.globals["actions_enabled"] = settings.dashboard_token is not None
     app.register_blueprint(pages)
     app.register_blueprint(api, url_prefix="/api")
@@ -101,6 +103,7 @@ def serve(settings: "Settings", host: str, port: int, threads: int = 8) -> None:
     from waitress import serve as waitress_serve
 
     app = create_app(settings)
+    charts.warm_up()  # import matplotlib now, not during the first page's charts
     try:
         waitress_serve(app, host=host, port=port, threads=threads, ident="undream-dashboard")
     finally:

@@ -21,6 +21,13 @@ CHARTS = ("loss", "metric", "seconds")
 IMMUTABLE = "private, max-age=3600"  # a texture version before the latest never changes
 
 
+def _seen(run_id: str) -> Any:
+    """The run's seen-texel mask (fixed once iteration 0's jobs are in), cached."""
+    store = farm().store()
+    return farm().cache.get(("seen", run_id, store.has_texture(run_id, 1)),
+                            lambda: images.seen_mask(store, run_id))
+
+
 def _png(data: bytes, cache: str = "no-cache") -> Response:
     return Response(data, mimetype="image/png", headers={"Cache-Control": cache})
 
@@ -34,8 +41,8 @@ def texture(run_id: str, k: int) -> Any:
         raise NotFound(f"run {run_id}: no texture for iteration {k} (the run is at iteration {run.iteration})")
 
     def make() -> bytes:
-        return images.texture_png(store.texture(run_id, k), images.seen_mask(store, run_id))
-    data = farm().pictures.get(("texture", run_id, k, run.updated), make)
+        return images.texture_png(store.texture(run_id, k), _seen(run_id))
+    data = farm().cache.get(("texture", run_id, k, run.updated), make)
     return _png(data, IMMUTABLE if k < run.iteration else "no-cache")
 
 
@@ -47,8 +54,8 @@ def final_texture(run_id: str) -> Any:
     final = store.final_texture(run_id)
     if final is None:
         raise NotFound(f"run {run_id}: no final texture yet (status {run.status})")
-    data = farm().pictures.get(("final", run_id, run.updated),
-                               lambda: images.texture_png(final, images.seen_mask(store, run_id)))
+    data = farm().cache.get(("final", run_id, run.updated),
+                               lambda: images.texture_png(final, _seen(run_id)))
     return _png(data)
 
 
@@ -65,7 +72,7 @@ def frame(run_id: str, view: str, frame: int) -> Any:
         raise NotFound(f"run {run_id}: no {view} frame {frame}")
     job = jobs[0]
     prediction = (job.result or {}).get("prediction")
-    data = farm().pictures.get(("frame", run_id, view, frame, job.finished),
+    data = farm().cache.get(("frame", run_id, view, frame, job.finished),
                                lambda: images.frame_png(store.blobs.get_array(job.image_ref),  # type: ignore[arg-type]
                                                         prediction))
     return _png(data, IMMUTABLE)
@@ -86,7 +93,7 @@ def run_chart(run_id: str, name: str) -> Any:
         if name == "seconds":
             return charts.seconds_chart(detail["iterations"])
         return charts.metric_chart(detail["evaluation"], detail["steps"])
-    return _png(farm().pictures.get(("chart", name, run_id, run.updated, run.iteration), make))
+    return _png(farm().cache.get(("chart", name, run_id, run.updated, run.iteration), make))
 
 
 @artifacts.get("/sweeps/<id:sweep_id>/chart.png")

@@ -15,6 +15,12 @@ DPI = 100  # so a chart is 560×270 px
 COLORS = ("#1f6fb2", "#d1495b", "#2a9d8f", "#e9a03b", "#6a4c93", "#555555")
 
 
+def warm_up() -> None:
+    """Import matplotlib's figure and Agg canvas (~0.3 s), e.g. when a server starts."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: F401
+    from matplotlib.figure import Figure  # noqa: F401
+
+
 def _figure() -> tuple[Any, Any]:
     from matplotlib.figure import Figure
     from matplotlib.ticker import MaxNLocator

@@ -1,8 +1,10 @@
 """The run's pictures as PNG bytes: texture versions (unseen texels marked) and evaluation frames.
 
 Textures are H×W×3 sRGB in [0, 1] (the store's convention); frames are
-H×W×3 uint8 sRGB. Both are enlarged with nearest-neighbour sampling to at
-least :data:`MIN_SIDE` pixels so that texels and pixels stay visible.
+H×W×3 uint8 sRGB. A texture is enlarged (nearest neighbour) to at least
+:data:`TEXTURE_SIDE` pixels so that the hatching over unseen texels fits;
+a frame goes out at its own size (the page scales it up, pixelated) unless
+a detector's boxes are drawn on it, at :data:`BOX_SIDE` pixels.
 """
 from __future__ import annotations
 
@@ -16,13 +18,15 @@ from undream.errors import StoreError
 if TYPE_CHECKING:
     from undream.store import Store
 
-MIN_SIDE = 256  # px: pictures smaller than this are enlarged by a whole factor
+TEXTURE_SIDE = 128  # px: a texture's short side is enlarged by a whole factor to at least this
+BOX_SIDE = 256  # px: a frame with boxes drawn on it is enlarged to at least this
 UNSEEN_RGB = (255, 0, 255)  # the hatching over texels no frame sees
 HATCH = 6  # px between hatching lines
 
 
-def _enlarge(img: np.ndarray) -> tuple[np.ndarray, int]:
-    factor = max(1, -(-MIN_SIDE // max(1, min(img.shape[:2]))))
+def _enlarge(img: np.ndarray, side: int) -> tuple[np.ndarray, int]:
+    """``img`` repeated by the smallest whole factor that makes its short side at least ``side`` px."""
+    factor = max(1, -(-side // max(1, min(img.shape[:2]))))
     return np.repeat(np.repeat(img, factor, axis=0), factor, axis=1), factor
 
 
@@ -60,7 +64,7 @@ def seen_mask(store: "Store", run_id: str) -> np.ndarray | None:
 def texture_png(texture: np.ndarray, seen: np.ndarray | None) -> bytes:
     """A texture (H×W×3 sRGB, 0–1) enlarged, texels outside ``seen`` hatched in magenta."""
     img = (np.clip(np.nan_to_num(texture), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
-    big, factor = _enlarge(img)
+    big, factor = _enlarge(img, TEXTURE_SIDE)
     if seen is not None and seen.shape == texture.shape[:2] and not seen.all():
         unseen = np.repeat(np.repeat(~seen, factor, axis=0), factor, axis=1)
         yy, xx = np.indices(unseen.shape)
@@ -69,13 +73,13 @@ def texture_png(texture: np.ndarray, seen: np.ndarray | None) -> bytes:
 
 
 def frame_png(frame: np.ndarray, prediction: dict[str, Any] | None) -> bytes:
-    """An evaluation frame (H×W×3 uint8) enlarged; a detector's boxes (frame pixels) drawn on it."""
+    """An evaluation frame (H×W×3 uint8); with a detector's boxes (frame pixels) enlarged and drawn on."""
     if frame.dtype != np.uint8 or frame.ndim != 3 or frame.shape[2] != 3:
         raise StoreError(f"evaluation frame: expected an H×W×3 uint8 array, got {frame.dtype} {frame.shape}")
-    big, factor = _enlarge(frame)
     boxes = (prediction or {}).get("boxes") or []
     if not boxes:
-        return _png(big)
+        return _png(frame)
+    big, factor = _enlarge(frame, BOX_SIDE)
     from PIL import Image, ImageDraw
 
     pic = Image.fromarray(big)

@@ -11,7 +11,7 @@ from typing import Any
 
 from flask import Blueprint, redirect, render_template, request, url_for
 
-from undream.dashboard import fleet, grid, query, sweeps
+from undream.dashboard import fleet, query, sweeps
 from undream.dashboard.actions import act
 from undream.dashboard.state import farm
 from undream.store import RUN_STATUSES
@@ -24,7 +24,7 @@ REFRESH_S = 5  # seconds between refreshes of a page about active runs
 def runs() -> Any:
     store = farm().store()
     status, sweep_id = request.args.get("status") or None, request.args.get("sweep") or None
-    rows = query.runs_overview(store, status, sweep_id)
+    rows = query.runs_overview(store, status, sweep_id, memo=farm().cache.get)
     all_sweeps = sweeps.sweeps_overview(store)
     active = any(r["status"] in query.ACTIVE_STATUSES for r in rows)
     return render_template("runs.html", runs=rows, statuses=RUN_STATUSES, status=status, sweep=sweep_id,
@@ -38,7 +38,7 @@ def run(run_id: str) -> Any:
     detail = query.run_detail(store, run_id)
     sweep = store.find_sweep(detail["sweep_id"]) if detail["sweep_id"] else None
     active = detail["status"] in query.ACTIVE_STATUSES
-    return render_template("run.html", run=detail, grid=grid.job_grid(store, run_id), sweep=sweep,
+    return render_template("run.html", run=detail, grid=farm().grid(run_id), sweep=sweep,
                            version=f"{detail['updated']}-{detail['iteration']}",
                            refresh=REFRESH_S if active else None)
 

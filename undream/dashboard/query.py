@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import datetime as dt
 import statistics
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Callable
 
 from scheduler.query import current_phase
 from undream.dashboard.errors import BadRequest
@@ -22,6 +22,7 @@ if TYPE_CHECKING:
     from undream.store import IterationSnapshot, JobSnapshot, RunSnapshot, Store
 
 ACTIVE_STATUSES = ("queued", "running", "evaluating")
+Memo = Callable[[tuple[Any, ...], Callable[[], Any]], Any]  # cache.get(key, make)
 EVAL_VIEWS = {"benign": "pre", "adversarial": "adversarial"}  # URL name → job phase
 SLOW_FACTOR = 2.0  # a job this many times the run's median job time is slow
 
@@ -84,11 +85,21 @@ def run_summary(store: "Store", run: "RunSnapshot", now: dt.datetime) -> dict[st
 
 
 def runs_overview(store: "Store", status: str | None = None, sweep_id: str | None = None,
-                  now: dt.datetime | None = None) -> list[dict[str, Any]]:
-    """Every run (with ``status``, of sweep ``sweep_id``), newest first, as :func:`run_summary` rows."""
+                  now: dt.datetime | None = None, memo: Memo | None = None) -> list[dict[str, Any]]:
+    """Every run (with ``status``, of sweep ``sweep_id``), newest first, as :func:`run_summary` rows.
+
+    ``memo(key, make)``: a cache for the rows of finished runs (their jobs and iterations no longer
+    change; the key holds the run's ``updated`` time, which a resume changes); ages are made fresh.
+    """
     now = now or dt.datetime.now(dt.timezone.utc)
-    runs = store.runs(status=check_status(status), sweep_id=sweep_id or None)
-    return [run_summary(store, run, now) for run in reversed(runs)]
+    rows = []
+    for run in reversed(store.runs(status=check_status(status), sweep_id=sweep_id or None)):
+        if memo is None or run.status in ACTIVE_STATUSES:
+            rows.append(run_summary(store, run, now))
+            continue
+        row = memo(("summary", run.id, run.updated, run.status), lambda run=run: run_summary(store, run, now))
+        rows.append({**row, "age_s": (now - run.created).total_seconds()})
+    return rows
 
 
 def sweep_names(store: "Store", runs: list[dict[str, Any]]) -> dict[str, str]:

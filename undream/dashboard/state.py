@@ -1,4 +1,4 @@
-"""What the dashboard's views share: the settings, the store (opened lazily) and a picture cache."""
+"""What the dashboard's views share: the settings, the store (opened lazily) and a cache."""
 from __future__ import annotations
 
 import threading
@@ -6,6 +6,8 @@ from collections import OrderedDict
 from typing import TYPE_CHECKING, Any, Callable
 
 from undream.dashboard.errors import Unavailable
+from undream.dashboard.grid import job_grid
+from undream.dashboard.query import ACTIVE_STATUSES
 from undream.errors import StoreError
 
 if TYPE_CHECKING:
@@ -13,18 +15,19 @@ if TYPE_CHECKING:
     from undream.store import Store
 
 EXTENSION = "undream"  # the key of the app's Farm in ``app.extensions``
-CACHE_ITEMS = 256  # PNGs kept in memory (textures, frames, charts), least recently used dropped
+CACHE_ITEMS = 2048  # values kept in memory (PNGs, masks, rows of finished runs), least recently used dropped
 
 
-class PictureCache:
-    """PNG bytes by key (the key names the run's state, so a changed run makes new keys)."""
+class Cache:
+    """Values by key (PNG bytes, masks, finished runs' rows); a key names the run's state, so a run
+    that changes makes new keys. Least recently used entries go first."""
 
     def __init__(self, size: int = CACHE_ITEMS) -> None:
-        self._items: OrderedDict[tuple[Any, ...], bytes] = OrderedDict()
+        self._items: OrderedDict[tuple[Any, ...], Any] = OrderedDict()
         self._size = size
         self._lock = threading.Lock()
 
-    def get(self, key: tuple[Any, ...], make: Callable[[], bytes]) -> bytes:
+    def get(self, key: tuple[Any, ...], make: Callable[[], Any]) -> Any:
         with self._lock:
             if key in self._items:
                 self._items.move_to_end(key)
@@ -38,11 +41,11 @@ class PictureCache:
 
 
 class Farm:
-    """What the views share: the settings, the store (opened lazily) and the picture cache."""
+    """What the views share: the settings, the store (opened lazily) and the cache."""
 
     def __init__(self, settings: "Settings", opener: Callable[[str | None, str], "Store"]) -> None:
         self.settings = settings
-        self.pictures = PictureCache()
+        self.cache = Cache()
         self._opener = opener
         self._store: "Store | None" = None
         self._lock = threading.Lock()
@@ -56,6 +59,14 @@ class Farm:
                 except StoreError as err:
                     raise Unavailable(" ".join(str(err).split())) from None
             return self._store
+
+    def grid(self, run_id: str) -> dict[str, Any]:
+        """The run's job grid (:func:`undream.dashboard.grid.job_grid`), cached once the run has finished."""
+        store = self.store()
+        run = store.get_run(run_id)
+        if run.status in ACTIVE_STATUSES:
+            return job_grid(store, run_id)
+        return self.cache.get(("grid", run_id, run.updated, run.status), lambda: job_grid(store, run_id))
 
     def close(self) -> None:
         with self._lock:
