@@ -236,6 +236,9 @@ def test_an_active_run_page_refreshes_itself_and_cancels_with_the_token(site, br
     _screenshot(browser, shots, "08_cancelled")
     with open_store(None, blobs) as store:
         assert store.get_run(run_id).status == "cancelled"
+    browser.get(f"{base}/runs/{ids.runs['done']}")  # the README's screenshot (docs/dashboard_run.png) is this
+    _wait(lambda: _by(browser, "#frames"), "the done run's page")
+    _screenshot(browser, shots, "09_run_done")
     keep = os.environ.get("UNDREAM_DASHBOARD_SCREENS")  # a folder to copy the screenshots to, for a look
     if keep:
         shutil.copytree(shots.parent, keep, dirs_exist_ok=True)
