@@ -197,7 +197,7 @@ def test_a_sweep_finishes_after_a_worker_is_killed_and_the_broker_restarted(topo
         return None
 
     # 1. SIGKILL the worker (parent and child) that holds a frame job; its job runs again on the other.
-    run_id, job = wait_for(started_job, 90, "a started frame job of iteration >= 1", interval=0.005)
+    _, job = wait_for(started_job, 90, "a started frame job of iteration >= 1", interval=0.005)
     pgid = os.getpgid(int(job.worker.split(":")[1]))
     victim = next(w for w in farm.workers if w.pid == pgid)
     survivor = next(w for w in farm.workers if w.pid != pgid)
@@ -205,11 +205,17 @@ def test_a_sweep_finishes_after_a_worker_is_killed_and_the_broker_restarted(topo
     assert healthcheck(farm, victim.pid).returncode == 1
     assert healthcheck(farm, survivor.pid).returncode == 0
 
-    def ran_again():
-        again = next(j for j in farm.store.jobs(run_id, job.k) if j.frame == job.frame)
-        return again.status == "succeeded" and again.attempts >= 2
+    # The jobs the dead worker held (the one seen above, unless it finished just before the kill,
+    # and the rest of its batch) go back to the queue and run on the survivor.
+    lost = [(r, j.phase, j.k, j.frame) for r in runs for j in farm.store.jobs(r)
+            if j.status == "started" and j.worker == job.worker]
 
-    wait_for(ran_again, 60, "the killed worker's job to run again on the other worker")
+    def ran_again():
+        jobs = {(r, j.phase, j.k, j.frame): j for r in runs for j in farm.store.jobs(r)}
+        return all(jobs[key].status == "succeeded" and jobs[key].attempts >= 2 and jobs[key].worker != job.worker
+                   for key in lost)
+
+    wait_for(ran_again, 60, f"the killed worker's jobs {lost} to run again on the other worker")
 
     # 2. SIGKILL the broker mid-sweep and start it again (empty); `undream resume` sends the runs again.
     wait_for(lambda: any(farm.store.get_run(r).status == "running" for r in runs), 60, "a run still running")
