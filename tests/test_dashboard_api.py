@@ -270,3 +270,14 @@ def test_the_command_serves_on_loopback_with_the_settings_options(farm):
         out = proc.communicate(timeout=20)[0]
     assert f"http://127.0.0.1:{port}/" in out and "actions need the dashboard token" in out
     assert TOKEN not in out
+
+
+def test_the_token_setting_is_checked_and_never_shown():
+    from undream.settings import SettingsError
+
+    settings = load_settings(env={"UNDREAM_DASHBOARD_TOKEN": TOKEN})
+    assert settings.dashboard_token == TOKEN and TOKEN not in repr(settings)
+    assert load_settings(env={"UNDREAM_DASHBOARD_TOKEN": ""}).dashboard_token is None
+    with pytest.raises(SettingsError, match="^UNDREAM_DASHBOARD_TOKEN: must be a secret of at least 8 characters") as err:
+        load_settings(env={"UNDREAM_DASHBOARD_TOKEN": "short"})
+    assert "short" not in str(err.value)
