@@ -103,8 +103,8 @@ def measure_worker(run_yaml: Path, folder: Path, broker: str, threads: int, time
         kids = _children(worker.pid)
         if len(kids) != 1:
             raise RuntimeError(f"expected one worker child, found {kids}")
-        return {"child_mib": _status_kib(kids[0], "VmHWM") / 1024, "parent_mib": _status_kib(worker.pid, "VmHWM") / 1024,
-                "wall_s": wall}
+        return {"child_mib": _status_kib(kids[0], "VmHWM") / 1024,
+                "parent_mib": _status_kib(worker.pid, "VmHWM") / 1024, "wall_s": wall}
     finally:
         os.killpg(worker.pid, signal.SIGKILL)
         worker.wait()

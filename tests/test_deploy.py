@@ -26,8 +26,8 @@ import jsonschema
 import pytest
 
 from deploy_files import (
-    COMPOSE, DEPLOY, DOCKERFILE, K8S, ROOT, SCHEMA, SCHEMA_SHA256, SECRET, compose, healthcheck_module, stage_env, stages,
-    undream_containers, undream_services, worker_containers,
+    COMPOSE, DEPLOY, DOCKERFILE, K8S, ROOT, SCHEMA, SCHEMA_SHA256, SECRET, compose, healthcheck_module,
+    stage_env, stages, undream_containers, undream_services, worker_containers,
 )
 
 
@@ -54,7 +54,8 @@ def test_the_compose_file_validates_against_the_compose_specification():
 @pytest.mark.parametrize(("path", "value", "expected"), [
     (("services", "worker", "healthcheck", "intervall"), "30s", "'intervall' does not match any of the regexes"),
     (("services", "worker", "deploy", "replicas"), [2], "is not of type 'integer', 'string'"),
-    (("services", "redis", "depends_on"), {"postgres": {"condition": "healthy"}}, "is not valid under any of the given schemas"),
+    (("services", "redis", "depends_on"), {"postgres": {"condition": "healthy"}},
+     "is not valid under any of the given schemas"),
 ])
 def test_a_broken_compose_file_fails_the_schema(path, value, expected):
     doc = copy.deepcopy(compose())

@@ -57,7 +57,8 @@ def test_kustomization_applies_every_manifest_but_the_optional_ones():
                for d in objects() if d["kind"] != "Namespace")
 
 
-@pytest.mark.skipif(shutil.which("kubectl") is None, reason="kubectl (with its built-in kustomize) is not installed")
+@pytest.mark.skipif(shutil.which("kubectl") is None,
+                    reason="kubectl (with its built-in kustomize) is not installed")
 def test_kustomize_renders_the_manifests_and_a_registry_keeps_the_image_tags(tmp_path):
     """`kubectl kustomize` (offline) on an overlay like the README's: every object, images renamed."""
     shutil.copytree(K8S, tmp_path / "base")
