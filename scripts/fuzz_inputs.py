@@ -38,7 +38,7 @@ def main(argv: list[str] | None = None) -> int:
     from hypothesis import strategies as st
 
     from farm_support import make_scene, write_yaml
-    from fuzz_support import SPEC, SPEC_ACTORS, Input, inputs, outcome, run_doc
+    from fuzz_support import SPEC, SPEC_ACTORS, SPEC_KEYS, Input, inputs, json_bases, outcome, run_doc
 
     seed = args.seed if args.seed is not None else random.randrange(2**31)
     with tempfile.TemporaryDirectory(prefix="undream-fuzz-") as tmp:
@@ -47,7 +47,9 @@ def main(argv: list[str] | None = None) -> int:
         spec = str(write_yaml(root / "spec.yaml", SPEC))
         work = root / "work"
         work.mkdir()
-        kinds = [("spec", inputs("spec", SPEC)), ("spec with actors", inputs("spec", SPEC_ACTORS)), ("run on a scene folder", inputs("run", run_doc(scene))),
+        kinds = [("spec", inputs("spec", SPEC)), ("spec with actors", inputs("spec", SPEC_ACTORS)),
+                 ("spec with keyframes", inputs("spec", SPEC_KEYS)),
+                 *((name, inputs("spec", base, ".json")) for name, base in json_bases().items()), ("run on a scene folder", inputs("run", run_doc(scene))),
                  ("run on a spec file", inputs("run", run_doc(spec)))]
         runner, table, failures = CliRunner(), Counter(), []
         start = time.monotonic()

@@ -18,6 +18,7 @@ Used by ``tests/test_fuzz_inputs.py`` (300 inputs) and
 from __future__ import annotations
 
 import copy
+import json
 import math
 import os
 import traceback
@@ -46,6 +47,29 @@ SPEC_ACTORS: dict[str, Any] = {
     **SPEC, "actors": [{"asset": {"name": "cone", "mesh": "builtin:traffic_cone"},
                         "path": {"type": "dolly", "start": [1, 0, -1], "end": [1, 0, 1]}}],
     "environment": [{"weather": "fog", "time_of_day": 9}, {"weather": "night", "time_of_day": 22}]}
+
+
+# Keyframed camera and object paths (cubic and linear, look_at, yaw and rotation keys).
+SPEC_KEYS: dict[str, Any] = {
+    **SPEC, "frames": 3,
+    "camera": {"fov": 50, "resolution": [16, 12],
+               "path": {"type": "keyframes", "interpolation": "cubic",
+                        "keys": [{"frame": 0, "position": [0, 1, 4], "look_at": [0, 0.5, 0]},
+                                 {"frame": 2, "position": [2, 1.5, 3], "look_at": [0, 0.4, 0]}]}},
+    "object": {"asset": {"name": "ball", "mesh": "builtin:sphere", "scale": 0.5},
+               "path": {"type": "keyframes", "interpolation": "linear",
+                        "keys": [{"frame": 0, "position": [0, 0, 0], "yaw": 0},
+                                 {"frame": 2, "position": [0.5, 0, 0], "rotation": [0, 45, 0]}]}},
+    "environment": {"weather": "cloudy", "time_of_day": 12}}
+
+
+def json_bases() -> dict[str, dict[str, Any]]:
+    """The JSON sources: a canonical sequence.json (of SPEC) and the repository's Unreal export."""
+    from undream.scene.trajectory import sequence_from_trajectory
+
+    root = Path(__file__).resolve().parents[1]
+    return {"sequence.json": sequence_from_trajectory(SPEC).to_json(),
+            "Unreal export": json.loads((root / "examples" / "unreal" / "drive_by_export.json").read_text())}
 
 
 def run_doc(scene: str) -> dict[str, Any]:
@@ -114,24 +138,27 @@ class Input:
     kind: str  # "spec" or "run"
     how: str  # "edited", "truncated", "binary", "not a mapping"
     data: bytes
+    suffix: str = ".yaml"  # ".json": a canonical sequence or an Unreal export
 
 
-def dump(doc: Any) -> bytes:
+def dump(doc: Any, suffix: str = ".yaml") -> bytes:
+    if suffix == ".json":
+        return json.dumps(doc).encode("utf-8")  # NaN and Infinity as JavaScript writes them
     return yaml.safe_dump(doc, allow_unicode=True, sort_keys=False).encode("utf-8")
 
 
 @st.composite
-def inputs(draw: Any, kind: str, base: dict[str, Any]) -> Input:
+def inputs(draw: Any, kind: str, base: dict[str, Any], suffix: str = ".yaml") -> Input:
     """An input file of ``kind`` broken one of the ways in the module docstring."""
     how = draw(st.sampled_from(["edited"] * 6 + ["truncated", "binary", "not a mapping"]))
     if how == "edited":
-        return Input(kind, how, dump(draw(mutated(base))))
+        return Input(kind, how, dump(draw(mutated(base)), suffix), suffix)
     if how == "truncated":
-        text = dump(base)
-        return Input(kind, how, text[:draw(st.integers(0, len(text) - 1))])
+        text = dump(base, suffix)
+        return Input(kind, how, text[:draw(st.integers(0, len(text) - 1))], suffix)
     if how == "binary":
-        return Input(kind, how, draw(st.binary(min_size=1, max_size=200)))
-    return Input(kind, how, dump(draw(st.one_of(st.lists(scalars, max_size=3), scalars))))
+        return Input(kind, how, draw(st.binary(min_size=1, max_size=200)), suffix)
+    return Input(kind, how, dump(draw(st.one_of(st.lists(scalars, max_size=3), scalars)), suffix), suffix)
 
 
 # -- running one --------------------------------------------------------------------------------------
@@ -152,7 +179,7 @@ def outcome(item: Input, work: Path, runner: Any) -> str:
     """Run ``item`` through the command line in ``work``; ``ok`` / ``refused`` or ``FAIL: why``."""
     from undream.cli import main
 
-    path = work / ("spec.yaml" if item.kind == "spec" else "run.yaml")
+    path = work / (f"spec{item.suffix}" if item.kind == "spec" else "run.yaml")
     path.write_bytes(item.data)
     out = work / "out"
     before = snapshot(work)

@@ -1,7 +1,8 @@
 """Fuzzed specs and run configs: each one works or is one line naming its file, and leaves nothing behind.
 
-300 generated inputs here (150 specs for ``undream init``, 150 run configs
-for ``undream run``, two bases each), derandomised so CI sees the same ones;
+700 generated inputs here (500 specs for ``undream init`` from five bases:
+three trajectory YAMLs, a canonical sequence.json and an Unreal export; 200
+run configs for ``undream run`` from two), derandomised so CI sees the same ones;
 ``scripts/fuzz_inputs.py --count 5000`` draws fresh ones and prints a table.
 See tests/fuzz_support.py for how inputs are broken and judged.
 """
@@ -12,9 +13,9 @@ from click.testing import CliRunner
 from hypothesis import HealthCheck, given, settings
 
 from farm_support import make_scene, write_yaml
-from fuzz_support import SPEC, SPEC_ACTORS, inputs, outcome, run_doc
+from fuzz_support import SPEC, SPEC_ACTORS, SPEC_KEYS, inputs, json_bases, outcome, run_doc
 
-EXAMPLES = 75  # per base: 2 spec bases + 2 run bases = 300 inputs
+EXAMPLES = 100  # per base: 5 spec bases (2 of them JSON) + 2 run bases = 700 inputs
 FUZZ = settings(max_examples=EXAMPLES, deadline=None, derandomize=True, database=None,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large,
                                        HealthCheck.function_scoped_fixture])
@@ -48,6 +49,27 @@ def test_fuzzed_specs(item, bases, runner):
 @FUZZ
 @given(item=inputs("spec", SPEC_ACTORS))
 def test_fuzzed_specs_with_actors_and_per_frame_weather(item, bases, runner):
+    _judge(item, bases, runner)
+
+
+@FUZZ
+@given(item=inputs("spec", SPEC_KEYS))
+def test_fuzzed_specs_with_keyframes(item, bases, runner):
+    _judge(item, bases, runner)
+
+
+JSON = json_bases()
+
+
+@FUZZ
+@given(item=inputs("spec", JSON["sequence.json"], ".json"))
+def test_fuzzed_canonical_sequences(item, bases, runner):
+    _judge(item, bases, runner)
+
+
+@FUZZ
+@given(item=inputs("spec", JSON["Unreal export"], ".json"))
+def test_fuzzed_unreal_exports(item, bases, runner):
     _judge(item, bases, runner)
 
 

@@ -100,10 +100,10 @@ def _targets(d: Mapping[str, Any], path: Mapping[str, Any], n: int, obj_poses: n
         with c.at("path"):
             return _keyframed(path, n, "look_at")
     look = d.get("look_at", "object")
-    offset = np.array(c.vector("look_at_offset", d.get("look_at_offset", [0, 0.5, 0]), 3))
+    offset = np.array(c.point("look_at_offset", d.get("look_at_offset", [0, 0.5, 0])))
     if look == "object":
         return obj_poses[:, :3, 3] + offset
-    return np.tile(np.array(c.vector("look_at", look, 3)), (n, 1))
+    return np.tile(np.array(c.point("look_at", look)), (n, 1))
 
 
 def _object_path(d: Mapping[str, Any], n: int) -> np.ndarray:
@@ -138,12 +138,12 @@ def _positions(path: Mapping[str, Any], n: int) -> np.ndarray:
     u = np.linspace(0.0, 1.0, n) if n > 1 else np.zeros(1)
     if kind == "static":
         c.no_extra(path, {"type", "position"})
-        return np.tile(np.array(c.vector("position", c.require(path, "position"), 3)), (n, 1))
+        return np.tile(np.array(c.point("position", c.require(path, "position"))), (n, 1))
     if kind == "orbit":
         c.no_extra(path, {"type", "center", "radius", "height", "start_deg", "end_deg"})
-        center = np.array(c.vector("center", path.get("center", [0, 0, 0]), 3))
-        r = c.positive("radius", c.require(path, "radius"))
-        h = c.finite("height", path.get("height", 0.0))
+        center = np.array(c.point("center", path.get("center", [0, 0, 0])))
+        r = c.length("radius", c.require(path, "radius"))
+        h = c.length("height", path.get("height", 0.0), signed=True)
         a0 = c.finite("start_deg", path.get("start_deg", 0.0))
         a1 = c.finite("end_deg", path.get("end_deg", 360.0 * (n - 1) / max(n, 1)))
         az = np.radians(a0 + (a1 - a0) * u)
@@ -151,10 +151,10 @@ def _positions(path: Mapping[str, Any], n: int) -> np.ndarray:
     if kind in ("dolly", "drive_by", "flyover"):
         allowed = {"type", "start", "end"} | ({"altitude"} if kind == "flyover" else set())
         c.no_extra(path, allowed)
-        p0 = np.array(c.vector("start", c.require(path, "start"), 3))
-        p1 = np.array(c.vector("end", c.require(path, "end"), 3))
+        p0 = np.array(c.point("start", c.require(path, "start")))
+        p1 = np.array(c.point("end", c.require(path, "end")))
         if kind == "flyover":
-            p0[1] = p1[1] = c.positive("altitude", c.require(path, "altitude"))
+            p0[1] = p1[1] = c.length("altitude", c.require(path, "altitude"))
         return p0 + (p1 - p0) * u[:, None]
     return _keyframed(path, n, "position")
 
@@ -186,7 +186,7 @@ def _keyframed(path: Mapping[str, Any], n: int, field: str) -> np.ndarray:
     vals = []
     for i, k in enumerate(keys):
         with c.at(f"keys[{i}]"):
-            vals.append(c.vector(field, c.require(k, field), 3))
+            vals.append(c.point(field, c.require(k, field)))
     kind = c.choice("interpolation", path.get("interpolation", "cubic"), ("cubic", "linear"))
     x = np.arange(n, dtype=float)
     v = np.array(vals)

@@ -57,6 +57,28 @@ def vector(field: str, value: Any, n: int) -> tuple[float, ...]:
     return tuple(finite(f"{field}[{i}]", v) for i, v in enumerate(value))
 
 
+WORLD_LIMIT_M = 1e6  # scenes live within a thousand kilometres of the origin
+
+
+def point(field: str, value: Any) -> tuple[float, float, float]:
+    """A position in metres, within ``WORLD_LIMIT_M`` of the origin on every axis."""
+    v = vector(field, value, 3)
+    for i, x in enumerate(v):
+        if abs(x) > WORLD_LIMIT_M:
+            raise fail(f"{field}[{i}]", x, f"must lie within ±{WORLD_LIMIT_M:g} m of the origin")
+    return v  # type: ignore[return-value]
+
+
+def length(field: str, value: Any, allow_zero: bool = False, signed: bool = False) -> float:
+    """A distance in metres: > 0 (or ≥ 0, or any sign) and at most ``WORLD_LIMIT_M`` in size."""
+    v = finite(field, value)
+    if (v < 0 and not signed) or (v == 0 and not allow_zero and not signed):
+        raise fail(field, value, "must be >= 0" if allow_zero else "must be > 0")
+    if abs(v) > WORLD_LIMIT_M:
+        raise fail(field, value, f"must be at most {WORLD_LIMIT_M:g} m")
+    return v
+
+
 def _sized(field: str, value: Any, n: int, what: str) -> None:
     if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or len(value) != n:
         raise fail(field, value, f"must be a list of {n} {what}")

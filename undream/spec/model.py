@@ -358,11 +358,7 @@ class Frame:
         if "environment" in kw:
             with c.at("environment"):
                 kw["environment"] = Environment.from_json(kw["environment"])
-        acts = []
-        for i, a in enumerate(kw.get("actors", [])):
-            with c.at(f"actors[{i}]"):
-                acts.append(ActorPose.from_json(a))
-        kw["actors"] = tuple(acts)
+        kw["actors"] = tuple(_each("actors", kw.get("actors", []), ActorPose.from_json))
         return cls(**kw)
 
 
