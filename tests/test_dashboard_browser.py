@@ -99,9 +99,15 @@ def shots(tmp_path):
 
 
 def _wait(cond, what: str, timeout: float = WAIT_S):
+    """Poll ``cond`` until it is truthy; an element replaced by the page's refresh meanwhile is a retry."""
+    from selenium.common.exceptions import StaleElementReferenceException
+
     end = time.monotonic() + timeout
     while time.monotonic() < end:
-        value = cond()
+        try:
+            value = cond()
+        except StaleElementReferenceException:
+            value = None
         if value:
             return value
         time.sleep(0.1)
