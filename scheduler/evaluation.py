@@ -51,9 +51,11 @@ def prediction_json(ctx: "RunContext", image: np.ndarray) -> dict[str, Any]:
 
 
 def prediction_from_json(task: str, data: dict[str, Any]) -> Any:
-    """A stored prediction in the shape the metrics read (``.label``, or ``.boxes/.scores/.labels``)."""
+    """A stored prediction in the shape the metrics read (``.label`` and its ``.score``, or
+    ``.boxes/.scores/.labels``)."""
     if task == "classification":
-        return SimpleNamespace(label=int(data["label"]))
+        score = data.get("score")
+        return SimpleNamespace(label=int(data["label"]), score=None if score is None else float(score))
     return SimpleNamespace(boxes=np.asarray(data["boxes"], np.float64).reshape(-1, 4),
                            scores=np.asarray(data["scores"], np.float64),
                            labels=np.asarray(data["labels"], np.int64))

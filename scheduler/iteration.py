@@ -37,11 +37,23 @@ class MissingResults(UndreamError):
         self.frames = frames
 
 
+def attacked_frames(run: "RunSnapshot") -> list[int]:
+    """The frame positions the attack may render for its gradient (the held-out ones excluded).
+
+    A run stored before ``holdout`` existed holds nothing out, as when it started.
+    """
+    from undream.spec.run import split_frames
+
+    return split_frames(run.config.get("holdout", "none"), run.n_frames)[0]
+
+
 def expected_frames(run: "RunSnapshot", frames_per_step: int | None, k: int) -> list[int]:
-    """The frame positions of iteration ``k``: all, or the run's seeded minibatch."""
+    """The frame positions of iteration ``k``: every attacked frame, or the run's seeded minibatch
+    of them; never a held-out frame."""
     from undream.attacks import frame_batch
 
-    return frame_batch(run.n_frames, frames_per_step, k, run.seed)
+    attacked = attacked_frames(run)
+    return [attacked[i] for i in frame_batch(len(attacked), frames_per_step, k, run.seed)]
 
 
 def worker_name() -> str:

@@ -39,8 +39,8 @@ def _timings(store: "Store", run_id: str, k: int) -> dict[str, float]:
 def results(store: "Store", ctx: "RunContext", run: "RunSnapshot", k: int) -> dict[str, Any]:
     """The run's results from its stored predictions, iteration records and job timings."""
     from scheduler.evaluation import prediction_from_json
-    from undream.engine.evaluate import ground_truths, judge
-    from undream.metrics import classification_attack_report, detection_attack_report
+    from undream.engine.evaluate import judge
+    from undream.spec.run import split_frames
 
     task = ctx.victim.task
     benign_preds = [prediction_from_json(task, j.result["prediction"])  # type: ignore[index]
@@ -48,23 +48,42 @@ def results(store: "Store", ctx: "RunContext", run: "RunSnapshot", k: int) -> di
     adv_preds = [prediction_from_json(task, j.result["prediction"])  # type: ignore[index]
                  for j in store.jobs(run.id, k, "adversarial")]
     benign, adv = judge(ctx, benign_preds), judge(ctx, adv_preds)
-    label = ctx.targets[0].label
-    if task == "classification":
-        report = classification_attack_report(benign_preds, adv_preds, label, ctx.targets[0].target_label)
-    else:
-        report = detection_attack_report(benign_preds, adv_preds, ground_truths(ctx), label,
-                                         ctx.targets[0].target_label)
+    report = _success(ctx, benign_preds, adv_preds, list(range(len(benign_preds))))
+    attacked, held = split_frames(run.config.get("holdout", "none"), run.n_frames)
+    splits = {name: None if not positions else {
+        "frames": [ctx.sequence.frames[i].index for i in positions],
+        "benign": _headline(judge(ctx, benign_preds, positions)),
+        "adversarial": _headline(judge(ctx, adv_preds, positions)),
+        "attack_success": _success(ctx, benign_preds, adv_preds, positions).to_dict()["aggregate"]}
+        for name, positions in (("attacked", attacked), ("held_out", held))}
     iters = store.iterations(run.id)
     times = _timings(store, run.id, k)
     times["wall"] = (dt.datetime.now(dt.timezone.utc) - run.created).total_seconds()
     return {
         "run_id": run.id, "victim": ctx.config.victim, "task": task, "loss_kind": ctx.config.loss,
-        "attack": {**ctx.attack.config.to_dict()}, "label": ctx.victim.labels[label],
-        "benign": benign, "adversarial": adv, "attack_success": report.to_dict(),
+        "attack": {**ctx.attack.config.to_dict()}, "label": ctx.victim.labels[ctx.targets[0].label],
+        "benign": benign, "adversarial": adv, "attack_success": report.to_dict(), **splits,
         "loss_per_iteration": [r.loss_mean for r in iters],
         "frames_dropped_per_iteration": [r.n_bad for r in iters],
         "wall_time_seconds": times,
     }
+
+
+def _headline(judged: dict[str, Any]) -> dict[str, Any]:
+    return {"metric": judged["metric"], "value": judged["value"]}
+
+
+def _success(ctx: "RunContext", benign: list[Any], adversarial: list[Any], positions: list[int]) -> Any:
+    """The attack-success report of the frames at ``positions``."""
+    from undream.engine.evaluate import ground_truths
+    from undream.metrics import classification_attack_report, detection_attack_report
+
+    label, target = ctx.targets[0].label, ctx.targets[0].target_label
+    b, a = [benign[i] for i in positions], [adversarial[i] for i in positions]
+    if ctx.victim.task == "classification":
+        return classification_attack_report(b, a, label, target)
+    truths = ground_truths(ctx)
+    return detection_attack_report(b, a, [truths[i] for i in positions], label, target)
 
 
 def default_out_dir(store: "Store", run: "RunSnapshot") -> Path:

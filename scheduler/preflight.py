@@ -81,10 +81,14 @@ def _preflight(config: RunConfig, base_dir: Path) -> Checked:
 
 
 def check_frames(config: RunConfig, n_frames: int) -> None:
-    """The attack's ``frames_per_step`` fits the sequence."""
+    """The held-out split fits the sequence, and ``frames_per_step`` the frames left to attack."""
+    from undream.spec.run import split_frames
+
+    attacked, held = split_frames(config.holdout, n_frames)
     per_step = config.attack.get("frames_per_step")
-    if isinstance(per_step, int) and per_step > n_frames:
-        raise SpecError(f"attack.frames_per_step: {per_step} is more than the sequence's {n_frames} frames")
+    if isinstance(per_step, int) and per_step > len(attacked):
+        raise SpecError(f"attack.frames_per_step: {per_step} is more than the {len(attacked)} frames left "
+                        f"to attack (the sequence's {n_frames} frames, {len(held)} held out)")
 
 
 def _sequence(src: Path) -> "Sequence":

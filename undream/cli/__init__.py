@@ -64,6 +64,11 @@ def run_cmd(run_yaml: Path, out: Path, force: bool, resume: bool, check: bool, p
         return
     res = run_local(config, out, base_dir=run_yaml.parent, progress=progress, force=force, resume=resume,
                     source=run_yaml)
+    for name, split in (("attacked frames", res.get("attacked")), ("held-out frames", res.get("held_out"))):
+        if split:
+            b, a = split["benign"], split["adversarial"]
+            click.echo(f"{name} ({len(split['frames'])}): {b['metric']} benign {_fmt(b['value'])} → "
+                       f"adversarial {_fmt(a['value'])}")
     b, a = res["benign"], res["adversarial"]
     click.echo(f"{b['metric']}: benign {_fmt(b['value'])} → adversarial {_fmt(a['value'])}; "
                f"results in {out / 'results.json'}")

@@ -60,17 +60,29 @@ def ground_truths(ctx: RunContext) -> list[Any]:
                             "labels": [t.label] if t.box else []}) for t in ctx.targets]
 
 
-def judge(ctx: RunContext, preds: list[Any]) -> dict[str, Any]:
-    """Per-frame correctness and the overall measure: accuracy, or AP@0.5 of the object's class."""
+def _class_score(pred: Any) -> float | None:
+    """The probability of a classifier's predicted class (a live prediction or a stored one)."""
+    score = pred.probs[int(pred.label)] if hasattr(pred, "probs") else getattr(pred, "score", None)
+    return None if score is None else round(float(score), 4)
+
+
+def judge(ctx: RunContext, preds: list[Any], positions: list[int] | None = None) -> dict[str, Any]:
+    """Per-frame correctness and the overall measure (accuracy, or AP@0.5 of the object's class)
+    over the frames at ``positions`` (default all; ``preds`` holds one prediction per frame)."""
     from undream.metrics import accuracy, average_precision, correct, is_detected
 
+    keep = list(range(len(preds))) if positions is None else list(positions)
+    frames, preds = [ctx.sequence.frames[i] for i in keep], [preds[i] for i in keep]
     label = ctx.targets[0].label
     if ctx.victim.task == "classification":
         ok = correct(preds, label)
         rows = [{"frame": f.index, "prediction": int(p.label), "class": ctx.victim.labels[int(p.label)],
-                 "correct": bool(c)} for f, p, c in zip(ctx.sequence.frames, preds, ok)]
-        return {"metric": "accuracy", "value": accuracy(preds, label), "per_frame": rows}
-    truths = ground_truths(ctx)
-    rows = [{"frame": f.index, "detected": bool(is_detected(p, gt, label)), "n_detections": int(len(p.scores))}
-            for f, p, gt in zip(ctx.sequence.frames, preds, truths)]
-    return {"metric": "ap50", "value": average_precision(preds, truths, label), "per_frame": rows}
+                 "score": _class_score(p), "correct": bool(c)}
+                for f, p, c in zip(frames, preds, ok)]
+        return {"metric": "accuracy", "value": accuracy(preds, label) if preds else None, "per_frame": rows}
+    truths = [ground_truths(ctx)[i] for i in keep]
+    rows = [{"frame": f.index, "detected": bool(is_detected(p, gt, label)), "n_detections": int(len(p.scores)),
+             "score": round(float(p.scores.max()), 4) if len(p.scores) else 0.0}
+            for f, p, gt in zip(frames, preds, truths)]
+    value = average_precision(preds, truths, label) if preds else None
+    return {"metric": "ap50", "value": value, "per_frame": rows}

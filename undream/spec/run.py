@@ -51,6 +51,7 @@ class RunConfig:
     store: str | None = None  # SQLAlchemy URL; default: SQLite in the output directory
     gradient: str = "auto"  # auto | transport | prb
     transport_refresh: int = 5
+    holdout: Any = "auto"  # frames the attack never sees, evaluated apart: see split_frames
 
     def __post_init__(self) -> None:
         if not isinstance(self.scene, str) or not self.scene:
@@ -77,6 +78,7 @@ class RunConfig:
         c.integer("transport_refresh", self.transport_refresh, 1, 10**6)
         if not isinstance(self.device, str):
             raise c.fail("device", self.device, "must be a torch device string such as 'cpu'")
+        _check_holdout(self.holdout)
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
@@ -87,6 +89,53 @@ class RunConfig:
         c.no_extra(d, set(cls.__dataclass_fields__))
         c.require(d, "scene")
         return cls(**d)
+
+
+HOLDOUT_EVERY = 4  # holdout "auto": every 4th frame (positions 3, 7, 11, ...) is held out
+
+
+def _check_holdout(value: Any) -> None:
+    valid = ('"auto" (every 4th frame), "none", {every: N, offset: K} or {frames: [positions]}')
+    if value in ("auto", "none"):
+        return
+    if not isinstance(value, Mapping) or not value or set(value) - {"every", "offset", "frames"} \
+            or ("frames" in value and len(value) != 1):
+        raise c.fail("holdout", value, f"must be {valid}")
+    if "frames" in value:
+        frames = value["frames"]
+        if isinstance(frames, (str, bytes)) or not isinstance(frames, list) or not frames:
+            raise c.fail("holdout.frames", frames, "must be a non-empty list of frame positions")
+        for i, f in enumerate(frames):
+            c.integer(f"holdout.frames[{i}]", f, 0, 10**6)
+        return
+    c.integer("holdout.every", c.require(value, "every"), 2, 10**6)
+    c.integer("holdout.offset", value.get("offset", 0), 0, 10**6)
+
+
+def split_frames(holdout: Any, n_frames: int) -> tuple[list[int], list[int]]:
+    """(attacked, held-out) frame positions of a sequence of ``n_frames`` under ``holdout``.
+
+    ``"auto"``: every 4th frame (positions 3, 7, ...) is held out when there are
+    at least 4; ``"none"``: none; ``{every: N, offset: K}``: positions K, K + N, ...;
+    ``{frames: [...]}``: those positions. Held-out frames are never rendered
+    for a gradient; at least one frame must be left to attack.
+    """
+    _check_holdout(holdout)
+    if holdout == "none" or (holdout == "auto" and n_frames < HOLDOUT_EVERY):
+        return list(range(n_frames)), []
+    if holdout == "auto":
+        holdout = {"every": HOLDOUT_EVERY, "offset": HOLDOUT_EVERY - 1}
+    if "frames" in holdout:
+        bad = [f for f in holdout["frames"] if f >= n_frames]
+        if bad:
+            raise c.fail("holdout.frames", bad, f"must be positions below the sequence's {n_frames} frames")
+        held = sorted(set(holdout["frames"]))
+    else:
+        held = list(range(holdout.get("offset", 0), n_frames, holdout["every"]))
+    attacked = [f for f in range(n_frames) if f not in set(held)]
+    if not attacked:
+        raise c.fail("holdout", holdout, f"holds out all {n_frames} frames; leave at least one to attack")
+    return attacked, held
 
 
 def load_run_config(path: str | Path) -> RunConfig:
