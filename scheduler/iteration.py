@@ -69,14 +69,18 @@ def frame_job(store: "Store", ctx: "RunContext", run_id: str, k: int, position: 
     """Render-and-grad frame ``position`` of iteration ``k`` with texture ``k``; store the result.
 
     ``texture``: texture ``k`` when the caller already holds it. Returns the
-    job's small JSON summary (the gradient goes to the blob store). Errors
-    propagate: the caller records the failed attempt.
+    job's small JSON summary (the gradient goes to the blob store); the job's
+    row keeps the victim's prediction on the frame it rendered at ``sim_spp``
+    (``{"prediction": ...}``, see :func:`undream.engine.job.prediction_record`),
+    from which the dashboard charts accuracy per iteration. Errors propagate:
+    the caller records the failed attempt.
     """
     from undream.engine.job import render_and_grad
 
     store.job_started(run_id, k, position, worker=worker_name())
     res = render_and_grad(ctx, position, store.texture(run_id, k) if texture is None else texture, k)
-    store.job_succeeded(run_id, k, position, res.grad, res.loss, res.finite, res.timings)
+    store.job_succeeded(run_id, k, position, res.grad, res.loss, res.finite, res.timings,
+                        result={"prediction": res.prediction})
     return res.summary()
 
 

@@ -353,6 +353,15 @@ def test_each_app_has_its_own_tasks():
         assert a.tasks[name] is not b.tasks[name] and a.tasks[name].app is a and b.tasks[name].app is b
 
 
+def test_the_app_sends_task_events_for_flower():
+    """Workers send task events and clients a task-sent event, so Flower sees every task of the farm."""
+    from workers.app import create_celery_app
+
+    app = create_celery_app(load_settings(env={}))
+    assert app.conf.worker_send_task_events is True and app.conf.task_send_sent_event is True
+    assert app.conf.event_serializer == "json"
+
+
 def test_the_example_sweep_expands():
     from farm_support import ROOT
     from scheduler.sweep import load_sweep
@@ -373,6 +382,41 @@ def test_a_process_reads_each_texture_version_once(tiny, tmp_path):
     texture_bytes = store.blobs.path(f"runs/{run_id}/texture/000000.npy").stat().st_size
     assert first["bytes_read"] == texture_bytes and second["bytes_read"] == 0
     assert first["bytes_written"] > 0 and first["done"] == [0, 1] and second["done"] == [2]
+
+
+def test_each_attack_job_keeps_the_victims_prediction_small(tiny, tmp_path):
+    """The row of every attack job holds the classifier's verdict on the frame it rendered."""
+    store, run_id, ctx = _local_run(tiny, tmp_path, _config(tiny))
+    stages.start(store, lambda _: ctx, run_id, LocalDispatch())
+    stages.run_batch(store, lambda _: ctx, run_id, "attack", 0, [0, 1, 2])
+    jobs = store.jobs(run_id, 0)
+    assert [j.frame for j in jobs] == [0, 1, 2]
+    for job in jobs:
+        pred = job.result["prediction"]
+        assert set(pred) == {"label", "score", "correct"} and 0.0 <= pred["score"] <= 1.0
+        assert pred["correct"] is (pred["label"] == ctx.targets[job.frame].label)
+        assert len(json.dumps(job.result)) < 100
+
+
+def test_a_detectors_prediction_is_kept_as_detected_and_top_score():
+    """A detector's boxes stay out of the job's result: whether the object was found, the top score."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from undream.engine.job import prediction_record
+    from undream.victims.base import DetPrediction, Target
+
+    ctx = SimpleNamespace(victim=SimpleNamespace(task="detection"),
+                          targets=[Target(label=2, box=(10.0, 10.0, 30.0, 30.0)), Target(label=2, box=None)])
+    boxes = torch.tensor([[11.0, 9.0, 31.0, 29.0], [0.0, 0.0, 5.0, 5.0]] * 20)
+    pred = DetPrediction(boxes, torch.linspace(0.9, 0.1, 40), torch.tensor([2, 7] * 20))
+    assert prediction_record(ctx, 0, pred) == {"detected": True, "n_detections": 40, "score": 0.9}
+    assert prediction_record(ctx, 1, pred)["detected"] is False
+    missed = DetPrediction(boxes[1::2], torch.linspace(0.5, 0.1, 20), torch.full((20,), 7))
+    assert prediction_record(ctx, 0, missed) == {"detected": False, "n_detections": 20, "score": 0.5}
+    empty = DetPrediction(torch.zeros((0, 4)), torch.zeros(0), torch.zeros(0, dtype=torch.long))
+    assert prediction_record(ctx, 0, empty) == {"detected": False, "n_detections": 0, "score": 0.0}
 
 
 def test_a_stage_that_crashes_on_a_worker_fails_the_run(eager, tiny, tmp_path):

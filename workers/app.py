@@ -7,7 +7,9 @@ so a job whose worker dies goes back to the queue; a visibility timeout
 longer than the longest job, after which Redis delivers a job of a worker
 that vanished to another one. Two queues: ``undream.control`` (start and
 the phase callbacks, short) before ``undream.frames`` (per-frame batches), so
-a finished phase's callback never waits behind other runs' frames.
+a finished phase's callback never waits behind other runs' frames. Workers
+send task events (and clients a ``task-sent`` event), so Flower, or
+``celery events``, can watch the same farm.
 """
 from __future__ import annotations
 
@@ -57,7 +59,7 @@ def create_celery_app(settings: "Settings") -> "Celery":
         task_routes={"undream.frames": {"queue": FRAMES_QUEUE},
                      "undream.start": {"queue": CONTROL_QUEUE},
                      "undream.collect": {"queue": CONTROL_QUEUE}},
-        worker_send_task_events=False, task_send_sent_event=False,
+        worker_send_task_events=True, task_send_sent_event=True,  # task events: Flower can watch the farm
     )
     app.undream_settings = settings  # type: ignore[attr-defined]  # read by workers.runtime
     register_tasks(app)

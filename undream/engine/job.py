@@ -20,21 +20,50 @@ def frame_seed(run_seed: int, iteration: int, frame: int) -> int:
 
 @dataclass
 class FrameResult:
-    """One frame's texture gradient (H×W×3, d loss / d sRGB texture) and its summary."""
+    """One frame's texture gradient (H×W×3, d loss / d sRGB texture) and its summary.
+
+    ``prediction``: the victim's verdict on the frame the simulator rendered
+    (see :func:`prediction_record`), small plain JSON; ``timings`` in seconds.
+    """
 
     grad: np.ndarray
     loss: float
     finite: bool
-    prediction: Any
+    prediction: dict[str, Any] | None
     timings: dict[str, float] = field(default_factory=dict)
 
     def summary(self) -> dict[str, Any]:
+        """The job's small JSON summary: loss (None if not finite), finiteness, prediction, timings (s)."""
         return {"loss": self.loss if math.isfinite(self.loss) else None, "finite": self.finite,
                 "prediction": self.prediction, "timings": self.timings}
 
 
-def victim_loss_and_grad(ctx: RunContext, position: int, image_srgb: np.ndarray) -> tuple[float, np.ndarray, Any]:
-    """The victim's loss on one H×W×3 sRGB frame, d loss / d image (H×W×3), and its prediction."""
+def prediction_record(ctx: RunContext, position: int, pred: Any) -> dict[str, Any]:
+    """The victim's verdict on frame ``position`` as a few JSON values, whatever the model's output size.
+
+    Classifier: ``label`` (predicted class id), ``score`` (its probability,
+    0–1, 4 decimals) and ``correct`` (the object's true class). Detector:
+    ``detected`` (a detection of the object's class at IoU ≥ 0.5 with its true
+    box), ``score`` (the top detection score, 0 without detections) and
+    ``n_detections``.
+    """
+    target = ctx.targets[position]
+    if ctx.victim.task == "classification":
+        label = int(pred.label)
+        return {"label": label, "score": round(float(pred.probs[label]), 4), "correct": label == target.label}
+    from undream.metrics import GroundTruth, is_detected
+
+    truth = GroundTruth.of({"boxes": [target.box] if target.box else np.zeros((0, 4)),
+                            "labels": [target.label] if target.box else []})
+    scores = pred.scores
+    return {"detected": bool(is_detected(pred, truth, target.label)), "n_detections": int(len(scores)),
+            "score": round(float(scores.max()), 4) if len(scores) else 0.0}
+
+
+def victim_loss_and_grad(ctx: RunContext, position: int,
+                         image_srgb: np.ndarray) -> tuple[float, np.ndarray, dict[str, Any]]:
+    """The victim's loss on one H×W×3 sRGB frame, d loss / d image (H×W×3), and its prediction
+    (:func:`prediction_record`)."""
     import torch
 
     x = torch.from_numpy(np.ascontiguousarray(image_srgb.transpose(2, 0, 1)))[None].requires_grad_(True)
@@ -42,15 +71,8 @@ def victim_loss_and_grad(ctx: RunContext, position: int, image_srgb: np.ndarray)
     (g,) = torch.autograd.grad(loss, x)
     with torch.no_grad():
         pred = ctx.victim.predict(x.detach())[0]
-    return float(loss.detach()), g[0].permute(1, 2, 0).numpy().astype(np.float32), _jsonable(pred)
-
-
-def _jsonable(pred: Any) -> Any:
-    if hasattr(pred, "to_dict"):
-        d = pred.to_dict()
-        d.pop("probs", None)
-        return d
-    return pred
+    record = prediction_record(ctx, position, pred)
+    return float(loss.detach()), g[0].permute(1, 2, 0).numpy().astype(np.float32), record
 
 
 def render_and_grad(ctx: RunContext, position: int, texture: np.ndarray, iteration: int) -> FrameResult:

@@ -81,8 +81,10 @@ class JobTables:
                           "started": now, "finished": None, "worker": worker})
 
     def job_succeeded(self, run_id: str, k: int, frame: int, grad: np.ndarray, loss: float,
-                      finite: bool, timings: Mapping[str, Any]) -> None:
-        """Store an attack job's gradient dL/dT (a blob) and its loss, finiteness and timings (s)."""
+                      finite: bool, timings: Mapping[str, Any],
+                      result: Mapping[str, Any] | None = None) -> None:
+        """Store an attack job's gradient dL/dT (a blob) and its loss, finiteness and timings (s);
+        ``result``: small plain JSON kept with the job (the victim's prediction on the frame)."""
         arr = np.asarray(grad)
         if not np.issubdtype(arr.dtype, np.floating):
             raise StoreError(f"grad: must be a float array, got dtype {arr.dtype}")
@@ -90,6 +92,7 @@ class JobTables:
             raise StoreError(f"finite: must be true or false, got {finite!r}")
         values = {"status": "succeeded", "loss": number("loss", loss), "finite": bool(finite),
                   "timings_json": dumps("timings", dict(timings)), "error": None,
+                  "result_json": None if result is None else dumps("result", dict(result)),
                   "finished": utcnow()}
         key = grad_key(run_id, integer("k", k, 0), integer("frame", frame, 0))
         self.get_run(run_id)

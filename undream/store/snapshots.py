@@ -111,7 +111,8 @@ class SweepSnapshot:
 class JobSnapshot:
     """One frame job. ``loss`` is None until it succeeds, or when not finite.
 
-    ``phase``: ``attack`` (``grad_ref``, ``loss``), ``pre`` or ``adversarial``
+    ``phase``: ``attack`` (``grad_ref``, ``loss``; ``result`` the victim's prediction on the
+    frame it rendered, None for jobs stored before it was kept), ``pre`` or ``adversarial``
     (evaluation: ``result`` holds the prediction and loss, ``image_ref`` the frame).
     """
 
