@@ -52,4 +52,4 @@ def make_backend(name: str, scene_dir: str | Path, **options) -> SimulatorBacken
 
 
 def _load_builtin() -> None:
-    from undream.sim import mitsuba  # noqa: F401  (registers 'mitsuba')
+    from undream.sim import blender, mitsuba  # noqa: F401  (register 'blender' and 'mitsuba')
