@@ -1,6 +1,7 @@
 """The ``undream`` command line: ``init``, ``run``, the farm's commands (:mod:`undream.cli.farm`:
 ``submit``, ``worker``, ``status``, ``cancel``, ``resume``, ``sweep``, ``results``), ``dashboard``
-(:mod:`undream.cli.dashboard`) and the ``victims`` group (:mod:`undream.cli.victims`).
+(:mod:`undream.cli.dashboard`), ``report`` (:mod:`undream.cli.report`) and the ``victims`` group
+(:mod:`undream.cli.victims`).
 
 Errors are mapped at this edge (:mod:`undream.cli.errors`): one line on stderr, exit status 2.
 """
@@ -81,10 +82,11 @@ def _fmt(v: float | None) -> str:
 def _register_subgroups() -> None:
     from undream.cli.dashboard import COMMANDS as DASHBOARD
     from undream.cli.farm import COMMANDS
+    from undream.cli.report import COMMANDS as REPORT
     from undream.cli.victims import victims
 
     main.add_command(victims)
-    for command in COMMANDS + DASHBOARD:
+    for command in COMMANDS + DASHBOARD + REPORT:
         main.add_command(command)
 
 

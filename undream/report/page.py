@@ -1,0 +1,181 @@
+"""The report's HTML: one self-contained page per run and per sweep (inline CSS, no JS, no network).
+
+Pictures and CSV files are named by relative links to files next to the
+page. Every value from a run (names, config, classes) is escaped.
+"""
+from __future__ import annotations
+
+import json
+from html import escape
+from typing import Any, Collection, Mapping
+
+from undream.report.data import RunData
+from undream.report.sheet import ATTACKED_RGB, HELD_OUT_RGB
+from undream.report.tables import metric_name
+
+CSS = """
+body{font:14px/1.45 system-ui,sans-serif;color:#222;margin:24px auto;max-width:1100px;padding:0 16px}
+h1{font-size:22px;margin:0 0 4px}h2{font-size:17px;margin:28px 0 8px;border-bottom:1px solid #ddd}
+table{border-collapse:collapse;margin:6px 0}td,th{border:1px solid #ddd;padding:3px 8px;text-align:left}
+th{background:#f4f4f4}td{white-space:nowrap}td.n{text-align:right;font-variant-numeric:tabular-nums}
+figure{margin:10px 0}figcaption{color:#555;font-size:13px;max-width:900px}
+code,pre{font:12px ui-monospace,monospace;background:#f6f6f6}pre{padding:8px;overflow:auto}
+.meta{color:#555}.tag{display:inline-block;padding:0 6px;color:#fff;border-radius:3px}
+img{max-width:100%;image-rendering:pixelated}
+"""
+
+
+def rgb(colour: tuple[int, int, int]) -> str:
+    return "#%02x%02x%02x" % colour
+
+
+def fmt(value: Any, percent: bool = False) -> str:
+    """A table cell: – for None, % for metric fractions, 4 significant digits for other floats."""
+    if value is None or value == "":
+        return "–"
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, float):
+        return f"{100.0 * value:.1f} %" if percent else f"{value:.4g}"
+    return str(value)
+
+
+def table(rows: list[dict[str, Any]], percent: Collection[str] = (), links: Mapping[str, str] | None = None,
+          link_column: str = "") -> str:
+    """An HTML table of ``rows``; columns in ``percent`` shown as %, ``link_column`` cells linked."""
+    if not rows:
+        return "<p class=meta>(none)</p>"
+    cols = list(rows[0])
+    head = "".join(f"<th>{escape(c)}</th>" for c in cols)
+    body = []
+    for row in rows:
+        cells = []
+        for c in cols:
+            text = escape(fmt(row.get(c), c in percent))
+            if c == link_column and links and row.get(c) in links:
+                text = f'<a href="{escape(links[row[c]])}">{text}</a>'
+            num = isinstance(row.get(c), (int, float)) and not isinstance(row.get(c), bool)
+            cells.append(f"<td{' class=n' if num else ''}>{text}</td>")
+        body.append(f"<tr>{''.join(cells)}</tr>")
+    return f"<table><tr>{head}</tr>{''.join(body)}</table>"
+
+
+def figure(src: str, alt: str, caption: str, command: str) -> str:
+    return (f'<figure><img src="{escape(src)}" alt="{escape(alt)}"><figcaption>{caption} '
+            f"Made by <code>{escape(command)}</code>.</figcaption></figure>")
+
+
+def document(title: str, body: str) -> str:
+    return (f'<!doctype html><html lang="en"><head><meta charset="utf-8"><title>{escape(title)}</title>'
+            f"<style>{CSS}</style></head><body>{body}</body></html>\n")
+
+
+def _success_cell(row: dict[str, Any]) -> str:
+    rate = row.get("success_rate")
+    if rate is None:
+        return f"n/a ({row.get('n_eligible') or 0} frames right before the attack)"
+    return f"{100.0 * rate:.1f} % ({row.get('n_success')} of {row.get('n_eligible')})"
+
+
+def headline_table(rows: list[dict[str, Any]]) -> str:
+    """Split | frames | benign → adversarial | attack success."""
+    out = ["<table><tr><th>split</th><th>frames</th><th>metric</th><th>benign → adversarial</th>"
+           "<th>attack success (fooled of the frames right before)</th></tr>"]
+    for r in rows:
+        out.append(f"<tr><td>{escape(r['split'])}</td><td>{escape(str(r['n_frames']))}: {escape(r['frames'])}</td>"
+                   f"<td>{escape(metric_name(r['metric']))}</td>"
+                   f"<td class=n>{fmt(r['benign'], True)} → {fmt(r['adversarial'], True)}</td>"
+                   f"<td>{escape(_success_cell(r))}</td></tr>")
+    return "".join(out) + "</table>"
+
+
+def _meta(data: RunData) -> str:
+    res, attack = data.results, data.results.get("attack") or {}
+    wall = (res.get("wall_time_seconds") or {}).get("wall")
+    return (f"<p class=meta>run <code>{escape(data.run.id)}</code> · victim <code>{escape(str(res.get('victim')))}"
+            f"</code> ({escape(data.task)}) · object class <b>{escape(data.label)}</b> · attack "
+            f"{escape(str(attack.get('name')))}, ε = {escape(fmt(attack.get('eps')))} (0–255 sRGB), "
+            f"{escape(fmt(attack.get('steps')))} steps · {len(data.frames)} frames · wall time "
+            f"{escape(fmt(wall))} s</p>")
+
+
+def _legend() -> str:
+    return (f'<span class=tag style="background:{rgb(ATTACKED_RGB)}">attacked</span> frames the attack '
+            f'optimised on; <span class=tag style="background:{rgb(HELD_OUT_RGB)}">held-out</span> frames it '
+            "never rendered for a gradient.")
+
+
+def run_body(data: RunData, headline: list[dict[str, Any]], unseen: str, command: str) -> str:
+    """The sections of a run's page (headline, contact sheet, loss, texture, config)."""
+    loss = str(data.run.config.get("loss"))
+    return "".join([
+        f"<h1>Run {escape(data.run.name)}</h1>", _meta(data),
+        "<h2>Headline</h2>", headline_table(headline),
+        '<p class=meta>Held-out frames say whether the texture works beyond the views it was optimised on. '
+        'Tables: <a href="headline.csv">headline.csv</a>, <a href="frames.csv">frames.csv</a> (per frame).</p>',
+        "<h2>Contact sheet</h2>",
+        figure("contact_sheet.png", "benign and adversarial frames side by side",
+               f"One row per frame: benign texture (left), adversarial texture (right), enlarged by a whole "
+               f"factor (nearest neighbour). {_legend()} Under each picture the victim's prediction: ✓ / green "
+               "still the object's class (or detected), ✗ / red not; p is the victim's confidence in the "
+               "class it predicted (a detector: its best box score).", command),
+        "<h2>Loss per iteration</h2>",
+        figure("loss.png", "attack loss per iteration",
+               f"Mean {escape(loss)} loss over the frames of each attack step (maximised by the attack); "
+               "red points: steps that dropped a frame with a non-finite gradient.", command),
+        "<h2>Texture</h2>",
+        figure("texture.png", "initial and final texture",
+               f"The benign texture T0, the adversarial texture that was evaluated (both 8-bit sRGB) and "
+               f"their largest per-channel difference (white: ε). Unseen texels (hatched in magenta): "
+               f"{escape(unseen)}", command),
+        "<h2>Config</h2>", f"<pre>{escape(json.dumps(data.run.config, indent=1, sort_keys=True))}</pre>",
+    ])
+
+
+def _grid(spec: Mapping[str, Any]) -> str:
+    grid = spec.get("grid") or {}
+    return "; ".join(f"{escape(str(k))} ∈ {escape(json.dumps(v))}" for k, v in grid.items()) or "(none)"
+
+
+def _arrow(row: Mapping[str, Any], prefix: str) -> str:
+    return f"{fmt(row.get(prefix + 'benign'), True)} → {fmt(row.get(prefix + 'adversarial'), True)}"
+
+
+def compact_rows(rows: list[dict[str, Any]], grid: list[str]) -> list[dict[str, Any]]:
+    """The results table as shown on the page: benign → adversarial per split in one cell each."""
+    return [{"run": r["run"], "name": r["name"], **{k: r.get(k) for k in grid}, "status": r["status"],
+             "metric": metric_name(r.get("metric")) if r.get("metric") else None,
+             "attacked: benign → adv.": _arrow(r, "attacked_"), "held-out: benign → adv.": _arrow(r, "held_out_"),
+             "held-out success": r.get("held_out_success_rate"), "final loss": r.get("final_loss")}
+            for r in rows]
+
+
+def sweep_body(sweep: Any, rows: list[dict[str, Any]], series: Mapping[Any, Any], links: Mapping[str, str],
+               command: str) -> str:
+    """The sections of a sweep's page (results table, ε chart, runs)."""
+    seeds = any(len(p.values) > 1 for points in series.values() for p in points)
+    spread = ("Error bars: ± one sample standard deviation over the seeds of each point."
+              if seeds else "One run per point (no seed axis in the grid): no error bars.")
+    unfinished = [r for r in rows if r["run"] not in links]
+    return "".join([
+        f"<h1>Sweep {escape(sweep.name)}</h1>",
+        f"<p class=meta>sweep <code>{escape(sweep.id)}</code> · {len(rows)} runs · grid: {_grid(sweep.spec)}</p>",
+        "<h2>Results</h2>",
+        table(compact_rows(rows, [str(k) for k in sweep.spec.get("grid") or {}]), {"held-out success"},
+              links, "run"),
+        '<p class=meta>Metric values in %; success: fooled of the held-out frames the victim got right before '
+        'the attack; final loss in the run\'s loss. Every column (all frames too) in '
+        '<a href="results.csv">results.csv</a>.</p>',
+        "<h2>Adversarial metric against ε</h2>",
+        figure("eps_chart.png", "adversarial metric against epsilon",
+               "Adversarial accuracy (or AP@0.5) of each attack on the frames it optimised on (solid) and on "
+               f"held-out frames (dashed), against the budget ε in 0–255 sRGB units. {spread} Points: "
+               '<a href="eps_chart.csv">eps_chart.csv</a>.', command),
+        "<h2>Runs</h2><ul>",
+        "".join(f'<li><a href="{escape(links[r["run"]])}">{escape(r["name"])}</a> ({escape(r["run"])}): '
+                f"{escape(fmt(r.get('held_out_adversarial'), True))} held-out adversarial</li>"
+                for r in rows if r["run"] in links),
+        "".join(f"<li>{escape(r['name'])} ({escape(r['run'])}): {escape(r['status'])}, no report</li>"
+                for r in unfinished),
+        "</ul>",
+    ])

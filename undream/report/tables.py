@@ -1,0 +1,151 @@
+"""The report's tables as rows of plain data, and CSV text (no drawing, no HTML here).
+
+Metric values are fractions in [0, 1] (accuracy, or AP at IoU 0.5), ε in
+0–255 sRGB units, losses the run's loss (``ce`` in nats). Splits:
+``attacked`` (frames the attack optimised on), ``held_out`` (never rendered
+for a gradient) and ``all``.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import statistics
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Mapping
+
+from undream.report.data import SPLITS, RunData
+
+if TYPE_CHECKING:
+    from undream.store import RunSnapshot, Store, SweepSnapshot
+
+SPLIT_NAMES = {"attacked": "attacked frames", "held_out": "held-out frames", "all": "all frames"}
+SEED_AXES = ("seed", "attack.seed")  # grid fields whose values are repeats, averaged in the chart
+X_AXIS = "attack.eps"
+
+
+def metric_name(metric: str | None) -> str:
+    return {"accuracy": "accuracy", "ap50": "AP@0.5"}.get(metric or "", metric or "metric")
+
+
+def _value(block: Mapping[str, Any] | None) -> float | None:
+    value = (block or {}).get("value")
+    return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else None
+
+
+def _split_block(results: Mapping[str, Any], split: str) -> dict[str, Any] | None:
+    """A results.json split block (``all`` from the top-level numbers), None when empty."""
+    if split != "all":
+        return results.get(split) or None
+    frames = [row.get("frame") for row in (results.get("benign") or {}).get("per_frame") or []]
+    return {"frames": frames, "benign": results.get("benign"), "adversarial": results.get("adversarial"),
+            "attack_success": (results.get("attack_success") or {}).get("aggregate") or {}}
+
+
+def headline_rows(results: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """Per split: frames, metric, benign → adversarial value, and attack success (fooled of the
+    frames the victim got right before the attack)."""
+    rows = []
+    for split in (*SPLITS, "all"):
+        block = _split_block(results, split)
+        if block is None:
+            continue
+        success = block.get("attack_success") or {}
+        rows.append({"split": SPLIT_NAMES[split], "n_frames": len(block.get("frames") or []),
+                     "frames": " ".join(str(f) for f in block.get("frames") or []),
+                     "metric": (block.get("benign") or {}).get("metric"),
+                     "benign": _value(block.get("benign")), "adversarial": _value(block.get("adversarial")),
+                     "success_rate": success.get("success_rate"), "n_success": success.get("n_success"),
+                     "n_eligible": success.get("n_eligible")})
+    return rows
+
+
+def frame_rows(data: RunData) -> list[dict[str, Any]]:
+    """Per frame: split and what the victim said on the benign and on the adversarial render."""
+    rows = []
+    for f in data.frames:
+        row: dict[str, Any] = {"frame": f.index, "split": "held-out" if f.held_out else "attacked"}
+        for name, side in (("benign", f.benign), ("adversarial", f.adversarial)):
+            r = side.row
+            if data.task == "detection":
+                row.update({f"{name}_detected": r.get("detected"), f"{name}_n_detections": r.get("n_detections")})
+            else:
+                row.update({f"{name}_class": r.get("class"), f"{name}_correct": r.get("correct")})
+            row[f"{name}_score"] = r.get("score")
+        rows.append(row)
+    return rows
+
+
+def sweep_rows(store: "Store", sweep: "SweepSnapshot", runs: list["RunSnapshot"]) -> list[dict[str, Any]]:
+    """One row per run of the sweep (:func:`scheduler.query.result_rows`), with the split numbers added."""
+    from scheduler.query import result_rows
+
+    rows = result_rows(store, sweep.id, sweep.spec)
+    for row, run in zip(rows, runs):
+        res = run.results or {}
+        for split in SPLITS:
+            block = res.get(split) or {}
+            row[f"{split}_benign"] = _value(block.get("benign"))
+            row[f"{split}_adversarial"] = _value(block.get("adversarial"))
+        row["held_out_success_rate"] = ((res.get("held_out") or {}).get("attack_success") or {}).get("success_rate")
+    return rows
+
+
+def to_csv(rows: list[dict[str, Any]]) -> str:
+    """The rows as CSV text (header from the first row; None as an empty cell)."""
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=list(rows[0]) if rows else ["run"], lineterminator="\n")
+    writer.writeheader()
+    writer.writerows([{k: "" if v is None else v for k, v in row.items()} for row in rows])
+    return buf.getvalue()
+
+
+@dataclass(frozen=True)
+class Point:
+    """One point of the sweep chart: a series, a split, an ε, and the adversarial metric over seeds."""
+
+    series: tuple[str, ...]
+    split: str
+    eps: float
+    values: tuple[float, ...]  # one per seed, fractions in [0, 1]
+
+    @property
+    def mean(self) -> float | None:
+        return statistics.fmean(self.values) if self.values else None
+
+    @property
+    def std(self) -> float | None:
+        """Sample standard deviation over seeds; None with fewer than two."""
+        return statistics.stdev(self.values) if len(self.values) > 1 else None
+
+
+def _series_key(run: "RunSnapshot", grid: list[str], values: Mapping[str, Any]) -> tuple[str, ...]:
+    attack = str((run.config.get("attack") or {}).get("name"))
+    others = [f"{k}={values[k]}" for k in grid if k not in (X_AXIS, "attack.name", *SEED_AXES)]
+    return (attack, *others)
+
+
+def eps_points(sweep: "SweepSnapshot", runs: list["RunSnapshot"]) -> dict[tuple[str, ...], list[Point]]:
+    """Series (attack name and every grid value but ε and seeds) → points by split and ε."""
+    from scheduler.sweep import grid_values
+
+    grid = [str(k) for k in (sweep.spec.get("grid") or {})]
+    found: dict[tuple[tuple[str, ...], str, float], list[float]] = {}
+    for run in runs:
+        res, eps = run.results or {}, (run.config.get("attack") or {}).get("eps")
+        if run.status != "done" or not isinstance(eps, (int, float)):
+            continue
+        key = _series_key(run, grid, grid_values(sweep.spec, run.config))
+        for split in SPLITS:
+            value = _value((res.get(split) or {}).get("adversarial"))
+            if value is not None:
+                found.setdefault((key, split, float(eps)), []).append(value)
+    series: dict[tuple[str, ...], list[Point]] = {}
+    for (key, split, eps), values in sorted(found.items()):
+        series.setdefault(key, []).append(Point(key, split, eps, tuple(values)))
+    return series
+
+
+def point_rows(series: dict[tuple[str, ...], list[Point]]) -> list[dict[str, Any]]:
+    """The chart's points as table rows (eps_chart.csv)."""
+    return [{"series": " ".join(p.series), "split": p.split, "eps": p.eps, "n_seeds": len(p.values),
+             "mean": p.mean, "std": p.std} for points in series.values() for p in points]
