@@ -58,18 +58,23 @@ def job_rows(store: "Store", run: "RunSnapshot") -> tuple[str, int, list[dict[st
 
 
 def result_rows(store: "Store", sweep_id: str, spec: dict[str, Any]) -> list[dict[str, Any]]:
-    """One row per run of a sweep: its grid values, status and headline numbers."""
+    """One row per run of a sweep: its grid values, status and headline numbers (fractions in
+    [0, 1]: ``benign`` and ``adversarial`` over every frame, ``held_out_benign`` and
+    ``held_out_adversarial`` over the frames the attack never rendered, None without any)."""
     from scheduler.sweep import grid_values
 
     rows = []
     for run in store.runs(sweep_id=sweep_id):
         res = run.results or {}
         success = (res.get("attack_success") or {}).get("aggregate") or {}
+        held = res.get("held_out") or {}
         losses = [v for v in res.get("loss_per_iteration", []) if v is not None]
         rows.append({"run": run.id[:8], "name": run.name, **grid_values(spec, run.config),
                      "status": run.status, "metric": (res.get("benign") or {}).get("metric", ""),
                      "benign": (res.get("benign") or {}).get("value"),
                      "adversarial": (res.get("adversarial") or {}).get("value"),
+                     "held_out_benign": (held.get("benign") or {}).get("value"),
+                     "held_out_adversarial": (held.get("adversarial") or {}).get("value"),
                      "success_rate": success.get("success_rate"),
                      "final_loss": losses[-1] if losses else None})
     return rows

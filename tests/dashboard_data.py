@@ -1,7 +1,10 @@
 """A farm's database built through the Store API, for the dashboard's tests and benchmark.
 
 No rendering: textures are tiny random arrays, gradients 2×2×3, frames
-small uint8 images. :func:`build_farm` makes one run in every state
+small uint8 images. Attack jobs carry the classifier's verdict on their frame
+(fewer frames correct as the attack goes on); a run with ``holdout`` renders
+its held-out frames in the evaluation only, and its results have the
+``attacked`` and ``held_out`` blocks. :func:`build_farm` makes one run in every state
 (queued, running, evaluating, done, failed, cancelled) and a sweep over
 attack × ε whose runs are done; :func:`add_run` makes one run of any size.
 """
@@ -32,6 +35,7 @@ class RunShape:
     frame_px: int = 64
     sweep_id: str | None = None
     error: str | None = None
+    holdout: Any = "none"  # as in a run config: "none", "auto" (every 4th frame), {"frames": [...]}
     extra: dict[str, Any] = field(default_factory=dict)
 
 
@@ -39,7 +43,7 @@ def config(shape: RunShape) -> dict[str, Any]:
     """A run config as the farm stores it (plain JSON)."""
     return {"name": shape.name, "scene": "examples/bin_park.yaml", "victim": "bundled:classifier",
             "loss": "ce", "attack": {"name": shape.attack, "eps": shape.eps, "steps": shape.steps},
-            "sim_spp": 16, "grad_spp": 8, "eval_spp": 32, "seed": 0, **shape.extra}
+            "sim_spp": 16, "grad_spp": 8, "eval_spp": 32, "seed": 0, "holdout": shape.holdout, **shape.extra}
 
 
 def _grad() -> np.ndarray:
@@ -64,21 +68,43 @@ def _texture0(h: int, w: int) -> np.ndarray:
                      np.full((h, w), 0.45)], axis=2).astype(np.float32)
 
 
-def _iteration(store: Any, run_id: str, k: int, frames: int, rng: np.random.Generator,
+def _strength(shape: RunShape) -> float:
+    """The fraction of frames the final texture fools: more at a larger ε (mifgsm a little more)."""
+    return min(1.0, shape.eps / 32.0 * (1.0 if shape.attack == "mifgsm" else 0.75))
+
+
+def _attack_prediction(shape: RunShape, k: int, i: int, n: int) -> dict[str, Any]:
+    """The verdict on the ``i``-th of ``n`` attacked frames at iteration ``k``: frames fall one by one."""
+    fooled = round(n * _strength(shape) * min(1.0, k / max(1, shape.steps - 1)))
+    label = (TRUE_LABEL + 1) % len(LABELS) if i < fooled else TRUE_LABEL
+    return {"label": label, "score": 0.8, "correct": label == TRUE_LABEL}
+
+
+def _iteration(store: Any, run_id: str, k: int, shape: RunShape, rng: np.random.Generator,
                slow: set[tuple[int, int]]) -> float:
-    """Iteration ``k``'s attack jobs, all succeeded (``slow`` (k, frame) pairs take 5× longer); mean loss."""
-    store.queue_jobs(run_id, k, range(frames))
+    """Iteration ``k``'s attack jobs (attacked frames), all succeeded (``slow`` (k, frame) pairs take
+    5× longer); mean loss."""
+    frames = attacked(shape)
+    store.queue_jobs(run_id, k, frames)
     losses = []
-    for f in range(frames):
+    for i, f in enumerate(frames):
         worker = WORKERS[(k + f) % len(WORKERS)]
         store.job_started(run_id, k, f, worker=worker)
         loss = 0.1 + 3.0 * (1 - np.exp(-k / 3)) + 0.05 * f + 0.01 * float(rng.random())
         total = 0.4 * (5.0 if (k, f) in slow else 1.0) + 0.02 * float(rng.random())
         store.job_succeeded(run_id, k, f, _grad(), loss, True,
                             {"sim_render": total * 0.4, "victim": total * 0.2,
-                             "grad_render": total * 0.4, "total": total})
+                             "grad_render": total * 0.4, "total": total},
+                            result={"prediction": _attack_prediction(shape, k, i, len(frames))})
         losses.append(loss)
     return float(np.mean(losses))
+
+
+def attacked(shape: RunShape) -> list[int]:
+    """The frame positions the attack renders (``shape.holdout``'s held-out ones excluded)."""
+    from undream.spec.run import split_frames
+
+    return split_frames(shape.holdout, shape.frames)[0]
 
 
 def _advance(store: Any, run_id: str, k: int, texture: np.ndarray, loss: float, frames: int,
@@ -103,21 +129,37 @@ def _evaluate(store: Any, run_id: str, shape: RunShape, texture: np.ndarray, pha
 
 def _adversarial_labels(shape: RunShape) -> list[int]:
     """Predictions on the adversarial frames: more frames fooled at a larger ε (mifgsm a little more)."""
-    strength = min(1.0, shape.eps / 32.0 * (1.0 if shape.attack == "mifgsm" else 0.75))
-    fooled = round(shape.frames * strength)
+    fooled = round(shape.frames * _strength(shape))
     return [(TRUE_LABEL + 1 + f % 2) % len(LABELS) if f < fooled else TRUE_LABEL for f in range(shape.frames)]
 
 
+def _accuracy(preds: list[int]) -> float:
+    return float(np.mean([p == TRUE_LABEL for p in preds]))
+
+
+def _split(positions: list[int], benign: list[int], adv: list[int]) -> dict[str, Any] | None:
+    """results.json's ``attacked`` / ``held_out`` block of the frames at ``positions``."""
+    if not positions:
+        return None
+    b, a = [benign[i] for i in positions], [adv[i] for i in positions]
+    return {"frames": positions, "benign": {"metric": "accuracy", "value": _accuracy(b)},
+            "adversarial": {"metric": "accuracy", "value": _accuracy(a)},
+            "attack_success": {"success_rate": float(np.mean([p != TRUE_LABEL for p in a]))}}
+
+
 def _results(shape: RunShape, losses: list[float], benign: list[int], adv: list[int]) -> dict[str, Any]:
+    from undream.spec.run import split_frames
+
     def judged(preds: list[int]) -> dict[str, Any]:
         rows = [{"frame": f, "prediction": p, "class": LABELS[p], "correct": p == TRUE_LABEL}
                 for f, p in enumerate(preds)]
-        return {"metric": "accuracy", "value": float(np.mean([p == TRUE_LABEL for p in preds])),
-                "per_frame": rows}
+        return {"metric": "accuracy", "value": _accuracy(preds), "per_frame": rows}
     fooled = float(np.mean([p != TRUE_LABEL for p in adv]))
+    attacked_at, held = split_frames(shape.holdout, shape.frames)
     return {"task": "classification", "victim": "bundled:classifier", "label": LABELS[TRUE_LABEL],
             "attack": {"name": shape.attack, "eps": shape.eps}, "benign": judged(benign),
             "adversarial": judged(adv), "attack_success": {"aggregate": {"success_rate": fooled}},
+            "attacked": _split(attacked_at, benign, adv), "held_out": _split(held, benign, adv),
             "loss_per_iteration": losses}
 
 
@@ -139,8 +181,8 @@ def add_run(store: Any, shape: RunShape, rng: np.random.Generator) -> str:
     texture, losses = T0, []
     slow = {(1, shape.frames - 1), (shape.done_steps // 2, 0)}
     for k in range(shape.done_steps):
-        losses.append(_iteration(store, run_id, k, shape.frames, rng, slow))
-        texture = _advance(store, run_id, k, texture, losses[-1], shape.frames, visible)
+        losses.append(_iteration(store, run_id, k, shape, rng, slow))
+        texture = _advance(store, run_id, k, texture, losses[-1], len(attacked(shape)), visible)
     if shape.status in ("running", "failed", "cancelled"):
         _current_iteration(store, run_id, shape)
     if shape.status in ("evaluating", "done"):
@@ -164,12 +206,13 @@ def add_run(store: Any, shape: RunShape, rng: np.random.Generator) -> str:
 def _current_iteration(store: Any, run_id: str, shape: RunShape) -> None:
     """The unfinished iteration of an active (or stopped) run: done, failed, retried, started, queued jobs."""
     k = shape.done_steps
-    store.queue_jobs(run_id, k, range(shape.frames))
-    for f in range(shape.frames):
+    store.queue_jobs(run_id, k, attacked(shape))
+    for f in attacked(shape):
         worker = WORKERS[f % len(WORKERS)]
         if f == 0:
             store.job_started(run_id, k, f, worker=worker)
-            store.job_succeeded(run_id, k, f, _grad(), 0.5, True, {"total": 0.41})
+            store.job_succeeded(run_id, k, f, _grad(), 0.5, True, {"total": 0.41},
+                                result={"prediction": _attack_prediction(shape, k, 0, len(attacked(shape)))})
         elif f == 1:
             store.job_started(run_id, k, f, worker=worker)
             store.job_failed(run_id, k, f, "RenderError: Mitsuba ran out of memory on frame 1",
@@ -194,13 +237,15 @@ def build_farm(store: Any, seed: int = 0, frames: int = 4, steps: int = 6) -> Fa
     plan = {"queued": 0, "running": steps // 2, "evaluating": steps, "done": steps,
             "failed": steps // 2, "cancelled": 1}
     for status, done_steps in plan.items():
-        runs[status] = add_run(store, RunShape(f"bin-{status}", status, frames, steps, done_steps), rng)
+        holdout = "auto" if status == "done" else "none"  # the done run holds frame 3 out
+        runs[status] = add_run(store, RunShape(f"bin-{status}", status, frames, steps, done_steps,
+                                               holdout=holdout), rng)
     spec = {"name": "eps-sweep", "run": "runs/bin_park_pgd.yaml",
             "grid": {"attack.name": ["pgd", "mifgsm"], "attack.eps": [8, 16, 32]}}
     sweep_id = store.create_sweep("eps-sweep", spec)
     sweep_runs = []
     for i, (attack, eps) in enumerate((a, e) for a in ("pgd", "mifgsm") for e in (8, 16, 32)):
         shape = RunShape(f"eps-sweep-{i:03d}", "done", frames, 3, 3, attack=attack, eps=float(eps),
-                         sweep_id=sweep_id)
+                         sweep_id=sweep_id, holdout="auto")
         sweep_runs.append(add_run(store, shape, rng))
     return Farm(runs, sweep_id, sweep_runs)

@@ -67,6 +67,8 @@ def test_api_run_jobs_sweep_workers_health(farm):
     run = client.get(f"/api/runs/{ids.runs['done']}").get_json()
     assert run["status"] == "done" and len(run["iterations"]) == 6 and run["config"]["victim"] == "bundled:classifier"
     assert set(run["links"]["textures"]) == {"0", "1", "2", "3", "4", "5", "6", "final"}
+    assert [p["n"] for p in run["attacked_metric"]] == [3] * 6 and run["attacked_metric"][-1]["value"] < 0.5
+    assert run["evaluation"]["held_out"]["frames"] == 1 and run["held_out_adversarial"] == 1.0
     for url in [*run["links"]["textures"].values(), *run["links"]["charts"].values(),
                 *run["links"]["frames"]["benign"].values(), *run["links"]["frames"]["adversarial"].values()]:
         res = client.get(url)
@@ -92,7 +94,11 @@ def test_pages_render(farm):
     assert 'id="cancel"' in run and 'id="resume"' not in run
     done = client.get(f"/runs/{ids.runs['done']}").get_data(as_text=True)
     assert "data-refresh" not in done and "trash_bin" in done and "umbrella" in done
-    assert client.get(f"/sweeps/{ids.sweep_id}").status_code == 200
+    assert "held-out frames (1): accuracy 100.0 % → <b>100.0 %</b> · attack success 0.0 %" in done
+    assert "attacked frames (3): accuracy 100.0 % → <b>0.0 %</b>" in done
+    assert "100.0 % → <b>100.0 %</b> <span class=\"muted\">held-out</span>" in page
+    sweep = client.get(f"/sweeps/{ids.sweep_id}").get_data(as_text=True)
+    assert "<th>held-out adversarial</th>" in sweep and sweep.count('class="run-link"') == 6
     assert client.get("/workers").status_code == 200
     csp = client.get("/").headers["Content-Security-Policy"]
     assert "default-src 'self'" in csp

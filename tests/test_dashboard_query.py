@@ -1,6 +1,7 @@
 """The dashboard's query logic, charts and pictures, without HTTP: plain data read through the store."""
 from __future__ import annotations
 
+import dataclasses
 import datetime as dt
 import io
 import sys
@@ -90,6 +91,41 @@ def test_run_detail_has_iterations_frames_textures_and_config(farm_store):
     assert frames[3]["adversarial"]["correct"] is True
     with pytest.raises(StoreError, match="not found"):
         query.run_detail(store, "00000000-0000-4000-8000-000000000000")
+
+
+def test_held_out_and_attacked_numbers_come_from_the_results(farm_store):
+    store, farm = farm_store
+    ev = query.run_detail(store, farm.runs["done"])["evaluation"]  # frame 3 held out; 3 of 4 fooled
+    assert ev["held_out"] == {"frames": 1, "benign": 1.0, "adversarial": 1.0, "success_rate": 0.0}
+    assert ev["attacked"] == {"frames": 3, "benign": 1.0, "adversarial": 0.0, "success_rate": 1.0}
+    rows = {r["id"]: r for r in query.runs_overview(store)}
+    done = rows[farm.runs["done"]]
+    assert (done["held_out_benign"], done["held_out_adversarial"], done["adversarial"]) == (1.0, 1.0, 0.25)
+    assert rows[farm.runs["running"]]["held_out_adversarial"] is None
+    assert query.run_detail(store, farm.runs["running"])["evaluation"]["held_out"] is None
+
+
+def test_accuracy_per_iteration_counts_the_attacked_frames_still_correct(farm_store):
+    store, farm = farm_store
+    points = query.chart_data(store, farm.runs["done"])["attacked"]
+    assert [p["k"] for p in points] == list(range(6)) and {p["n"] for p in points} == {3}  # never frame 3
+    assert [p["value"] for p in points] == pytest.approx([1, 1, 2 / 3, 2 / 3, 1 / 3, 1 / 3])
+    assert all(j.frame != 3 for j in store.jobs(farm.runs["done"], None, "attack"))
+    running = query.chart_data(store, farm.runs["running"])["attacked"]
+    assert [p["n"] for p in running] == [4, 4, 4, 1]  # k = 3: one job done so far; failed ones not counted
+    jobs = store.jobs(farm.runs["done"], None, "attack")
+    old = [dataclasses.replace(j, result=None) for j in jobs[:3]]  # stored before jobs kept predictions
+    detector = [dataclasses.replace(j, result={"prediction": {"detected": j.frame == 0, "score": 0.7}})
+                for j in jobs[3:6]]
+    assert query.attacked_metric(old + detector) == [{"k": 1, "value": pytest.approx(1 / 3), "n": 3}]
+
+
+def test_sweep_rows_have_the_held_out_numbers(farm_store):
+    store, farm = farm_store
+    rows = sweeps.sweep_detail(store, farm.sweep_id)["rows"]
+    by_eps = {(r["attack.name"], r["attack.eps"]): r for r in rows}
+    assert by_eps[("mifgsm", 32)]["held_out_adversarial"] == 0.0  # every frame fooled, frame 3 too
+    assert by_eps[("pgd", 8)]["held_out_adversarial"] == 1.0 and by_eps[("pgd", 8)]["held_out_benign"] == 1.0
 
 
 def test_texture_versions_keep_the_first_and_latest():
@@ -209,8 +245,11 @@ def test_frame_png_draws_detector_boxes_on_an_enlarged_frame():
 def test_charts_are_pngs_with_their_size(farm_store):
     store, farm = farm_store
     detail = query.run_detail(store, farm.runs["done"])
+    many = [{**detail["iterations"][0], "k": k} for k in range(charts.BARS_UP_TO + 1)]
     for data in (charts.loss_chart(detail["iterations"], "ce"), charts.seconds_chart(detail["iterations"]),
-                 charts.metric_chart(detail["evaluation"], 6), charts.loss_chart([], None),
+                 charts.seconds_chart(many), charts.seconds_chart([]),
+                 charts.metric_chart(query.chart_data(store, farm.runs["done"])),
+                 charts.metric_chart(query.chart_data(store, farm.runs["queued"])), charts.loss_chart([], None),
                  charts.sweep_chart(sweeps.eps_series(store, farm.sweep_id)), charts.sweep_chart({})):
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and _png_size(data) == (560, 270)
 

@@ -54,7 +54,8 @@ def runs() -> Any:
 @api.get("/runs/<id:run_id>")
 def run(run_id: str) -> Any:
     detail = query.run_detail(farm().store(), run_id)
-    return jsonify({**detail, "links": _links(detail)})
+    attacked = query.attacked_metric(farm().attack_jobs(run_id))
+    return jsonify({**detail, "attacked_metric": attacked, "links": _links(detail)})
 
 
 @api.get("/runs/<id:run_id>/jobs")

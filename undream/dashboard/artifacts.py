@@ -87,12 +87,12 @@ def run_chart(run_id: str, name: str) -> Any:
     run = store.get_run(run_id)
 
     def make() -> bytes:
-        detail = query.chart_data(store, run_id)
+        detail = query.chart_data(store, run_id, farm().attack_jobs(run_id) if name == "metric" else [])
         if name == "loss":
             return charts.loss_chart(detail["iterations"], detail["loss_kind"])
         if name == "seconds":
             return charts.seconds_chart(detail["iterations"])
-        return charts.metric_chart(detail["evaluation"], detail["steps"])
+        return charts.metric_chart(detail)
     return _png(farm().cache.get(("chart", name, run_id, run.updated, run.iteration), make))
 
 

@@ -12,20 +12,26 @@ from typing import Any, Sequence
 
 SIZE_IN = (5.6, 2.7)  # width, height in inches
 DPI = 100  # so a chart is 560×270 px
+MARGINS = {"left": 0.115, "right": 0.98, "bottom": 0.165, "top": 0.9}  # of the figure: room for labels
+BARS_UP_TO = 40  # more iterations than this: one filled step line instead of a bar each
 COLORS = ("#1f6fb2", "#d1495b", "#2a9d8f", "#e9a03b", "#6a4c93", "#555555")
 
 
 def warm_up() -> None:
-    """Import matplotlib's figure and Agg canvas (~0.3 s), e.g. when a server starts."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: F401
-    from matplotlib.figure import Figure  # noqa: F401
+    """Import matplotlib and draw one small chart (loads the fonts), once when a server starts."""
+    fig, ax = _figure()
+    ax.set_title("warm-up")
+    _png(fig)
 
 
 def _figure() -> tuple[Any, Any]:
+    """A 560×270 px figure with one axes: fixed margins (measuring the labels' extents for a
+    layout engine costs more than drawing the chart), a light grid, integer x ticks."""
     from matplotlib.figure import Figure
     from matplotlib.ticker import MaxNLocator
 
-    fig = Figure(figsize=SIZE_IN, dpi=DPI, layout="constrained")
+    fig = Figure(figsize=SIZE_IN, dpi=DPI)
+    fig.subplots_adjust(**MARGINS)
     ax = fig.add_subplot()
     ax.tick_params(labelsize=8)
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))
@@ -69,8 +75,11 @@ def loss_chart(iterations: Sequence[dict[str, Any]], loss_kind: str | None) -> b
 def seconds_chart(iterations: Sequence[dict[str, Any]]) -> bytes:
     """Wall seconds per iteration (from one iteration record to the next; the first from the run's creation)."""
     fig, ax = _figure()
-    if iterations:
-        ax.bar([r["k"] for r in iterations], [r["seconds"] for r in iterations], color=COLORS[2], width=0.8)
+    ks, seconds = [r["k"] for r in iterations], [r["seconds"] for r in iterations]
+    if len(iterations) > BARS_UP_TO and ks == list(range(ks[0], ks[0] + len(ks))):
+        ax.stairs(seconds, [k - 0.5 for k in ks] + [ks[-1] + 0.5], fill=True, color=COLORS[2])
+    elif iterations:
+        ax.bar(ks, seconds, color=COLORS[2], width=0.8)
     else:
         _empty(ax, "no iteration finished yet")
     ax.set_xlabel("iteration k", fontsize=9)
@@ -83,24 +92,50 @@ def _metric_name(metric: str | None) -> str:
     return {"accuracy": "accuracy", "ap50": "AP@0.5"}.get(metric or "", metric or "metric")
 
 
-def metric_chart(evaluation: dict[str, Any], steps: int | None) -> bytes:
-    """Accuracy or AP@0.5 (%) before the attack (iteration 0) and after its last step (iteration N)."""
+def _evaluation_points(ax: Any, evaluation: dict[str, Any], steps: int, name: str, spp: Any) -> bool:
+    """The evaluation's benign (k = 0) and adversarial (k = N) values: the attacked and held-out
+    frames apart when the run holds frames out, else every frame. Returns whether any was drawn."""
+    splits = [(evaluation.get("attacked"), "attacked frames", "o", COLORS[0]),
+              (evaluation.get("held_out"), "held-out frames", "^", COLORS[1])]
+    groups = [(block, label, marker, color) for block, label, marker, color in splits if block]
+    if not groups:
+        groups = [(evaluation, "every frame", "s", COLORS[0])]
+    drawn = False
+    for block, label, marker, color in groups:
+        points = [(x, 100.0 * v) for x, v in ((0, block.get("benign")), (steps, block.get("adversarial")))
+                  if v is not None]
+        if points:
+            ax.scatter(*zip(*points), marker=marker, color=color, s=36, zorder=3, edgecolors="white",
+                       label=f"{label}, evaluation at eval_spp {spp}: {name} "
+                             + " → ".join(f"{y:.0f} %" for _, y in points))
+            drawn = True
+    return drawn
+
+
+def metric_chart(data: dict[str, Any]) -> bytes:
+    """Per iteration, the share (%) of the attacked frames the victim still classifies correctly (or
+    detects) on the simulator's renders at ``sim_spp`` (``data["attacked"]``, from the attack jobs),
+    and the evaluation's accuracy or AP@0.5 (%) at ``eval_spp`` before the attack (k = 0) and
+    after it (k = N), the attacked and the held-out frames apart. ``data``: :func:`query.chart_data`."""
     fig, ax = _figure()
-    name = _metric_name(evaluation.get("metric"))
-    values = [(0, evaluation.get("benign"), "benign"), (steps or 1, evaluation.get("adversarial"), "adversarial")]
-    known = [(x, 100.0 * v, label) for x, v, label in values if v is not None]
-    if known:
-        ax.plot([p[0] for p in known], [p[1] for p in known], color="#999", linestyle="--", linewidth=1)
-        for (x, y, label), color in zip(known, (COLORS[2], COLORS[1])):
-            ax.scatter([x], [y], color=color, s=40, zorder=3, label=f"{label}: {y:.1f} %")
-        ax.legend(fontsize=8, frameon=False, loc="best")
+    evaluation, steps = data["evaluation"], data.get("steps") or 1
+    detector = evaluation.get("metric") == "ap50"
+    line = data.get("attacked") or []
+    if line:
+        ks, ys = [p["k"] for p in line], [100.0 * p["value"] for p in line]
+        ax.plot(ks, ys, color=COLORS[5], linewidth=1.3, marker="." if len(ks) < 40 else None,
+                label=f"attacked frames, simulator renders at sim_spp {data.get('sim_spp')}: "
+                      f"{'detected' if detector else 'correct'}")
+    drawn = _evaluation_points(ax, evaluation, steps, _metric_name(evaluation.get("metric")), data.get("eval_spp"))
+    if line or drawn:
+        ax.legend(fontsize=6.5, loc="lower left", framealpha=0.85)
     else:
-        _empty(ax, "measured at evaluation: not evaluated yet")
+        _empty(ax, "no prediction stored yet (attack jobs keep them; the evaluation comes last)")
     ax.set_ylim(-5, 105)
-    ax.set_xlim(-0.05 * (steps or 1), 1.05 * (steps or 1))
-    ax.set_xlabel("iteration k (0: benign texture, N: final texture)", fontsize=9)
-    ax.set_ylabel(f"{name} (%)", fontsize=9)
-    ax.set_title(f"victim {name}, evaluated on every frame", fontsize=10)
+    ax.set_xlim(-0.05 * steps, 1.05 * steps)
+    ax.set_xlabel("iteration k (texture version; N: final texture)", fontsize=9)
+    ax.set_ylabel("frames detected / AP (%)" if detector else "frames correct (%)", fontsize=9)
+    ax.set_title("victim " + ("detection" if detector else "accuracy") + " per iteration", fontsize=10)
     return _png(fig)
 
 

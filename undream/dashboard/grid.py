@@ -34,10 +34,13 @@ def _cell(job: "JobSnapshot", slow_after: float | None) -> dict[str, Any]:
                          and seconds > slow_after)}
 
 
-def job_grid(store: "Store", run_id: str) -> dict[str, Any]:
-    """The grid: ``columns`` (labels), ``rows`` (one list of cells or None per frame), the median job time."""
+def job_grid(store: "Store", run_id: str, attack_jobs: list["JobSnapshot"] | None = None) -> dict[str, Any]:
+    """The grid: ``columns`` (labels), ``rows`` (one list of cells or None per frame), the median job time.
+
+    ``attack_jobs``: the run's attack jobs when the caller already read them.
+    """
     run = store.get_run(run_id)
-    attack = store.jobs(run_id, None, "attack")
+    attack = store.jobs(run_id, None, "attack") if attack_jobs is None else attack_jobs
     evals = [store.jobs(run_id, run.iteration, phase) for phase in ("pre", "adversarial")]
     times = [s for j in attack if j.status == "succeeded" and (s := _seconds(j)) is not None]
     median = statistics.median(times) if times else None

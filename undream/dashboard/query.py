@@ -80,6 +80,8 @@ def run_summary(store: "Store", run: "RunSnapshot", now: dt.datetime) -> dict[st
         "failures": run.failures, "error": run.error,
         "metric": evaluation["metric"], "benign": evaluation["benign"],
         "adversarial": evaluation["adversarial"],
+        "held_out_benign": (evaluation["held_out"] or {}).get("benign"),
+        "held_out_adversarial": (evaluation["held_out"] or {}).get("adversarial"),
         "owner": getattr(run, "owner", None), "heartbeat": iso(getattr(run, "heartbeat", None)),
     }
 
@@ -108,12 +110,47 @@ def sweep_names(store: "Store", runs: list[dict[str, Any]]) -> dict[str, str]:
     return {i: store.find_sweep(i).name for i in ids}
 
 
+def _split(res: dict[str, Any], name: str) -> dict[str, Any] | None:
+    """results.json's ``attacked`` or ``held_out`` block as ``frames`` (how many), ``benign``,
+    ``adversarial`` and ``success_rate`` (fractions); None when the run has no such frames."""
+    block = res.get(name)
+    if not isinstance(block, dict):
+        return None
+    return {"frames": len(block.get("frames") or []), "benign": (block.get("benign") or {}).get("value"),
+            "adversarial": (block.get("adversarial") or {}).get("value"),
+            "success_rate": (block.get("attack_success") or {}).get("success_rate")}
+
+
 def _evaluation(run: "RunSnapshot") -> dict[str, Any]:
+    """The evaluation's headline numbers (every frame at ``eval_spp``) and its ``attacked`` /
+    ``held_out`` splits (see :func:`_split`)."""
     res = run.results or {}
     benign, adv = res.get("benign") or {}, res.get("adversarial") or {}
     success = ((res.get("attack_success") or {}).get("aggregate") or {}).get("success_rate")
     return {"metric": benign.get("metric"), "benign": benign.get("value"),
-            "adversarial": adv.get("value"), "success_rate": success, "label": res.get("label")}
+            "adversarial": adv.get("value"), "success_rate": success, "label": res.get("label"),
+            "attacked": _split(res, "attacked"), "held_out": _split(res, "held_out")}
+
+
+def _verdict(job: "JobSnapshot") -> bool | None:
+    """Whether an attack job's frame still fooled nobody: classified correctly or detected; None unknown."""
+    pred = (job.result or {}).get("prediction") if job.status == "succeeded" else None
+    if not isinstance(pred, dict):
+        return None
+    ok = pred.get("correct", pred.get("detected"))
+    return ok if isinstance(ok, bool) else None
+
+
+def attacked_metric(jobs: list["JobSnapshot"]) -> list[dict[str, Any]]:
+    """Per attack iteration ``k``: ``value``, the fraction (0–1) of the attacked frames rendered with
+    texture ``k`` (the simulator at ``sim_spp``) that the victim still classifies correctly, or
+    detects; ``n``, how many frames had a prediction. Iterations without one are left out."""
+    by_k: dict[int, list[bool]] = {}
+    for job in jobs:
+        ok = _verdict(job)
+        if ok is not None:
+            by_k.setdefault(job.k, []).append(ok)
+    return [{"k": k, "value": sum(v) / len(v), "n": len(v)} for k, v in sorted(by_k.items())]
 
 
 def _iteration_rows(run: "RunSnapshot", iters: list["IterationSnapshot"]) -> list[dict[str, Any]]:
@@ -171,11 +208,15 @@ def eval_frames(store: "Store", run: "RunSnapshot") -> list[dict[str, Any]]:
     return rows
 
 
-def chart_data(store: "Store", run_id: str) -> dict[str, Any]:
-    """What the run's charts need: iteration rows, the evaluation, the loss kind and the steps."""
+def chart_data(store: "Store", run_id: str, attack_jobs: list["JobSnapshot"] | None = None) -> dict[str, Any]:
+    """What the run's charts need: iteration rows, the evaluation, the loss kind, the steps, the
+    samples per pixel of the attack's and the evaluation's renders, and ``attacked``
+    (:func:`attacked_metric` of ``attack_jobs``, read from the store when not given)."""
     run = store.get_run(run_id)
+    jobs = store.jobs(run_id, None, "attack") if attack_jobs is None else attack_jobs
     return {"iterations": _iteration_rows(run, store.iterations(run_id)), "evaluation": _evaluation(run),
-            "loss_kind": run.config.get("loss"), "steps": steps_of(run)}
+            "loss_kind": run.config.get("loss"), "steps": steps_of(run), "attacked": attacked_metric(jobs),
+            "sim_spp": run.config.get("sim_spp"), "eval_spp": run.config.get("eval_spp")}
 
 
 def run_detail(store: "Store", run_id: str, now: dt.datetime | None = None) -> dict[str, Any]:
