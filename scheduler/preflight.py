@@ -1,7 +1,8 @@
 """Before ``undream run`` writes or deletes anything: validate the whole run, and the output folder rule.
 
 :func:`preflight` checks what can be checked without rendering, in order of
-cost: the attack block, the store URL, the scene source (a scene directory's
+cost: the attack block, the simulator (``sim: blender`` needs Blender's
+Python), the store URL, the scene source (a scene directory's
 ``sequence.json`` or a spec file, parsed), the victim (loaded) and its labels.
 :func:`check_output_folder` then says whether ``--out`` may be used:
 ``--force`` only ever replaces a folder that ``undream run`` created
@@ -65,9 +66,11 @@ def preflight(config: RunConfig, base_dir: Path, source: str | Path | None = Non
 def _preflight(config: RunConfig, base_dir: Path) -> Checked:
     from undream.engine.context import attack_of, class_ids, task_of
     from undream.render.budget import run_estimate
+    from undream.sim import check_simulator
     from undream.victims import load_victim
 
     attack_of(config)
+    check_simulator(config.sim)
     if config.store:
         from undream.store.db import make_engine
 

@@ -102,6 +102,6 @@ def build_context(config: RunConfig, scene_dir: Path, *, victim: "Victim | None"
     attack = attack_of(config)
     if scenes is None:
         scenes = SceneCache(scene_dir)
-    sim = make_backend("mitsuba", scene_dir, scenes=scenes)
+    sim = make_backend(config.sim, scene_dir, **({"scenes": scenes} if config.sim == "mitsuba" else {}))
     gradients = GradientPath(scenes, config.gradient, config.transport_refresh, config.seed)
     return RunContext(config, scene_dir, seq, scenes, sim, victim, targets, attack, gradients)

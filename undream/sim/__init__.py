@@ -51,5 +51,16 @@ def make_backend(name: str, scene_dir: str | Path, **options) -> SimulatorBacken
     return _BACKENDS[name](Path(scene_dir), **options)
 
 
+def check_simulator(name: str) -> None:
+    """Raise a one-line :class:`RenderError` unless backend ``name`` can run here (before anything is written)."""
+    _load_builtin()
+    if name not in _BACKENDS:
+        raise RenderError(f"sim: unknown simulator {name!r} (one of {', '.join(sorted(_BACKENDS))})")
+    if name == "blender":
+        from undream.sim.blender import check_blender
+
+        check_blender()
+
+
 def _load_builtin() -> None:
     from undream.sim import blender, mitsuba  # noqa: F401  (register 'blender' and 'mitsuba')

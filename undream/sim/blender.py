@@ -11,11 +11,11 @@ undream package.
 """
 from __future__ import annotations
 
-import atexit
 import os
 import shutil
 import subprocess
 import tempfile
+import weakref
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
@@ -82,6 +82,7 @@ class BlenderSimulator:
         self.threads = int(threads if threads is not None else os.environ.get(THREADS_ENV, 0))
         self._proc: subprocess.Popen | None = None
         self._root: Path | None = None
+        self._finalizer: weakref.finalize | None = None
         self._versions: dict[str, str] = {}
         check_blender(self.python)
 
@@ -92,9 +93,11 @@ class BlenderSimulator:
         env = {**os.environ, "PYTHONPATH": str(root), "PYTHONNOUSERSITE": "1"}
         cmd = [str(self.python), "-m", "undream.sim.blender_server", str(self.scene_dir),
                "--threads", str(self.threads)]
-        self._proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                      stderr=subprocess.DEVNULL, env=env, cwd=str(root))
-        atexit.register(self.close)
+        with open(root / "server.log", "wb") as log:  # Blender's own output, for errors
+            self._proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=log,
+                                          env=env, cwd=str(root))
+        # Stops the server when this backend is garbage-collected or the process exits.
+        self._finalizer = weakref.finalize(self, _shutdown, self._proc, root)
         header, _ = self._receive("starting the Cycles server")
         self._versions = {str(k): str(v) for k, v in header.get("versions", {}).items()}
         return self._proc
@@ -104,12 +107,24 @@ class BlenderSimulator:
         try:
             header, array = read_message(self._proc.stdout)
         except ProtocolError as err:
-            code = self._proc.poll()
+            try:
+                code: int | None = self._proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                code = None
+            last = self._last_log_line()
             self.close()
-            raise RenderError(f"sim: blender: {doing}: the server ended ({err}; exit code {code})") from None
+            raise RenderError(f"sim: blender: {doing}: the server ended ({err}; exit code {code}; "
+                              f"last output: {last})") from None
         if "error" in header:
             raise RenderError(f"sim: blender: {doing}: {header['error']}")
         return header, array
+
+    def _last_log_line(self) -> str:
+        try:
+            lines = (self._root / "server.log").read_text(errors="replace").strip().splitlines()  # type: ignore[operator]
+        except (OSError, TypeError):
+            return "none"
+        return lines[-1][:300] if lines else "none"
 
     def render(self, index: int, texture_srgb: np.ndarray, spp: int, seed: int) -> np.ndarray:
         """Frame ``index`` with ``texture_srgb`` (H×W×3 sRGB in [0, 1]): H×W×3 linear radiance (float32)."""
@@ -129,23 +144,40 @@ class BlenderSimulator:
             raise RenderError(f"sim: blender: frame {index}: the server sent no image")
         return np.array(img, dtype=np.float32)
 
+    def coverage(self, index: int, spp: int = 16) -> np.ndarray:
+        """The object's visible coverage in Cycles (H×W float32 in [0, 1]); its mask is ``coverage > 0.5``."""
+        proc = self._start()
+        assert proc.stdin is not None
+        write_message(proc.stdin, {"cmd": "coverage", "index": int(index), "spp": int(spp)})
+        _, img = self._receive(f"coverage of frame {index}")
+        if img is None:
+            raise RenderError(f"sim: blender: frame {index}: the server sent no coverage")
+        return np.array(img, dtype=np.float32)
+
     def versions(self) -> dict[str, str]:
         self._start()
         return dict(self._versions)
 
     def close(self) -> None:
-        """Ask the server to quit and wait for it (killed after 10 s)."""
-        proc, self._proc = self._proc, None
-        if self._root is not None:
-            shutil.rmtree(self._root, ignore_errors=True)
-            self._root = None
-        if proc is None or proc.poll() is not None:
-            return
-        try:
-            assert proc.stdin is not None
-            write_message(proc.stdin, {"cmd": "quit"})
-            proc.stdin.close()
-            proc.wait(timeout=10)
-        except (OSError, subprocess.TimeoutExpired):
-            proc.kill()
-            proc.wait()
+        """Ask the server to quit and wait for it (killed after 10 s); a later render starts a new one."""
+        proc, root, self._proc, self._root = self._proc, self._root, None, None
+        if self._finalizer is not None:
+            self._finalizer.detach()
+            self._finalizer = None
+        _shutdown(proc, root)
+
+
+def _shutdown(proc: subprocess.Popen | None, root: Path | None) -> None:
+    """Stop a render server (``quit``, then kill after 10 s) and remove its import folder."""
+    if root is not None:
+        shutil.rmtree(root, ignore_errors=True)
+    if proc is None or proc.poll() is not None:
+        return
+    try:
+        assert proc.stdin is not None
+        write_message(proc.stdin, {"cmd": "quit"})
+        proc.stdin.close()
+        proc.wait(timeout=10)
+    except (OSError, subprocess.TimeoutExpired):
+        proc.kill()
+        proc.wait()

@@ -190,7 +190,9 @@ class CyclesScene:
         sc.render.film_transparent = False
         sc.render.resolution_percentage = 100
         sc.render.pixel_aspect_x = sc.render.pixel_aspect_y = 1.0
-        sc.render.use_persistent_data = True
+        # Persistent data would keep the first texture: Cycles does not re-sync an image whose pixels
+        # changed (measured with bpy 5.0.1, even after update_tag), so every render syncs afresh.
+        sc.render.use_persistent_data = False
         sc.render.threads_mode = "FIXED" if threads > 0 else "AUTO"
         if threads > 0:
             sc.render.threads = threads
@@ -423,10 +425,9 @@ class CyclesScene:
         self.image.pixels.foreach_set(self._rgba.ravel())
         self.image.update()
 
-    def render(self, index: int, texture_linear: np.ndarray, spp: int, seed: int) -> np.ndarray:
-        """Frame ``index`` with ``texture_linear`` at ``spp`` samples and ``seed``: H×W×3 linear radiance."""
-        self.set_texture(texture_linear)
-        fw, fh, (ox, oy, cw, ch) = self.set_frame(index)
+    def _render_exr(self, film: tuple[int, int, tuple[int, int, int, int]], spp: int, seed: int) -> np.ndarray:
+        """Render the posed frame; H×W×4 linear RGBA of the camera's crop window."""
+        fw, fh, (ox, oy, cw, ch) = film
         sc = self.scene
         sc.render.resolution_x, sc.render.resolution_y = fw, fh
         sc.cycles.samples = int(spp)
@@ -438,10 +439,50 @@ class CyclesScene:
         try:
             px = np.empty(fw * fh * img.channels, dtype=np.float32)
             img.pixels.foreach_get(px)
-            rgb = px.reshape(fh, fw, img.channels)[::-1, :, :3]
+            rgba = px.reshape(fh, fw, img.channels)[::-1]
         finally:
             bpy.data.images.remove(img)
-        return np.ascontiguousarray(rgb[oy:oy + ch, ox:ox + cw])
+        if rgba.shape[2] == 3:
+            rgba = np.concatenate([rgba, np.ones_like(rgba[..., :1])], axis=2)
+        return np.ascontiguousarray(rgba[oy:oy + ch, ox:ox + cw])
+
+    def render(self, index: int, texture_linear: np.ndarray, spp: int, seed: int) -> np.ndarray:
+        """Frame ``index`` with ``texture_linear`` at ``spp`` samples and ``seed``: H×W×3 linear radiance."""
+        self.set_texture(texture_linear)
+        return self._render_exr(self.set_frame(index), spp, seed)[..., :3].copy()
+
+    def coverage(self, index: int, spp: int) -> np.ndarray:
+        """The object's visible coverage in frame ``index`` (H×W in [0, 1], box filter).
+
+        Every other surface is a holdout (occludes, adds no alpha), the world
+        and the fog are transparent: the film's alpha is what the object covers,
+        as Mitsuba's mask scene measures it.
+        """
+        film = self.set_frame(index)
+        sc, cy = self.scene, self.scene.cycles
+        saved = (sc.render.film_transparent, cy.pixel_filter_type, cy.filter_width,
+                 sc.render.image_settings.color_mode)
+        changed = []
+        for o in self._objects.values():
+            if o.hide_render:
+                continue
+            if o.name.startswith("fog_volume"):
+                o.hide_render = True
+                changed.append((o, "hide_render", False))
+            elif o.name != OBJECT_ID:
+                o.is_holdout = True
+                changed.append((o, "is_holdout", False))
+        sc.render.film_transparent = True
+        cy.pixel_filter_type, cy.filter_width = "BOX", 1.0
+        sc.render.image_settings.color_mode = "RGBA"
+        try:
+            alpha = self._render_exr(film, spp, 0)[..., 3].copy()
+        finally:
+            for o, attr, value in changed:
+                setattr(o, attr, value)
+            (sc.render.film_transparent, cy.pixel_filter_type, cy.filter_width,
+             sc.render.image_settings.color_mode) = saved
+        return alpha
 
     def versions(self) -> dict[str, str]:
         return {"blender": bpy.app.version_string, "cycles_device": "CPU", "numpy_blender": np.__version__}

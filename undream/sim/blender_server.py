@@ -10,6 +10,8 @@ format of :mod:`undream.sim.blender_protocol`:
 - ``{"cmd": "render", "index", "spp", "seed"}`` + H×W×3 float32 texture
   (LINEAR reflectance) → ``{"ok": true, "seconds"}`` + H×W×3 float32 frame
   (linear radiance);
+- ``{"cmd": "coverage", "index", "spp"}`` → H×W float32: the object's
+  visible coverage in [0, 1] (its mask is coverage > 0.5);
 - ``{"cmd": "quit"}`` → exits.
 
 A failed request answers ``{"error": "one line"}`` and the server goes on.
@@ -53,12 +55,15 @@ def serve(scene_dir: str, threads: int, inp: BinaryIO, out: BinaryIO) -> None:
         cmd = header.get("cmd")
         if cmd == "quit":
             return
-        if cmd != "render" or array is None:
-            write_message(out, {"error": f"unknown request {cmd!r} (render with a texture, or quit)"})
+        if not (cmd == "render" and array is not None or cmd == "coverage"):
+            write_message(out, {"error": f"unknown request {cmd!r} (render with a texture, coverage, or quit)"})
             continue
         try:
             t0 = time.perf_counter()
-            img = scene.render(int(header["index"]), array, int(header["spp"]), int(header["seed"]))
+            if cmd == "coverage":
+                img = scene.coverage(int(header["index"]), int(header["spp"]))
+            else:
+                img = scene.render(int(header["index"]), array, int(header["spp"]), int(header["seed"]))
             write_message(out, {"ok": True, "seconds": time.perf_counter() - t0}, img)
         except Exception as err:  # one line back; the scene stays loaded for the next request
             write_message(out, {"error": f"{type(err).__name__}: {err}"})

@@ -15,6 +15,7 @@ from undream.spec.io import read_yaml
 
 TASK_LOSSES = {"classification": ("ce", "targeted_ce", "dlr"), "detection": ("vanish", "mislabel", "box")}
 ALL_LOSSES = tuple(k for kinds in TASK_LOSSES.values() for k in kinds)
+SIMULATORS = ("mitsuba", "blender")  # undream.sim backends a run may name
 
 
 @dataclass(frozen=True)
@@ -32,7 +33,11 @@ class RunConfig:
     texel → pixel transport where the gradient scene is linear in the
     texture (else by Mitsuba's prb backward pass), ``transport`` requires
     that, ``prb`` always renders; ``transport_refresh``: capture each frame
-    again with a new sample pattern every this many iterations.
+    again with a new sample pattern every this many iterations. ``sim``: the
+    simulator that renders the frames the victim sees, during the attack and
+    in the evaluation (``mitsuba``, embedded; ``blender``: Cycles, needs
+    Blender's Python, see :mod:`undream.sim.blender`); the texture gradient
+    always comes from Mitsuba's gradient scene.
     """
 
     scene: str
@@ -52,6 +57,7 @@ class RunConfig:
     gradient: str = "auto"  # auto | transport | prb
     transport_refresh: int = 5
     holdout: Any = "auto"  # frames the attack never sees, evaluated apart: see split_frames
+    sim: str = "mitsuba"  # the simulator backend: one of SIMULATORS
 
     def __post_init__(self) -> None:
         if not isinstance(self.scene, str) or not self.scene:
@@ -79,6 +85,7 @@ class RunConfig:
         if not isinstance(self.device, str):
             raise c.fail("device", self.device, "must be a torch device string such as 'cpu'")
         _check_holdout(self.holdout)
+        c.choice("sim", self.sim, SIMULATORS)
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
