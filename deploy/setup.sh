@@ -2,7 +2,8 @@
 # Sets up undream on a fresh Debian machine: libLLVM >= 16 for Mitsuba's CPU
 # backend, Chromium and its driver for the dashboard's browser tests, a virtual
 # environment in .venv, the CPU build of torch 2.13.0 and the project with its
-# test extras. Safe to run again.
+# test extras, and Blender (bpy 5.0.1) in .venv-blender for the `blender`
+# simulator. Safe to run again.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -34,4 +35,21 @@ PY=${PYTHON:-python3}
 # The CPU build first: anything that later asks for torch finds it satisfied.
 .venv/bin/python -m pip install -q "torch==2.13.0"
 .venv/bin/python -m pip install -q -e ".[test,postgres]"
+
+# The `blender` simulator (Cycles) runs in its own environment and process: bpy 5.0.1 is built
+# for Python 3.11 and needs numpy < 2, while undream runs on numpy 2 (undream/sim/blender.py).
+# UNDREAM_SKIP_BLENDER=1 leaves it out (its tests then skip, or fail under UNDREAM_REQUIRE_SERVICES).
+if [ "${UNDREAM_SKIP_BLENDER:-0}" != 1 ]; then
+    BPY_PY=${BLENDER_PYTHON:-python3.11}
+    [ -x .venv-blender/bin/python ] || "$BPY_PY" -m venv .venv-blender
+    .venv-blender/bin/python -m pip install -q "bpy==5.0.1" "numpy>=1.26,<2"
+    if ! .venv-blender/bin/python -c "import bpy" 2>/dev/null; then
+        echo "setup: installing the X11/GL client libraries that bpy links against"
+        SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+        $SUDO apt-get update -qq
+        DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq libx11-6 libxrender1 libxfixes3 libxi6 \
+            libxkbcommon0 libxext6 libsm6 libgl1 >/dev/null
+    fi
+    .venv-blender/bin/python -c "import bpy; print('setup: ready (.venv-blender, Blender', bpy.app.version_string + ')')"
+fi
 echo "setup: ready (.venv)"
