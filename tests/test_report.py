@@ -162,9 +162,11 @@ def _nothing_written(parent: Path, out: Path) -> None:
     ("no-such-sweep", "TARGET 'no-such-sweep': no such folder"),
     ("{scene}", "not an output folder of `undream run`"),
     ("{sweep_yaml}", "not an output folder of `undream run`, a run id or a sweep"),
+    ("{farm_output}", "give its run id"),  # a submitted run's outputs: no store/ in them
 ])
 def test_bad_targets_are_one_line_and_write_nothing(farm, tmp_path, target, words):
-    target = target.format(scene=farm["root"] / "scene", sweep_yaml=farm["root"] / "sweep.yaml")
+    target = target.format(scene=farm["root"] / "scene", sweep_yaml=farm["root"] / "sweep.yaml",
+                           farm_output=farm["root"] / "outs" / "tiny-000")
     res = _cli(target, "--out", str(tmp_path / "rep"), *farm["db"])
     assert res.exit_code == 2 and res.stderr.count("\n") == 1 and words in res.stderr, res.stderr
     _nothing_written(tmp_path, tmp_path / "rep")

@@ -30,9 +30,16 @@ def _folder_target(folder: Path) -> "Target":
     from undream.errors import SpecError
     from undream.report import Target
 
-    store = _run_store(folder)
-    meta = json.loads((folder / "metadata.json").read_text())
+    try:
+        meta = json.loads((folder / "metadata.json").read_text())
+    except (OSError, ValueError):
+        meta = None
     run_id = meta.get("run_id") if isinstance(meta, dict) else None
+    if not (folder / "store").is_dir():
+        hint = f"; give its run id {run_id} and the farm's settings" if run_id else ""
+        raise SpecError(f"TARGET {folder}: not an output folder of `undream run` (no metadata.json and "
+                        f"store/ in it){hint}")
+    store = _run_store(folder)
     if run_id:
         return Target(store, run=store.get_run(str(run_id)), folder=folder)
     runs = store.runs()
