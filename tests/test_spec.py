@@ -53,7 +53,7 @@ def test_camera_round_trip_property(t, fov, w, h):
     (lambda d: d["frames"][0]["object_to_world"][1].__setitem__(3, float("nan")),
      "frames[0].object_to_world.matrix[1][3]"),
     (lambda d: d["frames"][1]["camera"].__setitem__("resolution", [64]), "frames[1].camera.resolution"),
-    (lambda d: d["frames"][0]["environment"].__setitem__("weather", "snow"), "frames[0].environment.weather"),
+    (lambda d: d["frames"][0]["environment"].__setitem__("weather", "hail"), "frames[0].environment.weather"),
     (lambda d: d["asset"].__setitem__("mesh", "thing.fbx"), "asset.mesh"),
     (lambda d: d["frames"][1].__setitem__("index", 0), "frames"),
     (lambda d: d["frames"][0]["camera"]["to_world"][0].__setitem__(0, 2.0), "frames[0].camera.to_world"),

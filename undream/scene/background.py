@@ -31,9 +31,13 @@ class Prop:
     colour: tuple[float, float, float]  # sRGB-ish albedo, used as linear reflectance
 
 
-def ground(background: str) -> dict[str, Any]:
-    """A 200 m square at y = 0, normal +Y, with a 2 m checkerboard."""
-    c0, c1 = GROUND_COLOURS[background]
+def ground(background: str, tint: Any = None) -> dict[str, Any]:
+    """A 200 m square at y = 0, normal +Y, with a 2 m checkerboard.
+
+    ``tint``: a function of the two check colours giving the ones to use
+    (the weather's: :func:`undream.scene.environment.ground_tint`).
+    """
+    c0, c1 = GROUND_COLOURS[background] if tint is None else tint(GROUND_COLOURS[background])
     s = GROUND_HALF_SIZE
     m = np.array([[s, 0, 0, 0], [0, 0, s, 0], [0, -s, 0, 0], [0, 0, 0, 1.0]])
     tex = {"type": "checkerboard", "color0": {"type": "rgb", "value": list(c0)},

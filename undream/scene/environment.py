@@ -2,6 +2,17 @@
 
 Radiometry is in linear RGB, scaled so that a white diffuse surface in full
 sun renders a little below 1 (no tone mapping is applied downstream).
+
+Weather presets (both simulators render them from these numbers; the Blender
+backend translates the same Mitsuba dictionaries):
+
+- ``clear``: full sun, blue sky; ``cloudy``: sun at 12 %, bright grey sky;
+- ``fog``: sun at 45 %, grey sky, a homogeneous medium of ``fog_density``;
+- ``night``: a dark blue sky and one warm point lamp above the object;
+- ``rain``: sun at 4 %, a dim grey sky, a light haze (:data:`HAZE`) and a
+  wet ground (darker: :func:`ground_tint`);
+- ``snow``: sun at 15 %, a bright sky, a light haze and a snow-covered
+  ground. Falling drops and flakes are not modelled (in either simulator).
 """
 from __future__ import annotations
 
@@ -14,6 +25,9 @@ from undream.spec import Environment, sun_direction
 
 SUN_IRRADIANCE = 2.0  # clear-sky sun, W/m² in undream's display-referred units
 FOG_ALBEDO = 0.85
+HAZE = {"rain": 0.025, "snow": 0.035}  # extinction (1/m) of the haze that rain and snow bring
+SNOW_GROUND = ((0.80, 0.82, 0.86), (0.74, 0.76, 0.80))  # linear albedo of the two checks
+WET_DARKENING = 0.55  # a wet ground's albedo relative to the dry one
 
 
 def _rgb(*v: float) -> dict[str, Any]:
@@ -43,6 +57,8 @@ def emitters(env: Environment, anchor: np.ndarray) -> dict[str, dict[str, Any]]:
         "clear": (1.0, np.array([0.26, 0.34, 0.48])),
         "cloudy": (0.12, np.array([0.50, 0.52, 0.56])),
         "fog": (0.45, np.array([0.42, 0.44, 0.47])),
+        "rain": (0.04, np.array([0.26, 0.28, 0.31])),
+        "snow": (0.15, np.array([0.60, 0.62, 0.66])),
     }[env.weather]
     twilight = 0.08 + 0.92 * float(np.clip((elev + 6.0) / 12.0, 0.0, 1.0))
     out["sky"] = {"type": "constant", "radiance": _rgb(*(sky * twilight))}
@@ -53,7 +69,22 @@ def emitters(env: Environment, anchor: np.ndarray) -> dict[str, dict[str, Any]]:
     return out
 
 
+def has_medium(env: Environment) -> bool:
+    """Whether the simulation scene holds a scattering medium (fog, or rain's and snow's haze)."""
+    return env.weather == "fog" or env.weather in HAZE
+
+
 def fog_medium(env: Environment) -> dict[str, Any]:
-    """A homogeneous, grey scattering medium with extinction ``fog_density`` (1/m)."""
-    return {"type": "homogeneous", "id": "fog", "sigma_t": float(env.fog_density),
+    """A homogeneous, grey scattering medium: extinction ``fog_density`` (1/m) in fog, :data:`HAZE` in rain and snow."""
+    density = HAZE.get(env.weather, env.fog_density)
+    return {"type": "homogeneous", "id": "fog", "sigma_t": float(density),
             "albedo": _rgb(FOG_ALBEDO, FOG_ALBEDO, FOG_ALBEDO), "scale": 1.0}
+
+
+def ground_tint(env: Environment, colours: tuple[Any, Any]) -> tuple[Any, Any]:
+    """The ground's two check colours (linear) under ``env``: snow-covered, wet (darker) or as they are."""
+    if env.weather == "snow":
+        return SNOW_GROUND
+    if env.weather == "rain":
+        return tuple(tuple(WET_DARKENING * float(x) for x in c) for c in colours)  # type: ignore[return-value]
+    return colours

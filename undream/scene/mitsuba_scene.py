@@ -3,7 +3,8 @@
 Three views of a frame share one sensor and one object node:
 
 - ``sim``: everything the simulator shows (environment, fog, ground, props,
-  object, actors), path traced (``volpath`` in fog);
+  object, actors), path traced (``volpath`` in fog and in the haze of rain
+  and snow);
 - ``grad``: no more than the object's appearance needs: the object, the
   emitters, and what can shadow or hide it (ground, actors), for ``prb``
   with direct light only (``max_depth`` 2), so a texel reaches the image only
@@ -93,7 +94,7 @@ def scene_dict(seq: Sequence, frame: Frame, paths: ScenePaths, kind: str) -> dic
     if kind not in KINDS:
         raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
     env = frame.environment
-    fog = kind == "sim" and env.weather == "fog"
+    fog = kind == "sim" and environment.has_medium(env)
     d: dict[str, Any] = {"type": "scene"}
     if kind == "mask":
         d["integrator"] = {"type": "path", "max_depth": 1}
@@ -109,7 +110,7 @@ def scene_dict(seq: Sequence, frame: Frame, paths: ScenePaths, kind: str) -> dic
         d["fog"] = environment.fog_medium(env)
         d["sensor"]["medium"] = {"type": "ref", "id": "fog"}
         d["fog_volume"] = _fog_volume(frame, anchor)
-    d["ground"] = _occluder(background.ground(env.background), kind)
+    d["ground"] = _occluder(background.ground(env.background, lambda c: environment.ground_tint(env, c)), kind)
     d[OBJECT_ID] = _object(seq, frame, paths, kind)
     for asset, pose in _actor_poses(seq, frame):
         node = {"type": "ply", "filename": paths.mesh(asset.name), "to_world": Mat4.of(pose.to_world.matrix),

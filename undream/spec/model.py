@@ -19,7 +19,7 @@ from undream.spec import _check as c
 Row = tuple[float, float, float, float]
 Matrix = tuple[Row, Row, Row, Row]
 
-WEATHERS = ("clear", "cloudy", "night", "fog")
+WEATHERS = ("clear", "cloudy", "night", "fog", "rain", "snow")
 BACKGROUNDS = ("plain", "park", "street")
 BUILTIN_PREFIX = "builtin:"
 
@@ -181,7 +181,8 @@ class Environment:
 
     ``time_of_day`` in hours [0, 24) places the sun (see
     :func:`sun_direction`); ``fog_density`` is the extinction in 1/m used when
-    the weather is ``fog``.
+    the weather is ``fog`` (``rain`` and ``snow`` bring their own, lighter
+    haze: :mod:`undream.scene.environment`).
     """
 
     weather: str = "clear"
