@@ -145,8 +145,13 @@ def _diffuse(name: str, colour: Any) -> Any:
 
 
 def _object(name: str, mesh: Any, material: Any) -> Any:
+    """A new object of ``mesh`` with its own ``material`` (meshes are shared: the sphere serves tree
+    crowns of every colour and the fog volume, so the material is linked to the object, not the mesh)."""
     obj = bpy.data.objects.new(name, mesh)
-    mesh.materials.append(material)
+    if not mesh.materials:
+        mesh.materials.append(None)
+    obj.material_slots[0].link = "OBJECT"
+    obj.material_slots[0].material = material
     bpy.context.scene.collection.objects.link(obj)
     return obj
 
@@ -162,6 +167,7 @@ class CyclesScene:
         self._tmp = tempfile.TemporaryDirectory(prefix="undream-cycles-")
         self._objects: dict[str, Any] = {}  # signature → Blender object
         self._meshes: dict[str, Any] = {}
+        self._medium_nodes: tuple[Any, Any] | None = None
         bpy.ops.wm.read_factory_settings(use_empty=True)
         self.scene = bpy.context.scene
         self._setup_render(threads)
@@ -304,17 +310,24 @@ class CyclesScene:
         scatter = nodes.new("ShaderNodeVolumeScatter")
         absorb = nodes.new("ShaderNodeVolumeAbsorption")
         add = nodes.new("ShaderNodeAddShader")
-        sigma_t = float(medium["sigma_t"]) * float(medium.get("scale", 1.0))
-        albedo = float(np.mean(_rgb(medium["albedo"])))
-        scatter.inputs["Density"].default_value = albedo * sigma_t
         scatter.inputs["Anisotropy"].default_value = 0.0
         scatter.inputs["Color"].default_value = (1.0, 1.0, 1.0, 1.0)
-        absorb.inputs["Density"].default_value = (1.0 - albedo) * sigma_t
         absorb.inputs["Color"].default_value = (0.0, 0.0, 0.0, 1.0)
         links.new(scatter.outputs[0], add.inputs[0])
         links.new(absorb.outputs[0], add.inputs[1])
         links.new(add.outputs[0], out.inputs["Volume"])
+        self._medium_nodes = (scatter, absorb)
+        self._set_medium(medium)
         return mat
+
+    def _set_medium(self, medium: dict[str, Any]) -> None:
+        """The fog's densities for this frame (fog, rain and snow differ; one volume object serves all)."""
+        assert self._medium_nodes is not None  # made by _fog_material before any frame uses it
+        scatter, absorb = self._medium_nodes
+        sigma_t = float(medium["sigma_t"]) * float(medium.get("scale", 1.0))
+        albedo = float(np.mean(_rgb(medium["albedo"])))
+        scatter.inputs["Density"].default_value = albedo * sigma_t
+        absorb.inputs["Density"].default_value = (1.0 - albedo) * sigma_t
 
     def _signature(self, key: str, node: dict[str, Any]) -> str:
         if node["type"] == "ply":
@@ -412,6 +425,8 @@ class CyclesScene:
         for obj in self._objects.values():
             if obj.name not in shown:
                 obj.hide_render = True
+        if "fog" in d:
+            self._set_medium(d["fog"])
         self._lights(d)
         self._bounces(d)
         return self._camera(d["sensor"])
