@@ -126,7 +126,8 @@ class JobTables:
     def jobs(self, run_id: str, k: int | None = None, phase: str = "attack") -> list[JobSnapshot]:
         """The recorded jobs of ``phase`` (of iteration ``k``, or all), by k and frame.
 
-        Read as plain rows, not ORM objects (a third faster for a run's thousands of jobs).
+        Read as plain rows, not ORM objects, their JSON decoded at once (a run's thousands of
+        jobs in a third of the time).
         """
         table = FrameJob.__table__
         query = select(table).where(table.c.run_id == run_id, table.c.phase == _phase(phase))
@@ -134,7 +135,7 @@ class JobTables:
             query = query.where(table.c.k == k)
         with self._tx("jobs", write=False) as s:
             self._run(s, run_id)
-            return [JobSnapshot.of(r) for r in s.execute(query.order_by(table.c.k, table.c.frame))]
+            return JobSnapshot.many(s.execute(query.order_by(table.c.k, table.c.frame)).all())
 
     def job_counts(self, run_ids: Sequence[str]) -> dict[tuple[str, str, int], dict[str, int]]:
         """(run id, phase, k) → status → number of jobs, for the runs ``run_ids`` (a list page's

@@ -50,6 +50,12 @@ def loads(text: str | None) -> Any:
     return None if text is None else json.loads(text)
 
 
+def loads_many(texts: list[str | None]) -> list[Any]:
+    """:func:`loads` of each text, decoded as one JSON array (one call instead of one per text:
+    thousands of small documents decode several times faster). Every stored text is strict JSON."""
+    return json.loads("[" + ",".join("null" if t is None else t for t in texts) + "]")
+
+
 def _utc(stamp: dt.datetime | None) -> dt.datetime | None:
     """SQLite returns naive datetimes; every stored time is UTC."""
     if stamp is None or stamp.tzinfo is not None:
@@ -132,6 +138,17 @@ class JobSnapshot:
     result: dict[str, Any] | None = None
     image_ref: str | None = None
     worker: str | None = None
+
+    @classmethod
+    def many(cls, rows: list[Any]) -> list["JobSnapshot"]:
+        """:meth:`of` each row of the frame-job table, their JSON decoded together."""
+        timings = loads_many([r.timings_json for r in rows])
+        results = loads_many([r.result_json for r in rows])
+        return [cls(run_id=r.run_id, k=r.k, frame=r.frame, status=r.status, attempts=r.attempts,
+                    loss=r.loss, finite=bool(r.finite), grad_ref=r.grad_ref, timings=t or {},
+                    error=r.error, started=_utc(r.started), finished=_utc(r.finished), phase=r.phase,
+                    result=res, image_ref=r.image_ref, worker=r.worker)
+                for r, t, res in zip(rows, timings, results)]
 
     @classmethod
     def of(cls, row: Any) -> "JobSnapshot":
