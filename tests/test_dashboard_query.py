@@ -55,11 +55,16 @@ def test_runs_overview_has_every_state_newest_first(farm_store):
 
 
 def test_list_reads_match_the_per_run_reads(farm_store):
-    """The runs list reads iterations and job counts of all its runs in one query each."""
+    """The runs list reads iterations and job counts of all its runs in one query each; the grid reads
+    the jobs' lines (the columns it shows)."""
     store, farm = farm_store
     ids = [farm.runs["running"], farm.runs["queued"], "00000000-0000-4000-8000-000000000000"]
     iters = store.iterations_of(ids)
     assert iters[ids[0]] == store.iterations(ids[0]) and iters[ids[1]] == [] and iters[ids[2]] == []
+    lines = store.job_lines(ids[0])
+    assert [(j.k, j.frame, j.status, j.attempts, j.worker, j.error, j.timings, j.result) for j in lines] == \
+        [(j.k, j.frame, j.status, j.attempts, j.worker, j.error, j.timings, j.result) for j in store.jobs(ids[0])]
+    assert store.job_lines(ids[1]) == [] and lines[0].result["prediction"]["correct"] is True
     counts = store.job_counts(ids)
     assert counts[(ids[0], "attack", 3)] == {"succeeded": 1, "retried": 1, "started": 1, "queued": 1}
     assert counts[(ids[0], "attack", 0)] == {"succeeded": 4} and not any(key[0] != ids[0] for key in counts)

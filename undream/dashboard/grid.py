@@ -15,17 +15,17 @@ from typing import TYPE_CHECKING, Any
 from undream.dashboard.query import SLOW_FACTOR
 
 if TYPE_CHECKING:
-    from undream.store import JobSnapshot, Store
+    from undream.store import JobLine, JobSnapshot, Store
 
 ERROR_CHARS = 300  # an error is cut to this many characters in a cell
 
 
-def _seconds(job: "JobSnapshot") -> float | None:
+def _seconds(job: "JobLine | JobSnapshot") -> float | None:
     total = job.timings.get("total")
     return float(total) if isinstance(total, (int, float)) and not isinstance(total, bool) else None
 
 
-def _cell(job: "JobSnapshot", slow_after: float | None) -> dict[str, Any]:
+def _cell(job: "JobLine | JobSnapshot", slow_after: float | None) -> dict[str, Any]:
     seconds = _seconds(job)
     error = " ".join((job.error or "").split())
     return {"status": job.status, "seconds": seconds, "attempts": job.attempts, "worker": job.worker,
@@ -34,13 +34,13 @@ def _cell(job: "JobSnapshot", slow_after: float | None) -> dict[str, Any]:
                          and seconds > slow_after)}
 
 
-def job_grid(store: "Store", run_id: str, attack_jobs: list["JobSnapshot"] | None = None) -> dict[str, Any]:
+def job_grid(store: "Store", run_id: str, attack_jobs: list["JobLine"] | None = None) -> dict[str, Any]:
     """The grid: ``columns`` (labels), ``rows`` (one list of cells or None per frame), the median job time.
 
     ``attack_jobs``: the run's attack jobs when the caller already read them.
     """
     run = store.get_run(run_id)
-    attack = store.jobs(run_id, None, "attack") if attack_jobs is None else attack_jobs
+    attack = store.job_lines(run_id) if attack_jobs is None else attack_jobs
     evals = [store.jobs(run_id, run.iteration, phase) for phase in ("pre", "adversarial")]
     times = [s for j in attack if j.status == "succeeded" and (s := _seconds(j)) is not None]
     median = statistics.median(times) if times else None

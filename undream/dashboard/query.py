@@ -13,14 +13,14 @@ from __future__ import annotations
 import datetime as dt
 import functools
 import statistics
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 from scheduler.query import current_phase
 from undream.dashboard.errors import BadRequest
 from undream.store import RUN_STATUSES
 
 if TYPE_CHECKING:
-    from undream.store import IterationSnapshot, JobSnapshot, RunSnapshot, Store
+    from undream.store import IterationSnapshot, JobLine, JobSnapshot, RunSnapshot, Store
 
 ACTIVE_STATUSES = ("queued", "running", "evaluating")
 Memo = Callable[[tuple[Any, ...], Callable[[], Any]], Any]  # cache.get(key, make)
@@ -157,7 +157,7 @@ def _evaluation(run: "RunSnapshot") -> dict[str, Any]:
             "attacked": _split(res, "attacked"), "held_out": _split(res, "held_out")}
 
 
-def _verdict(job: "JobSnapshot") -> bool | None:
+def _verdict(job: "JobLine | JobSnapshot") -> bool | None:
     """Whether an attack job's frame still fooled nobody: classified correctly or detected; None unknown."""
     pred = (job.result or {}).get("prediction") if job.status == "succeeded" else None
     if not isinstance(pred, dict):
@@ -166,7 +166,7 @@ def _verdict(job: "JobSnapshot") -> bool | None:
     return ok if isinstance(ok, bool) else None
 
 
-def attacked_metric(jobs: list["JobSnapshot"]) -> list[dict[str, Any]]:
+def attacked_metric(jobs: "Sequence[JobLine | JobSnapshot]") -> list[dict[str, Any]]:
     """Per attack iteration ``k``: ``value``, the fraction (0–1) of the attacked frames rendered with
     texture ``k`` (the simulator at ``sim_spp``) that the victim still classifies correctly, or
     detects; ``n``, how many frames had a prediction. Iterations without one are left out."""
@@ -233,12 +233,12 @@ def eval_frames(store: "Store", run: "RunSnapshot") -> list[dict[str, Any]]:
     return rows
 
 
-def chart_data(store: "Store", run_id: str, attack_jobs: list["JobSnapshot"] | None = None) -> dict[str, Any]:
+def chart_data(store: "Store", run_id: str, attack_jobs: list["JobLine"] | None = None) -> dict[str, Any]:
     """What the run's charts need: iteration rows, the evaluation, the loss kind, the steps, the
     samples per pixel of the attack's and the evaluation's renders, and ``attacked``
     (:func:`attacked_metric` of ``attack_jobs``, read from the store when not given)."""
     run = store.get_run(run_id)
-    jobs = store.jobs(run_id, None, "attack") if attack_jobs is None else attack_jobs
+    jobs = store.job_lines(run_id) if attack_jobs is None else attack_jobs
     return {"iterations": _iteration_rows(run, store.iterations(run_id)), "evaluation": _evaluation(run),
             "loss_kind": run.config.get("loss"), "steps": steps_of(run), "attacked": attacked_metric(jobs),
             "sim_spp": run.config.get("sim_spp"), "eval_spp": run.config.get("eval_spp")}

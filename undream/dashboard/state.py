@@ -12,7 +12,7 @@ from undream.errors import StoreError
 
 if TYPE_CHECKING:
     from undream.settings import Settings
-    from undream.store import JobSnapshot, Store
+    from undream.store import JobLine, Store
 
 EXTENSION = "undream"  # the key of the app's Farm in ``app.extensions``
 CACHE_ITEMS = 2048  # values kept in memory (PNGs, masks, rows of finished runs), least recently used dropped
@@ -60,15 +60,14 @@ class Farm:
                     raise Unavailable(" ".join(str(err).split())) from None
             return self._store
 
-    def attack_jobs(self, run_id: str) -> list["JobSnapshot"]:
+    def attack_jobs(self, run_id: str) -> list["JobLine"]:
         """The run's attack jobs (the grid and the accuracy chart read them), cached once the run has
         finished: its jobs no longer change until it is resumed, which changes ``updated``."""
         store = self.store()
         run = store.get_run(run_id)
         if run.status in ACTIVE_STATUSES:
-            return store.jobs(run_id, None, "attack")
-        return self.cache.get(("attack-jobs", run_id, run.updated, run.status),
-                              lambda: store.jobs(run_id, None, "attack"))
+            return store.job_lines(run_id)
+        return self.cache.get(("attack-jobs", run_id, run.updated, run.status), lambda: store.job_lines(run_id))
 
     def grid(self, run_id: str) -> dict[str, Any]:
         """The run's job grid (:func:`undream.dashboard.grid.job_grid`), cached once the run has finished."""

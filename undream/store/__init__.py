@@ -15,13 +15,13 @@ from undream.store.db import make_engine, mask_url, open_store
 from undream.store.jobs import UNFINISHED
 from undream.store.models import JOB_PHASES, JOB_STATUSES, RUN_STATUSES, SCHEMA_VERSION
 from undream.store.snapshots import (
-    FrameGrad, IterationSnapshot, JobSnapshot, RunSnapshot, SweepSnapshot,
+    FrameGrad, IterationSnapshot, JobLine, JobSnapshot, RunSnapshot, SweepSnapshot,
 )
 from undream.store.store import ACTIVE, TRANSITIONS, Store
 
 __all__ = [
     "ACTIVE", "BlobStore", "FrameGrad", "IterationSnapshot", "JOB_PHASES", "JOB_STATUSES",
-    "JobSnapshot", "RECORD_FIELDS", "RUN_STATUSES", "RunSnapshot", "SCHEMA_VERSION", "Store",
+    "JobLine", "JobSnapshot", "RECORD_FIELDS", "RUN_STATUSES", "RunSnapshot", "SCHEMA_VERSION", "Store",
     "SweepSnapshot", "TRANSITIONS", "UNFINISHED", "attack_state_key", "blob_root", "check_key",
     "eval_image_key", "grad_key", "make_engine", "mask_url", "open_store", "run_prefix",
     "scene_key", "texture_blob_key",

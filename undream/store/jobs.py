@@ -19,7 +19,7 @@ from undream.errors import StoreError
 from undream.store.blobs import BlobStore, eval_image_key, grad_key
 from undream.store.checks import integer, number
 from undream.store.models import JOB_PHASES, FrameJob, Run, utcnow
-from undream.store.snapshots import FrameGrad, JobSnapshot, dumps
+from undream.store.snapshots import FrameGrad, JobLine, JobSnapshot, dumps, loads_many
 
 if TYPE_CHECKING:
     from contextlib import AbstractContextManager
@@ -136,6 +136,20 @@ class JobTables:
         with self._tx("jobs", write=False) as s:
             self._run(s, run_id)
             return JobSnapshot.many(s.execute(query.order_by(table.c.k, table.c.frame)).all())
+
+    def job_lines(self, run_id: str, phase: str = "attack") -> list[JobLine]:
+        """Every recorded job of ``phase``, by k and frame, as :class:`JobLine` (the columns a
+        display needs: a 6400-job run in a third of :meth:`jobs`' time)."""
+        table = FrameJob.__table__
+        cols = (table.c.k, table.c.frame, table.c.status, table.c.attempts, table.c.worker, table.c.error,
+                table.c.timings_json, table.c.result_json)
+        query = (select(*cols).where(table.c.run_id == run_id, table.c.phase == _phase(phase))
+                 .order_by(table.c.k, table.c.frame))
+        with self._tx("job_lines", write=False) as s:
+            self._run(s, run_id)
+            rows = s.execute(query).all()
+        timings, results = loads_many([r[6] for r in rows]), loads_many([r[7] for r in rows])
+        return [JobLine(*r[:6], t or {}, res) for r, t, res in zip(rows, timings, results)]
 
     def job_counts(self, run_ids: Sequence[str]) -> dict[tuple[str, str, int], dict[str, int]]:
         """(run id, phase, k) → status → number of jobs, for the runs ``run_ids`` (a list page's

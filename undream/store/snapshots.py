@@ -113,6 +113,21 @@ class SweepSnapshot:
                    created=_utc(row.created))  # type: ignore[arg-type]
 
 
+class JobLine(NamedTuple):
+    """What a display of many jobs needs of each (:meth:`Store.job_lines`): a light
+    :class:`JobSnapshot` with the same attribute names; ``timings`` in seconds, ``result`` the
+    job's JSON (an attack job's prediction, an evaluation's prediction and loss) or None."""
+
+    k: int
+    frame: int
+    status: str
+    attempts: int
+    worker: str | None
+    error: str | None
+    timings: dict[str, Any]
+    result: dict[str, Any] | None
+
+
 @dataclass(frozen=True)
 class JobSnapshot:
     """One frame job. ``loss`` is None until it succeeds, or when not finite.
