@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -85,8 +85,15 @@ class GradientPath:
         return "transport" if self._usable(index) else "prb"
 
     def texture_gradient(self, index: int, texture_srgb: np.ndarray, grad_linear_image: np.ndarray,
-                         spp: int, iteration: int, seed: int) -> np.ndarray:
-        """d(loss)/d(sRGB texture) (H_t×W_t×3) of frame ``index`` from d(loss)/d(linear image) (H×W×3)."""
+                         spp: int, iteration: int, seed: int, conditions: Any = None) -> np.ndarray:
+        """d(loss)/d(sRGB texture) (H_t×W_t×3) of frame ``index`` from d(loss)/d(linear image) (H×W×3).
+
+        ``conditions`` (EOT, :mod:`undream.render.jitter`): the frame's camera and light moved
+        as for its simulator render; prb then (a captured transport holds the frame's own ones).
+        """
+        if conditions is not None:
+            return texture_gradient(self.scenes, index, texture_srgb, grad_linear_image, spp, seed, seed + 1,
+                                    conditions)
         if not self._usable(index):
             return texture_gradient(self.scenes, index, texture_srgb, grad_linear_image, spp, seed, seed + 1)
         from undream.render.transport import capture_transport, texture_gradient_cached

@@ -11,6 +11,7 @@ import numpy as np
 from undream.engine.context import RunContext
 from undream.color import linear_to_srgb
 from undream.render.differentiable import srgb_encode_grad
+from undream.render.jitter import draw_conditions
 
 
 def frame_seed(run_seed: int, iteration: int, frame: int) -> int:
@@ -80,13 +81,17 @@ def render_and_grad(ctx: RunContext, position: int, texture: np.ndarray, iterati
     cfg = ctx.config
     index = ctx.frame_indices[position]
     seed = frame_seed(cfg.seed, iteration, index)
+    conditions = draw_conditions(cfg.eot, cfg.seed, iteration, index)  # None without eot
     t0 = time.perf_counter()
-    linear = ctx.sim.render(index, texture, cfg.sim_spp, seed)
+    if conditions is None:
+        linear = ctx.sim.render(index, texture, cfg.sim_spp, seed)
+    else:
+        linear = ctx.sim.render(index, texture, cfg.sim_spp, seed, conditions=conditions)
     t1 = time.perf_counter()
     loss, g_image, pred = victim_loss_and_grad(ctx, position, linear_to_srgb(linear))
     t2 = time.perf_counter()
     g_linear = srgb_encode_grad(linear, g_image)
-    grad = ctx.gradients.texture_gradient(index, texture, g_linear, cfg.grad_spp, iteration, seed)
+    grad = ctx.gradients.texture_gradient(index, texture, g_linear, cfg.grad_spp, iteration, seed, conditions)
     t3 = time.perf_counter()
     # A NaN in the victim's image gradient must not hide behind the renderer: Mitsuba's
     # backward pass turns it into zeros, which would pass as a finite frame.

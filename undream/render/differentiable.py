@@ -35,10 +35,11 @@ def _linear_texture(scenes: SceneCache, active: ActiveFrame, texture_srgb: np.nd
 
 
 def render_linear(scenes: SceneCache, index: int, texture_srgb: np.ndarray, spp: int, seed: int,
-                  kind: str = "sim") -> np.ndarray:
-    """The render of frame ``index``'s ``kind`` scene (simulation by default): H×W×3 LINEAR radiance (unclipped)."""
+                  kind: str = "sim", conditions: Any = None) -> np.ndarray:
+    """The render of frame ``index``'s ``kind`` scene (simulation by default): H×W×3 LINEAR radiance
+    (unclipped); ``conditions``: the camera and light moved for this render (:mod:`undream.render.jitter`)."""
     mi = scenes.mi
-    active = scenes.frame(kind, index)
+    active = scenes.frame(kind, index, conditions)
     active.params[active.texture_key] = _linear_texture(scenes, active, texture_srgb)
     active.params.update()
     if scenes.frozen:
@@ -68,20 +69,21 @@ def srgb_decode_grad(texture_srgb: np.ndarray, grad_linear: np.ndarray) -> np.nd
 
 
 def texture_gradient(scenes: SceneCache, index: int, texture_srgb: np.ndarray, grad_linear_image: np.ndarray,
-                     spp: int, seed: int, seed_grad: int) -> np.ndarray:
+                     spp: int, seed: int, seed_grad: int, conditions: Any = None) -> np.ndarray:
     """Mitsuba's backward pass of frame ``index``'s gradient scene, seeded with an image gradient.
 
     ``grad_linear_image`` is d(loss)/d(linear image) (H×W×3); returns
     d(loss)/d(sRGB texture) (H×W×3). The gradient is that of the render with
     ``seed_grad`` (what ``mi.render(..., seed, seed_grad)`` back-propagates);
     ``seed`` only names the primal render it pairs with and must differ.
+    ``conditions``: the camera and light moved as for the simulator's frame.
     """
     import drjit as dr
 
     if seed == seed_grad:
         raise RenderError(f"seed_grad must differ from seed (both {seed}): prb needs decorrelated samples")
     mi = scenes.mi
-    active = scenes.frame("grad", index)
+    active = scenes.frame("grad", index, conditions)
     tex = _linear_texture(scenes, active, texture_srgb)
     w, h = (int(v) for v in active.params["sensor.film.crop_size"])
     g = np.ascontiguousarray(grad_linear_image, dtype=np.float32)

@@ -125,8 +125,13 @@ class SceneCache:
         """How many groups of ``kind`` the frames seen so far fall into."""
         return sum(k == kind for k, _ in self._groups)
 
-    def frame(self, kind: str, index: int) -> ActiveFrame:
-        """The scene of ``kind`` ('sim' or 'grad') showing frame ``index``."""
+    def frame(self, kind: str, index: int, conditions: Any = None) -> ActiveFrame:
+        """The scene of ``kind`` ('sim' or 'grad') showing frame ``index``.
+
+        ``conditions`` (:class:`undream.render.jitter.Conditions`): the frame's
+        camera and light moved by them for the next render only; the next call
+        writes the frame's own values back.
+        """
         if kind not in KINDS:
             raise RenderError(f"scene kind must be one of {KINDS}, got {kind!r}")
         state = self._state(kind, index)
@@ -136,7 +141,19 @@ class SceneCache:
         if active.index != index:  # already showing it: nothing to write, no BVH to rebuild
             self._apply(group, active, state)
             active.index = index
+        if conditions is not None:
+            self._jitter(group, active, conditions)
         return active
+
+    def _jitter(self, group: _Group, active: ActiveFrame, conditions: Any) -> None:
+        from undream.render.jitter import jitter_values
+
+        values = {k: v for k, v in jitter_values(self.mi, active.params, conditions).items() if k in group.base}
+        for key, value in values.items():
+            active.params[key] = value
+        active.params.update()
+        group.applied |= set(values)  # reset to the frame's own values by the next _apply
+        active.index = -1  # not showing any frame as it is
 
     # -- frame states -------------------------------------------------------
 

@@ -23,7 +23,11 @@ class SimulatorBackend(Protocol):
     name: str
 
     def render(self, index: int, texture_srgb: np.ndarray, spp: int, seed: int) -> np.ndarray:
-        """Frame ``index`` with ``texture_srgb`` (H×W×3 sRGB in [0, 1]): H×W×3 linear radiance."""
+        """Frame ``index`` with ``texture_srgb`` (H×W×3 sRGB in [0, 1]): H×W×3 linear radiance.
+
+        A backend that can move the camera and light per render (EOT) also takes
+        ``conditions=`` (:class:`undream.render.jitter.Conditions`); ``mitsuba`` does.
+        """
         ...
 
     def versions(self) -> dict[str, str]:

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -19,8 +20,9 @@ class MitsubaSimulator:
     def __init__(self, scene_dir: Path, scenes: SceneCache | None = None):
         self.scenes = scenes or SceneCache(scene_dir)
 
-    def render(self, index: int, texture_srgb: np.ndarray, spp: int, seed: int) -> np.ndarray:
-        return render_linear(self.scenes, index, texture_srgb, spp, seed)
+    def render(self, index: int, texture_srgb: np.ndarray, spp: int, seed: int,
+               conditions: Any = None) -> np.ndarray:
+        return render_linear(self.scenes, index, texture_srgb, spp, seed, conditions=conditions)
 
     def versions(self) -> dict[str, str]:
         import drjit

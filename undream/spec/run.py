@@ -57,6 +57,7 @@ class RunConfig:
     gradient: str = "auto"  # auto | transport | prb
     transport_refresh: int = 5
     holdout: Any = "auto"  # frames the attack never sees, evaluated apart: see split_frames
+    eot: Mapping[str, float] | None = None  # camera and light jitter per iteration: see EOT_FIELDS
     sim: str = "mitsuba"  # the simulator backend: one of SIMULATORS
 
     def __post_init__(self) -> None:
@@ -85,6 +86,14 @@ class RunConfig:
         if not isinstance(self.device, str):
             raise c.fail("device", self.device, "must be a torch device string such as 'cpu'")
         _check_holdout(self.holdout)
+        if self.eot is not None:
+            object.__setattr__(self, "eot", _check_eot(self.eot))
+            if self.gradient == "transport":
+                raise c.fail("gradient", self.gradient, "cannot be 'transport' with eot: a captured transport "
+                             "holds each frame's own camera and light; use auto or prb")
+            if self.sim != "mitsuba":
+                raise c.fail("eot", self.eot, f"needs sim: mitsuba (the {self.sim!r} simulator cannot move "
+                             "the camera and light per render)")
         c.choice("sim", self.sim, SIMULATORS)
 
     def to_json(self) -> dict[str, Any]:
@@ -96,6 +105,27 @@ class RunConfig:
         c.no_extra(d, set(cls.__dataclass_fields__))
         c.require(d, "scene")
         return cls(**d)
+
+
+# eot: field → (largest value, unit and meaning). Each iteration draws, per frame, a camera shift
+# uniform in ±camera_shift_m on each axis, camera and sun turns uniform in ±deg about random axes,
+# and a light factor uniform in [1 - light_scale, 1 + light_scale] (undream.render.jitter).
+EOT_FIELDS = {"camera_shift_m": (10.0, "metres"), "camera_turn_deg": (45.0, "degrees"),
+              "sun_turn_deg": (90.0, "degrees"), "light_scale": (0.99, "a fraction")}
+
+
+def _check_eot(value: Any) -> dict[str, float]:
+    eot = c.mapping("eot", value)
+    out = {}
+    with c.at("eot"):
+        c.no_extra(eot, set(EOT_FIELDS))
+        for key, raw in eot.items():
+            most, unit = EOT_FIELDS[key]
+            v = c.finite(key, raw)
+            if not 0 <= v <= most:
+                raise c.fail(key, raw, f"must be in [0, {most:g}] ({unit})")
+            out[key] = v
+    return out
 
 
 HOLDOUT_EVERY = 4  # holdout "auto": every 4th frame (positions 3, 7, 11, ...) is held out
