@@ -1,6 +1,6 @@
 """Benchmark the dashboard on a big farm database, measured in one run:
 
-    python benchmarks/bench_dashboard.py [--runs 200] [--frames 64] [--iterations 100] [--repeat 5]
+    python benchmarks/bench_dashboard.py [--runs 200] [--frames 64] [--iterations 100] [--repeat 5] [--cold 3]
 
 Builds (through the Store API, in a temporary folder, SQLite) ``--runs`` runs:
 one with ``--frames`` frames × ``--iterations`` iterations (done, with its
@@ -11,12 +11,14 @@ median of ``--repeat`` over HTTP), the time for the page with every picture
 it shows (first load, pictures uncached, then again), and where Chromium is
 installed, the browser's own load time (navigation start → load event, the
 page rendered with the pictures in view; frames further down load lazily),
-on a fresh server and again once its picture cache is warm. Prints the machine's load before and
-after. Not a test: it prints numbers and asserts nothing.
+on ``--cold`` fresh servers (each a first visit, with a fresh browser; and their median) and
+again once a server's caches are warm. Prints the machine's load before and after (and after each
+first visit). Not a test: it prints numbers and asserts nothing.
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import re
 import socket
@@ -27,6 +29,7 @@ import tempfile
 import time
 import urllib.request
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 
@@ -40,6 +43,8 @@ def _parse(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--frames", type=int, default=64, help="frames of the big run")
     p.add_argument("--iterations", type=int, default=100, help="iterations of the big run")
     p.add_argument("--repeat", type=int, default=5, help="requests per page for the median")
+    p.add_argument("--cold", type=int, default=3,
+                   help="first visits in Chromium, each on a fresh server (the median is printed too)")
     return p.parse_args(argv)
 
 
@@ -118,6 +123,48 @@ def _load() -> str:
     return subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
 
 
+@contextlib.contextmanager
+def serve(blobs: Path) -> Iterator[str]:
+    """``undream dashboard`` on the database in ``blobs``, a fresh process; yields its base URL once
+    ``/api/health`` answers (what the server does as it starts is not measured)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    proc = subprocess.Popen([sys.executable, "-m", "undream.cli", "dashboard", "--port", str(port),
+                             "--blobs", str(blobs)], cwd=ROOT, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.STDOUT)
+    base = f"http://127.0.0.1:{port}"
+    try:
+        while True:
+            try:
+                _get(base + "/api/health")
+                break
+            except OSError:
+                time.sleep(0.2)
+        yield base
+    finally:
+        proc.terminate()
+        proc.wait(20)
+
+
+def _loads_line(label: str, loads: dict[str, float]) -> str:
+    return f"Chromium, navigation start → load event ({label}): " + ", ".join(
+        f"{'runs list' if p == '/' else 'big run page'} {s:.3f} s" for p, s in loads.items())
+
+
+def cold_visits(blobs: Path, paths: list[str], times: int, tmp: Path) -> list[dict[str, float]]:
+    """Chromium's load of ``paths`` on ``times`` fresh servers (a fresh browser each); printed as it goes."""
+    out = []
+    for i in range(times):
+        with serve(blobs) as base:
+            loads = browser_load(base, paths, tmp / f"chromium-cold-{i}")
+        if loads is None:
+            return []
+        print(_loads_line(f"first visit {i + 1} of {times}, fresh server", loads) + f"; {_load()}")
+        out.append(loads)
+    return out
+
+
 def main(argv: list[str] | None = None) -> None:
     args = _parse(argv)
     print(f"load before: {_load()}")
@@ -127,21 +174,12 @@ def main(argv: list[str] | None = None) -> None:
         big = build(blobs, args)
         print(f"database: {args.runs} runs, the big one {args.frames} frames × {args.iterations} iterations "
               f"({args.frames * args.iterations} frame jobs); built in {time.perf_counter() - t0:.1f} s")
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            port = s.getsockname()[1]
-        proc = subprocess.Popen([sys.executable, "-m", "undream.cli", "dashboard", "--port", str(port),
-                                 "--blobs", str(blobs)], cwd=ROOT, stdout=subprocess.DEVNULL,
-                                stderr=subprocess.STDOUT)
-        base = f"http://127.0.0.1:{port}"
-        try:
-            while True:
-                try:
-                    _get(base + "/api/health")
-                    break
-                except OSError:
-                    time.sleep(0.2)
-            cold = browser_load(base, ["/", f"/runs/{big}"], Path(tmp) / "chromium-cold")
+        paths = ["/", f"/runs/{big}"]
+        cold = cold_visits(blobs, paths, args.cold, Path(tmp))
+        if cold:
+            print(_loads_line(f"first visit, median of {len(cold)} fresh servers",
+                              {p: statistics.median(c[p] for c in cold) for p in paths}))
+        with serve(blobs) as base:
             pages = {"runs list (/)": "/", "big run page": f"/runs/{big}", "GET /api/runs": "/api/runs",
                      "GET /api/runs/<big>/jobs": f"/api/runs/{big}/jobs"}
             print(f"{'page':<26} {'KiB':>7} {'first s':>8} {'median s':>9} {'pictures':>9} "
@@ -150,16 +188,11 @@ def main(argv: list[str] | None = None) -> None:
                 m = measure(base, path, args.repeat)
                 print(f"{name:<26} {m['kb']:>7.0f} {m['first']:>8.3f} {m['median']:>9.3f} {m['pictures']:>9d} "
                       f"{m['with_pictures_cold']:>17.3f} {m['with_pictures_warm']:>17.3f}")
-            warm = browser_load(base, ["/", f"/runs/{big}"], Path(tmp) / "chromium-warm")
-            if cold is None or warm is None:
-                print("browser load: Chromium or selenium missing, not measured")
-            for label, loads in (("first visit, server caches empty", cold), ("server caches warm", warm)):
-                if loads is not None:
-                    print(f"Chromium, navigation start → load event ({label}): " + ", ".join(
-                        f"{'runs list' if p == '/' else 'big run page'} {s:.3f} s" for p, s in loads.items()))
-        finally:
-            proc.terminate()
-            proc.wait(20)
+            warm = browser_load(base, paths, Path(tmp) / "chromium-warm")
+        if warm is None:
+            print("browser load: Chromium or selenium missing, not measured")
+        else:
+            print(_loads_line("server caches warm", warm))
     print(f"load after: {_load()}")
 
 

@@ -156,6 +156,8 @@ def test_runs_list_to_run_page_to_sweep_page(site, browser, shots):
     assert {r.get_attribute("data-status") for r in rows} == \
         {"queued", "running", "evaluating", "done", "failed", "cancelled"}
     assert len(_by(browser, "#runs-table svg.spark polyline")) == 10  # not queued (no loss) nor cancelled (one)
+    done = _by(browser, f'tr[data-run="{ids.runs["done"]}"] td.result')[0].text
+    assert done == "100.0 % → 0.0 % held-out", done  # frame 3 held out; frames 0 to 3 fooled
     _screenshot(browser, shots, "01_runs")
 
     Select(_by(browser, "#filter-status")[0]).select_by_value("failed")
@@ -198,6 +200,10 @@ def test_runs_list_to_run_page_to_sweep_page(site, browser, shots):
     assert len(benign) == len(adversarial) == 6 and all(c.endswith("trash_bin 0.90 ✓") for c in benign)
     assert adversarial[0] == "adversarial #0: umbrella 0.90 ✗" and "car 0.90 ✗" in adversarial[1]
     assert "adversarial" in _by(browser, "#headline")[0].text
+    held_out = _by(browser, "#split-held_out")[0].text  # mifgsm at ε 32 fools all 6 frames, held-out 3 too
+    assert held_out == "held-out frames (1): accuracy 100.0 % → 0.0 % · attack success 100.0 %", held_out
+    assert _by(browser, "#split-attacked")[0].text.startswith("attacked frames (5): accuracy 100.0 % → 0.0 %")
+    assert browser.execute_script("return document.getElementById('chart-metric').naturalWidth") == 560
     assert browser.execute_script("return document.querySelector('#frames img').getBoundingClientRect().width") == 256
     _screenshot(browser, shots, "05_run_done")
 

@@ -266,6 +266,8 @@ def test_charts_are_pngs_with_their_size(farm_store):
                  charts.seconds_chart(many), charts.seconds_chart([]),
                  charts.metric_chart(query.chart_data(store, farm.runs["done"])),
                  charts.metric_chart(query.chart_data(store, farm.runs["queued"])), charts.loss_chart([], None),
+                 charts.metric_chart({"evaluation": {"metric": "ap50", "benign": 0.8, "adversarial": None},
+                                      "steps": 3, "attacked": [{"k": 0, "value": 1.0, "n": 2}]}),
                  charts.sweep_chart(sweeps.eps_series(store, farm.sweep_id)), charts.sweep_chart({})):
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and _png_size(data) == (560, 270)
 
