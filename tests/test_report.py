@@ -193,3 +193,15 @@ def test_out_refuses_anything_but_a_report(farm, tmp_path):
     assert _cli(str(farm["run"]), "--out", str(out), "--force").exit_code == 0
     assert not (out / "stale.txt").exists() and (out / "index.html").is_file()
     assert [p.name for p in tmp_path.iterdir()] == ["rep"]
+
+
+def test_a_store_target_on_the_default_sqlite_database(tmp_path):
+    """Without --database the farm's store is SQLite in the blob folder (the report crashed on it)."""
+    from undream.store import open_store
+
+    open_store(None, tmp_path / "blobs").close()
+    res = CliRunner().invoke(__import__("undream.cli", fromlist=["main"]).main,
+                             ["report", "nosuch", "--out", str(tmp_path / "rep"), "--blobs", str(tmp_path / "blobs")],
+                             env={"UNDREAM_DATABASE_URL": ""})
+    assert res.exit_code == 2, res.output
+    assert "the SQLite store in" in res.stderr and not (tmp_path / "rep").exists()

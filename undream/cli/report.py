@@ -93,7 +93,8 @@ def report_cmd(target: str, out: Path, force: bool, settings: Callable[..., "Set
         raise SpecError(f"TARGET {target}: not an output folder of `undream run`, a run id or a sweep")
     else:
         cfg = settings()
-        found = _store_target(_store(cfg), target, mask_url(cfg.database_url))
+        where = mask_url(cfg.database_url) if cfg.database_url else f"the SQLite store in {cfg.blob_url}"
+        found = _store_target(_store(cfg), target, where)
     page = build_report(found, out, force, command)
     what: Any = found.run or found.sweep
     click.echo(f"wrote {page} ({'run' if found.run else 'sweep'} {what.name})")
