@@ -200,6 +200,33 @@ def test_texture_swap_seed_and_radiometry(bin_park):
         assert rel < 0.05, f"mean radiance differs by {rel:.1%}"
 
 
+def test_a_dead_server_is_restarted_and_reproduces_the_frame(bin_park):
+    from undream.spec import load_sequence
+
+    grey = np.full(load_sequence(bin_park / "sequence.json").texture.shape, 0.5, np.float32)
+    sim = make_backend("blender", bin_park, threads=2)
+    try:
+        first = sim.render(0, grey, 4, 1)
+        sim._proc.kill()  # Blender gone between two renders
+        sim._proc.wait()
+        assert np.array_equal(sim.render(0, grey, 4, 1), first)  # a fresh server, the same frame
+    finally:
+        sim.close()
+
+
+def test_a_server_that_dies_is_one_line(tmp_path, monkeypatch):
+    """An interpreter that imports bpy but whose server exits at once: one line naming the exit code
+    and the server's last output (no Blender needed)."""
+    fake = tmp_path / "python"
+    fake.write_text('#!/bin/sh\n[ "$1" = "-c" ] && exit 0\necho "Segmentation fault (core dumped)" >&2\nexit 139\n')
+    fake.chmod(0o755)
+    sim = make_backend("blender", tmp_path, python=fake)
+    with pytest.raises(RenderError) as err:
+        sim.render(0, np.zeros((2, 2, 3), np.float32), 1, 0)
+    msg = str(err.value)
+    assert "\n" not in msg and "exit code 139" in msg and "Segmentation fault" in msg, msg
+
+
 @pytest.fixture(scope="module")
 def victim_dir(tmp_path_factory):
     """A tiny random HF ResNet over the built-in classes, saved locally (no network)."""
