@@ -188,6 +188,7 @@ def test_sweep_detail_and_eps_series(farm_store):
     assert [p["eps"] for p in series["pgd"]] == [8.0, 16.0, 32.0]
     adv = [p["adversarial"] for p in series["pgd"]]
     assert adv == sorted(adv, reverse=True) and adv[0] > adv[-1]
+    assert [p["held_out_adversarial"] for p in series["mifgsm"]] == [1.0, 1.0, 0.0]  # frame 3 falls at ε 32
     assert sweeps.sweeps_overview(store) == [{"id": farm.sweep_id, "name": "eps-sweep",
                                               "created": detail["created"], "runs": 6, "statuses": {"done": 6}}]
 

@@ -147,18 +147,24 @@ def metric_chart(data: dict[str, Any]) -> bytes:
 
 
 def sweep_chart(series: dict[str, list[dict[str, Any]]]) -> bytes:
-    """Adversarial accuracy / AP@0.5 (%) against ε (0–255 sRGB units), one line per attack."""
+    """Adversarial accuracy / AP@0.5 (%) against ε (0–255 sRGB units), one line per attack over every
+    frame and a dashed one over the held-out frames (runs that hold frames out)."""
     fig, ax = _figure()
     metrics = {p["metric"] for points in series.values() for p in points}
     for (attack, points), color in zip(series.items(), COLORS * 4):
         ax.plot([p["eps"] for p in points], [100.0 * p["adversarial"] for p in points], color=color,
-                marker="o", markersize=4, linewidth=1.4, label=attack)
+                marker="o", markersize=4, linewidth=1.4, label=f"{attack}: every frame")
+        held = [(p["eps"], 100.0 * p["held_out_adversarial"]) for p in points
+                if p.get("held_out_adversarial") is not None]
+        if held:
+            ax.plot(*zip(*held), color=color, marker="^", markersize=4, linewidth=1.2, linestyle="--",
+                    label=f"{attack}: held-out frames")
     benign = [p["benign"] for points in series.values() for p in points if p["benign"] is not None]
     if benign:
         ax.axhline(100.0 * sum(benign) / len(benign), color="#999", linestyle="--", linewidth=1,
                    label="benign (mean)")
     if series:
-        ax.legend(fontsize=8, frameon=False, title="attack", title_fontsize=8)
+        ax.legend(fontsize=7, frameon=False, title="attack", title_fontsize=7)
     else:
         _empty(ax, "no run of this sweep has results yet")
     name = _metric_name(metrics.pop() if len(metrics) == 1 else None)

@@ -16,8 +16,9 @@ def _number(value: Any) -> float | None:
 
 
 def eps_series(store: "Store", sweep_id: str) -> dict[str, list[dict[str, Any]]]:
-    """Attack name → points (ε in 0–255, adversarial and benign metric in [0, 1]) of the sweep's
-    finished runs, by ε; runs without results are left out."""
+    """Attack name → points (ε in 0–255; adversarial and benign metric in [0, 1] over every frame,
+    ``held_out_adversarial`` over the held-out frames or None) of the sweep's finished runs, by ε;
+    runs without results are left out."""
     series: dict[str, list[dict[str, Any]]] = {}
     for run in store.runs(sweep_id=sweep_id):
         res, attack = run.results or {}, run.config.get("attack") or {}
@@ -26,6 +27,7 @@ def eps_series(store: "Store", sweep_id: str) -> dict[str, list[dict[str, Any]]]
             continue
         series.setdefault(str(attack.get("name")), []).append(
             {"eps": eps, "adversarial": adv, "benign": _number((res.get("benign") or {}).get("value")),
+             "held_out_adversarial": _number(((res.get("held_out") or {}).get("adversarial") or {}).get("value")),
              "metric": (res.get("adversarial") or {}).get("metric"), "run_id": run.id})
     return {name: sorted(points, key=lambda p: p["eps"]) for name, points in sorted(series.items())}
 
