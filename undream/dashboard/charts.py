@@ -20,12 +20,12 @@ COLORS = ("#1f6fb2", "#d1495b", "#2a9d8f", "#e9a03b", "#6a4c93", "#555555")
 
 def warm_up() -> None:
     """Import matplotlib and draw one small chart (loads the fonts), once when a server starts."""
-    fig, ax = _figure()
+    fig, ax = new_figure()
     _title(ax, "warm-up")
-    _png(fig)
+    figure_png(fig)
 
 
-def _figure() -> tuple[Any, Any]:
+def new_figure() -> tuple[Any, Any]:
     """A 560×270 px figure with one axes: fixed margins (measuring the labels' extents for a
     layout engine costs more than drawing the chart), a light grid, integer x ticks."""
     from matplotlib.figure import Figure
@@ -48,7 +48,7 @@ def _title(ax: Any, text: str) -> None:
     ax.set_title(text, fontsize=10, y=1.0, pad=6)
 
 
-def _png(fig: Any) -> bytes:
+def figure_png(fig: Any) -> bytes:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
     buf = io.BytesIO()
@@ -56,13 +56,13 @@ def _png(fig: Any) -> bytes:
     return buf.getvalue()
 
 
-def _empty(ax: Any, text: str) -> None:
+def empty_axes(ax: Any, text: str) -> None:
     ax.text(0.5, 0.5, text, ha="center", va="center", transform=ax.transAxes, color="#777", fontsize=9)
 
 
 def loss_chart(iterations: Sequence[dict[str, Any]], loss_kind: str | None) -> bytes:
     """Mean loss over the kept frames per iteration; iterations that dropped frames marked in red."""
-    fig, ax = _figure()
+    fig, ax = new_figure()
     points = [(r["k"], r["loss_mean"]) for r in iterations if r["loss_mean"] is not None]
     if points:
         ks, ys = zip(*points)
@@ -72,27 +72,27 @@ def loss_chart(iterations: Sequence[dict[str, Any]], loss_kind: str | None) -> b
             ax.scatter(*zip(*bad), color=COLORS[1], zorder=3, s=14, label="frames dropped")
             ax.legend(fontsize=8, frameon=False)
     else:
-        _empty(ax, "no iteration finished yet")
+        empty_axes(ax, "no iteration finished yet")
     ax.set_xlabel("iteration k (attack step)", fontsize=9)
     ax.set_ylabel(f"mean loss ({loss_kind or 'loss'})", fontsize=9)
     _title(ax, "attack loss per iteration (higher fools more)")
-    return _png(fig)
+    return figure_png(fig)
 
 
 def seconds_chart(iterations: Sequence[dict[str, Any]]) -> bytes:
     """Wall seconds per iteration (from one iteration record to the next; the first from the run's creation)."""
-    fig, ax = _figure()
+    fig, ax = new_figure()
     ks, seconds = [r["k"] for r in iterations], [r["seconds"] for r in iterations]
     if len(iterations) > BARS_UP_TO and ks == list(range(ks[0], ks[0] + len(ks))):
         ax.stairs(seconds, [k - 0.5 for k in ks] + [ks[-1] + 0.5], fill=True, color=COLORS[2])
     elif iterations:
         ax.bar(ks, seconds, color=COLORS[2], width=0.8)
     else:
-        _empty(ax, "no iteration finished yet")
+        empty_axes(ax, "no iteration finished yet")
     ax.set_xlabel("iteration k", fontsize=9)
     ax.set_ylabel("wall time (s)", fontsize=9)
     _title(ax, "seconds per iteration")
-    return _png(fig)
+    return figure_png(fig)
 
 
 def _metric_name(metric: str | None) -> str:
@@ -124,7 +124,7 @@ def metric_chart(data: dict[str, Any]) -> bytes:
     detects) on the simulator's renders at ``sim_spp`` (``data["attacked"]``, from the attack jobs),
     and the evaluation's accuracy or AP@0.5 (%) at ``eval_spp`` before the attack (k = 0) and
     after it (k = N), the attacked and the held-out frames apart. ``data``: :func:`query.chart_data`."""
-    fig, ax = _figure()
+    fig, ax = new_figure()
     evaluation, steps = data["evaluation"], data.get("steps") or 1
     detector = evaluation.get("metric") == "ap50"
     line = data.get("attacked") or []
@@ -137,19 +137,19 @@ def metric_chart(data: dict[str, Any]) -> bytes:
     if line or drawn:
         ax.legend(fontsize=6.5, loc="lower left", framealpha=0.85)
     else:
-        _empty(ax, "no prediction stored yet (attack jobs keep them; the evaluation comes last)")
+        empty_axes(ax, "no prediction stored yet (attack jobs keep them; the evaluation comes last)")
     ax.set_ylim(-5, 105)
     ax.set_xlim(-0.05 * steps, 1.05 * steps)
     ax.set_xlabel("iteration k (texture version; N: final texture)", fontsize=9)
     ax.set_ylabel("frames detected / AP (%)" if detector else "frames correct (%)", fontsize=9)
     _title(ax, "victim " + ("detection" if detector else "accuracy") + " per iteration")
-    return _png(fig)
+    return figure_png(fig)
 
 
 def sweep_chart(series: dict[str, list[dict[str, Any]]]) -> bytes:
     """Adversarial accuracy / AP@0.5 (%) against ε (0–255 sRGB units), one line per attack over every
     frame and a dashed one over the held-out frames (runs that hold frames out)."""
-    fig, ax = _figure()
+    fig, ax = new_figure()
     metrics = {p["metric"] for points in series.values() for p in points}
     for (attack, points), color in zip(series.items(), COLORS * 4):
         ax.plot([p["eps"] for p in points], [100.0 * p["adversarial"] for p in points], color=color,
@@ -166,13 +166,13 @@ def sweep_chart(series: dict[str, list[dict[str, Any]]]) -> bytes:
     if series:
         ax.legend(fontsize=7, frameon=False, title="attack", title_fontsize=7)
     else:
-        _empty(ax, "no run of this sweep has results yet")
+        empty_axes(ax, "no run of this sweep has results yet")
     name = _metric_name(metrics.pop() if len(metrics) == 1 else None)
     ax.set_ylim(-5, 105)
     ax.set_xlabel("ε (0–255 sRGB units)", fontsize=9)
     ax.set_ylabel(f"adversarial {name} (%)", fontsize=9)
     _title(ax, f"adversarial {name} against ε")
-    return _png(fig)
+    return figure_png(fig)
 
 
 def sparkline(values: Sequence[float | None], width: int = 120, height: int = 24) -> str:

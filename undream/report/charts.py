@@ -85,7 +85,7 @@ def _series_label(key: tuple[str, ...], split: str) -> str:
 def eps_png(series: dict[tuple[str, ...], list[Point]], metric: str | None, command: str) -> bytes:
     """Adversarial metric (%) against ε, one line per series and split; error bars: ± one standard
     deviation over the seeds of a point (none with one seed)."""
-    fig, ax = dash_charts._figure()
+    fig, ax = dash_charts.new_figure()
     name = metric_name(metric)
     for (key, points), color in zip(series.items(), dash_charts.COLORS * 4):
         for split in SPLIT_STYLE:
@@ -99,13 +99,13 @@ def eps_png(series: dict[tuple[str, ...], list[Point]], metric: str | None, comm
     if series:
         ax.legend(fontsize=7, frameon=False)
     else:
-        dash_charts._empty(ax, "no run of this sweep has results")
+        dash_charts.empty_axes(ax, "no run of this sweep has results")
     ax.set_ylim(-5, 105)
     ax.xaxis.get_major_locator().set_params(integer=False)
     ax.set_xlabel("ε (0–255 sRGB units)", fontsize=9)
     ax.set_ylabel(f"adversarial {name} (%)", fontsize=9)
     ax.set_title(f"adversarial {name} against ε (mean ± std over seeds)", fontsize=10)
-    return caption_png(dash_charts._png(fig), made_by(command))
+    return caption_png(dash_charts.figure_png(fig), made_by(command))
 
 
 def chart_metric(rows: list[dict[str, Any]]) -> str | None:
