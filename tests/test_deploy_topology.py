@@ -173,6 +173,9 @@ def test_a_sweep_runs_to_completion_on_two_workers(topology):
                 in log.read_text(), log
 
 
+CRASH_STEPS = 40
+
+
 def _driver_present() -> bool:
     import ctypes
 
@@ -186,7 +189,10 @@ def _driver_present() -> bool:
 def test_a_sweep_finishes_after_a_worker_is_killed_and_the_broker_restarted(topology):
     farm, inputs, dashboard = topology
     assert len(farm.workers) == 2 and all(w.poll() is None for w in farm.workers)
-    sweep_id, runs = sweep(farm, inputs, "crash", {"seed": [3, 4]}, steps=8, sim_spp=16, grad_spp=16)
+    # Long enough to be caught mid-iteration on an idle machine (with 8 transport-gradient steps the
+    # runs finished in 3 s before the test saw a started job of iteration >= 1).
+    sweep_id, runs = sweep(farm, inputs, "crash", {"seed": [3, 4]}, steps=CRASH_STEPS, sim_spp=32, grad_spp=32,
+                           gradient="prb")
 
     def started_job():
         for run_id in runs:
@@ -229,8 +235,8 @@ def test_a_sweep_finishes_after_a_worker_is_killed_and_the_broker_restarted(topo
         assert f"resumed {run_id}" in res.stdout or f"run {run_id} is done" in res.stdout, res.stdout
     for run_id in runs:
         farm.wait_status(run_id, timeout=120)
-        assert [r.k for r in farm.store.iterations(run_id)] == list(range(8))
+        assert [r.k for r in farm.store.iterations(run_id)] == list(range(CRASH_STEPS))
     rows = results(farm, "crash")
     assert sorted(r["seed"] for r in rows) == ["3", "4"] and {r["status"] for r in rows} == {"done"}
     assert healthcheck(farm, survivor.pid).returncode == 0  # reconnected to the new broker
-    check_dashboard(dashboard, sweep_id, runs, 8)
+    check_dashboard(dashboard, sweep_id, runs, CRASH_STEPS)
