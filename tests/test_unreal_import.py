@@ -195,7 +195,7 @@ MALFORMED = [
     (lambda d: d["actors"].append({"actor": "Car1", "asset": {"name": "car2", "mesh": "builtin:car"}}),
      "actors[1].actor: must name each actor once"),
     (_set(["actors", 0, "asset", "name"], "bin"), "actors[0].asset.name: must be unique"),
-    (_set(["environment", "weather"], "snow"), "environment.weather: must be one of"),
+    (_set(["environment", "weather"], "hail"), "environment.weather: must be one of"),
 ]
 
 
