@@ -80,13 +80,14 @@ def _fmt(v: float | None) -> str:
 
 
 def _register_subgroups() -> None:
+    from undream.cli.baseline import COMMANDS as BASELINE
     from undream.cli.dashboard import COMMANDS as DASHBOARD
     from undream.cli.farm import COMMANDS
     from undream.cli.report import COMMANDS as REPORT
     from undream.cli.victims import victims
 
     main.add_command(victims)
-    for command in COMMANDS + DASHBOARD + REPORT:
+    for command in COMMANDS + DASHBOARD + REPORT + BASELINE:
         main.add_command(command)
 
 
