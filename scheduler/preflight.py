@@ -114,8 +114,13 @@ def is_run_output(folder: Path) -> bool:
     return isinstance(meta, dict) and (MARKER in meta or "run_id" in meta)
 
 
-def check_output_folder(out: Path, scene_src: Path, force: bool) -> None:
-    """Refuse an ``--out`` the run must not use (see the module docstring); nothing is touched."""
+def check_output_folder(out: Path, scene_src: Path, force: bool, command: str = "undream run",
+                        marker: str = METADATA) -> None:
+    """Refuse an ``--out`` the run must not use (see the module docstring); nothing is touched.
+
+    ``command`` and ``marker``: the command whose folders ``--force`` may replace, and the file
+    that marks them (``undream run``'s run metadata, unless another command names its own).
+    """
     out = Path(out).resolve()
     check_writable_target(out)
     if out == scene_src or out in scene_src.parents:
@@ -123,9 +128,9 @@ def check_output_folder(out: Path, scene_src: Path, force: bool) -> None:
     if out.exists() and any(out.iterdir()):
         if not force:
             raise already_exists(out)
-        if not is_run_output(out):
-            raise SpecError(f"--out {out}: --force only replaces a folder that `undream run` wrote "
-                            f"(one with its {METADATA}); this one has none, so it is left as it is")
+        if not (is_run_output(out) if marker == METADATA else (out / marker).is_file()):
+            raise SpecError(f"--out {out}: --force only replaces a folder that `{command}` wrote "
+                            f"(one with its {marker}); this one has none, so it is left as it is")
 
 
 def mark_output(out: Path, config: RunConfig) -> None:

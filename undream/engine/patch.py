@@ -65,27 +65,50 @@ def footprints(ctx: RunContext, positions: Sequence[int]) -> list[Footprint]:
     return out
 
 
-def optimise_patch(ctx: RunContext, positions: Sequence[int], texture0: np.ndarray,
+def check_attack(attack: Any) -> None:
+    """The baseline steps a patch with the run's PGD (its ε, step size and steps); other attacks are refused."""
+    from undream.attacks.pgd import PGD
+
+    if not isinstance(attack, PGD):
+        raise SpecError(f"attack.name: the pasted-patch baseline runs PGD, got {attack.config.name!r}")
+
+
+def benign_frames(ctx: RunContext, positions: Sequence[int], texture0: np.ndarray) -> list[tuple[Footprint, Any]]:
+    """Each visible frame at ``positions``: its footprint and its benign render with ``texture0``
+    (3×H×W torch, sRGB, at ``sim_spp`` with the seed of iteration 0), rendered once."""
+    import torch
+
+    cfg = ctx.config
+    out = []
+    for f in footprints(ctx, positions):
+        index = ctx.frame_indices[f.position]
+        image = linear_to_srgb(ctx.sim.render(index, texture0, cfg.sim_spp, frame_seed(cfg.seed, 0, index)))
+        out.append((f, torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1)))))
+    return out
+
+
+def _tensor(texture: np.ndarray) -> Any:
+    import torch
+
+    return torch.from_numpy(np.ascontiguousarray(texture.transpose(2, 0, 1))).float()
+
+
+def optimise_patch(ctx: RunContext, frames: Sequence[tuple[Footprint, Any]], texture0: np.ndarray,
                    progress: Any = None) -> tuple[np.ndarray, list[float]]:
-    """PGD on a patch pasted into the benign frames at ``positions``; the patch (H_t×W_t×3 sRGB) and
+    """PGD on a patch pasted into ``frames`` (:func:`benign_frames`); the patch (H_t×W_t×3 sRGB) and
     the mean loss per step. The run's attack must be PGD (its ε, step size and steps are used)."""
     import torch
 
-    from undream.attacks.pgd import PGD, pgd_step
+    from undream.attacks.pgd import pgd_step
 
-    if not isinstance(ctx.attack, PGD):
-        raise SpecError(f"attack.name: the pasted-patch baseline runs PGD, got {ctx.attack.config.name!r}")
-    cfg = ctx.config
-    feet = footprints(ctx, positions)
-    images = [torch.from_numpy(np.ascontiguousarray(linear_to_srgb(ctx.sim.render(
-        ctx.frame_indices[f.position], texture0, cfg.sim_spp,
-        frame_seed(cfg.seed, 0, ctx.frame_indices[f.position]))).transpose(2, 0, 1))) for f in feet]
-    P0 = torch.from_numpy(np.ascontiguousarray(texture0.transpose(2, 0, 1))).float()
+    check_attack(ctx.attack)
+    targets = [ctx.targets[f.position] for f, _ in frames]
+    P0 = _tensor(texture0)
     P, history = P0.clone(), []
     for _ in range(ctx.attack.config.steps):
         P.requires_grad_(True)
-        batch = torch.stack([paste(im, P, f) for im, f in zip(images, feet)])
-        loss = ctx.victim.loss(batch, [ctx.targets[f.position] for f in feet], cfg.loss)
+        batch = torch.stack([paste(image, P, f) for f, image in frames])
+        loss = ctx.victim.loss(batch, targets, ctx.config.loss)
         (G,) = torch.autograd.grad(loss, P)
         history.append(float(loss.detach()))
         with torch.no_grad():
@@ -93,6 +116,21 @@ def optimise_patch(ctx: RunContext, positions: Sequence[int], texture0: np.ndarr
         if progress is not None:
             progress.update(1)
     return P.detach().numpy().transpose(1, 2, 0).astype(np.float32), history
+
+
+def judge_pasted(ctx: RunContext, frames: Sequence[tuple[Footprint, Any]], patch: np.ndarray) -> dict[str, Any]:
+    """What the image-space pipeline itself reports: the victim on ``frames`` with ``patch`` pasted."""
+    import torch
+
+    P = _tensor(patch)
+    preds: list[Any] = [None] * len(ctx.sequence.frames)
+    with torch.no_grad():
+        for f, image in frames:
+            preds[f.position] = ctx.victim.predict(paste(image, P, f)[None])[0]
+    positions = [f.position for f, _ in frames]
+    judged = judge(ctx, preds, positions)
+    return {"frames": [ctx.frame_indices[p] for p in positions], "metric": judged["metric"],
+            "value": judged["value"]}
 
 
 def evaluate_texture(ctx: RunContext, texture: np.ndarray, splits: dict[str, list[int]]) -> dict[str, Any]:
