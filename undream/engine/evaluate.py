@@ -8,7 +8,7 @@ import numpy as np
 from PIL import Image
 
 from undream.engine.context import RunContext
-from undream.engine.job import frame_seed
+from undream.engine.job import class_score, frame_seed, ground_truth
 from undream.color import to_uint8
 from undream.color import linear_to_srgb
 from undream.scene.layout import frame_name
@@ -54,16 +54,7 @@ def losses(ctx: RunContext, images: list[np.ndarray]) -> list[float]:
 
 def ground_truths(ctx: RunContext) -> list[Any]:
     """The object's box per frame (from its visibility mask); no box where it is unseen."""
-    from undream.metrics import GroundTruth
-
-    return [GroundTruth.of({"boxes": [t.box] if t.box else np.zeros((0, 4)),
-                            "labels": [t.label] if t.box else []}) for t in ctx.targets]
-
-
-def _class_score(pred: Any) -> float | None:
-    """The probability of a classifier's predicted class (a live prediction or a stored one)."""
-    score = pred.probs[int(pred.label)] if hasattr(pred, "probs") else getattr(pred, "score", None)
-    return None if score is None else round(float(score), 4)
+    return [ground_truth(t) for t in ctx.targets]
 
 
 def judge(ctx: RunContext, preds: list[Any], positions: list[int] | None = None) -> dict[str, Any]:
@@ -77,10 +68,10 @@ def judge(ctx: RunContext, preds: list[Any], positions: list[int] | None = None)
     if ctx.victim.task == "classification":
         ok = correct(preds, label)
         rows = [{"frame": f.index, "prediction": int(p.label), "class": ctx.victim.labels[int(p.label)],
-                 "score": _class_score(p), "correct": bool(c)}
+                 "score": class_score(p), "correct": bool(c)}
                 for f, p, c in zip(frames, preds, ok)]
         return {"metric": "accuracy", "value": accuracy(preds, label) if preds else None, "per_frame": rows}
-    truths = [ground_truths(ctx)[i] for i in keep]
+    truths = [ground_truth(ctx.targets[i]) for i in keep]
     rows = [{"frame": f.index, "detected": bool(is_detected(p, gt, label)), "n_detections": int(len(p.scores)),
              "score": round(float(p.scores.max()), 4) if len(p.scores) else 0.0}
             for f, p, gt in zip(frames, preds, truths)]

@@ -39,6 +39,22 @@ class FrameResult:
                 "prediction": self.prediction, "timings": self.timings}
 
 
+def class_score(pred: Any) -> float | None:
+    """The probability (0–1, 4 decimals) of a classifier's predicted class, from a live prediction
+    (``probs``) or a stored one (``score``); None when a stored one has none."""
+    score = pred.probs[int(pred.label)] if hasattr(pred, "probs") else getattr(pred, "score", None)
+    return None if score is None else round(float(score), 4)
+
+
+def ground_truth(target: Any) -> Any:
+    """The object's true box and class in one frame (:class:`undream.metrics.GroundTruth`); no box
+    where the object is unseen (``target.box`` None)."""
+    from undream.metrics import GroundTruth
+
+    return GroundTruth.of({"boxes": [target.box] if target.box else np.zeros((0, 4)),
+                           "labels": [target.label] if target.box else []})
+
+
 def prediction_record(ctx: RunContext, position: int, pred: Any) -> dict[str, Any]:
     """The victim's verdict on frame ``position`` as a few JSON values, whatever the model's output size.
 
@@ -51,13 +67,12 @@ def prediction_record(ctx: RunContext, position: int, pred: Any) -> dict[str, An
     target = ctx.targets[position]
     if ctx.victim.task == "classification":
         label = int(pred.label)
-        return {"label": label, "score": round(float(pred.probs[label]), 4), "correct": label == target.label}
-    from undream.metrics import GroundTruth, is_detected
+        return {"label": label, "score": class_score(pred), "correct": label == target.label}
+    from undream.metrics import is_detected
 
-    truth = GroundTruth.of({"boxes": [target.box] if target.box else np.zeros((0, 4)),
-                            "labels": [target.label] if target.box else []})
     scores = pred.scores
-    return {"detected": bool(is_detected(pred, truth, target.label)), "n_detections": int(len(scores)),
+    return {"detected": bool(is_detected(pred, ground_truth(target), target.label)),
+            "n_detections": int(len(scores)),
             "score": round(float(scores.max()), 4) if len(scores) else 0.0}
 
 
