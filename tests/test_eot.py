@@ -110,3 +110,18 @@ def test_a_run_with_eot_completes(tmp_path):
     assert len(results["loss_per_iteration"]) == 3 and all(v is not None for v in results["loss_per_iteration"])
     meta = json.loads((tmp_path / "out" / "metadata.json").read_text())
     assert meta["config"]["eot"] == EOT
+
+
+def test_a_simulator_that_cannot_move_the_camera_refuses_conditions(tmp_path):
+    """Run configs refuse eot with sim: blender; the backend itself refuses too, before starting Cycles."""
+    from conftest import service_missing
+    from undream.errors import RenderError
+    from undream.sim.blender import BlenderSimulator
+
+    try:
+        sim = BlenderSimulator(tmp_path)
+    except RenderError as err:
+        service_missing(f"Blender's Python is not installed: {err}")
+    with pytest.raises(RenderError, match="sim: blender cannot move the camera and light"):
+        sim.render(0, np.zeros((4, 4, 3), np.float32), 1, 0, conditions=draw_conditions(EOT, 0, 0, 0))
+    assert sim._proc is None  # nothing was started

@@ -98,10 +98,7 @@ def render_and_grad(ctx: RunContext, position: int, texture: np.ndarray, iterati
     seed = frame_seed(cfg.seed, iteration, index)
     conditions = draw_conditions(cfg.eot, cfg.seed, iteration, index)  # None without eot
     t0 = time.perf_counter()
-    if conditions is None:
-        linear = ctx.sim.render(index, texture, cfg.sim_spp, seed)
-    else:
-        linear = ctx.sim.render(index, texture, cfg.sim_spp, seed, conditions=conditions)
+    linear = ctx.sim.render(index, texture, cfg.sim_spp, seed, conditions=conditions)
     t1 = time.perf_counter()
     loss, g_image, pred = victim_loss_and_grad(ctx, position, linear_to_srgb(linear))
     t2 = time.perf_counter()

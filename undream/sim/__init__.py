@@ -9,7 +9,7 @@ Backends register by name; ``mitsuba`` is the embedded default.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Callable, Protocol, runtime_checkable
+from typing import Any, Callable, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -22,11 +22,13 @@ class SimulatorBackend(Protocol):
 
     name: str
 
-    def render(self, index: int, texture_srgb: np.ndarray, spp: int, seed: int) -> np.ndarray:
+    def render(self, index: int, texture_srgb: np.ndarray, spp: int, seed: int,
+               conditions: Any = None) -> np.ndarray:
         """Frame ``index`` with ``texture_srgb`` (H×W×3 sRGB in [0, 1]): H×W×3 linear radiance.
 
-        A backend that can move the camera and light per render (EOT) also takes
-        ``conditions=`` (:class:`undream.render.jitter.Conditions`); ``mitsuba`` does.
+        ``conditions`` (:class:`undream.render.jitter.Conditions`, EOT): the camera and light
+        moved for this render; a backend that cannot move them raises RenderError when given
+        any (``mitsuba`` can; run configs refuse ``eot`` with other simulators beforehand).
         """
         ...
 

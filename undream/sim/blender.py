@@ -126,8 +126,14 @@ class BlenderSimulator:
             return "none"
         return lines[-1][:300] if lines else "none"
 
-    def render(self, index: int, texture_srgb: np.ndarray, spp: int, seed: int) -> np.ndarray:
-        """Frame ``index`` with ``texture_srgb`` (H×W×3 sRGB in [0, 1]): H×W×3 linear radiance (float32)."""
+    def render(self, index: int, texture_srgb: np.ndarray, spp: int, seed: int,
+               conditions: Any = None) -> np.ndarray:
+        """Frame ``index`` with ``texture_srgb`` (H×W×3 sRGB in [0, 1]): H×W×3 linear radiance (float32).
+
+        ``conditions`` (EOT) cannot be applied in Cycles: RenderError when given.
+        """
+        if conditions is not None:
+            raise RenderError("sim: blender cannot move the camera and light per render (eot); use sim: mitsuba")
         tex = np.asarray(texture_srgb, dtype=np.float32)
         if tex.ndim != 3 or tex.shape[2] != 3 or not np.isfinite(tex).all():
             raise RenderError(f"texture must be a finite H×W×3 array, got shape {tex.shape}")
