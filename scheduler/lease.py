@@ -106,10 +106,9 @@ class Lease:
         self._thread: threading.Thread | None = None
 
     def __enter__(self) -> "Lease":
-        run = self.store.get_run(self.run_id)
         if not self.store.claim(self.run_id, self.owner):
             holder = self.store.get_run(self.run_id)
-            raise StoreError(f"run {self.run_id}: being run by {holder.owner} (status {run.status}); "
+            raise StoreError(f"run {self.run_id}: being run by {holder.owner} (status {holder.status}); "
                              "wait for it, or stop that process first")
         self._thread = threading.Thread(target=self._beat, name=f"lease-{self.run_id[:8]}", daemon=True)
         self._thread.start()

@@ -33,8 +33,9 @@ class RunFailed(UndreamError):
     """A run ended failed (the message is the run's error)."""
 
 
-def resolve_scene(config: RunConfig, out: Path, base_dir: Path) -> Path:
-    """The run's scene directory: given, or initialised from a spec file into ``out/scene``."""
+def resolve_scene(config: RunConfig, out: Path, base_dir: Path, reuse: bool = False) -> Path:
+    """The run's scene directory: given, or initialised from a spec file into ``out/scene``
+    (``reuse``: the one an earlier start of the run already initialised there, if any)."""
     from undream.scenedir.init import InitOptions, init_scene
 
     src = Path(config.scene)
@@ -44,6 +45,8 @@ def resolve_scene(config: RunConfig, out: Path, base_dir: Path) -> Path:
         return src
     if not src.exists():
         raise SpecError(f"scene: {src} is neither a scene directory nor a spec file")
+    if reuse and (out / "scene" / "sequence.json").is_file():
+        return out / "scene"
     return init_scene(src, out / "scene", InitOptions(force=True))
 
 
@@ -156,10 +159,7 @@ def resume_local(config: RunConfig, out: Path, base_dir: Path, progress: bool = 
     run = store.get_run(run.id)
     if run.status == "done":
         return run.results or {}
-    src = Path(config.scene) if Path(config.scene).is_absolute() else base_dir / config.scene
-    scene_dir = src if (src / "sequence.json").is_file() else \
-        out / "scene" if (out / "scene" / "sequence.json").is_file() else resolve_scene(config, out, base_dir)
-    ctx = build_context(config, scene_dir, victim=victim)
+    ctx = build_context(config, resolve_scene(config, out, base_dir, reuse=True), victim=victim)
     return _drive(store, ctx, run.id, progress, lambda dispatch: stages.resume(store, run.id, dispatch),
                   done=run.iteration)
 
