@@ -14,7 +14,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from undream.errors import SpecError, StoreError, UndreamError, already_exists
 from undream.spec.io import check_writable_target

@@ -43,6 +43,17 @@ def make_victim(path: Path) -> str:
     return str(path)
 
 
+def cuda_driver_present() -> bool:
+    """Whether this machine has an NVIDIA driver (libcuda) that Mitsuba's cuda_ad_rgb could load."""
+    import ctypes
+
+    try:
+        ctypes.CDLL("libcuda.so.1")
+        return True
+    except OSError:
+        return False
+
+
 def make_scene(path: Path, n_frames: int = 4, size: int = 24) -> Path:
     """A sphere seen from ``n_frames`` cameras at ``size`` px, a 16×8 texture."""
     from undream.scene.poses import look_at

@@ -23,7 +23,8 @@ import pytest
 
 from conftest import service_missing
 from farm_support import (
-    REDIS_START, Farm, farm_inputs, postgres_database, redis_client, redis_up, run_config, wait_for, write_yaml,
+    REDIS_START, Farm, cuda_driver_present, farm_inputs, postgres_database, redis_client, redis_up, run_config,
+    wait_for, write_yaml,
 )
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -167,23 +168,13 @@ def test_a_sweep_runs_to_completion_on_two_workers(topology):
     check_dashboard(dashboard, sweep_id, runs, 3)
     seen = {w["worker"] for w in dashboard.get("/api/workers")["workers"]}
     assert workers <= seen, (workers, seen)
-    if not _driver_present():  # the GPU image's fall-back, as a worker logs it
+    if not cuda_driver_present():  # the GPU image's fall-back, as a worker logs it
         for log in sorted(farm.root.glob("worker*.log")):
             assert "falling back to Mitsuba variant llvm_ad_rgb: cuda_ad_rgb failed: no NVIDIA driver" \
                 in log.read_text(), log
 
 
 CRASH_STEPS = 40
-
-
-def _driver_present() -> bool:
-    import ctypes
-
-    try:
-        ctypes.CDLL("libcuda.so.1")
-        return True
-    except OSError:
-        return False
 
 
 def test_a_sweep_finishes_after_a_worker_is_killed_and_the_broker_restarted(topology):

@@ -7,7 +7,6 @@ variant keeps it, and Dr.Jit initialises its backends once per process.
 """
 from __future__ import annotations
 
-import ctypes
 import os
 import subprocess
 import sys
@@ -15,6 +14,7 @@ from pathlib import Path
 
 import pytest
 
+from farm_support import cuda_driver_present
 from undream.variant import PREFERRED, cuda_unusable_reason
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -33,20 +33,12 @@ def _fresh(env_extra: dict[str, str]) -> subprocess.CompletedProcess:
                           timeout=120)
 
 
-def _driver_present() -> bool:
-    try:
-        ctypes.CDLL("libcuda.so.1")
-        return True
-    except OSError:
-        return False
-
-
 def test_cuda_comes_first():
     assert PREFERRED == ("cuda_ad_rgb", "llvm_ad_rgb")
 
 
 def test_without_a_gpu_the_worker_falls_back_to_llvm_and_says_why():
-    if _driver_present():
+    if cuda_driver_present():
         pytest.skip("this machine has an NVIDIA driver (libcuda.so.1); the fall-back is checked by the next test")
     res = _fresh({})
     assert res.returncode == 0, res.stderr

@@ -1,13 +1,13 @@
 """The attack engine in one process: outputs, determinism, unseen texels, bad gradients, idempotence."""
 from __future__ import annotations
 
-import json
 import logging
 
 import numpy as np
 import pytest
 import torch
 
+from farm_support import make_victim
 from undream.engine.context import build_context
 from undream.engine.evaluate import quantise
 from undream.engine.job import FrameResult
@@ -17,23 +17,11 @@ from undream.scene.poses import look_at
 from undream.spec import Asset, Camera, Environment, Frame, Sequence, TextureParam, Transform
 from undream.spec.run import RunConfig
 
-LABELS = ["car", "sphere", "stop_sign", "traffic_cone", "trash_bin", "umbrella"]
-
 
 @pytest.fixture(scope="module")
 def victim_dir(tmp_path_factory):
     """A tiny random HF ResNet over the built-in classes, saved locally (no network)."""
-    import transformers as T
-
-    torch.manual_seed(0)
-    cfg = T.ResNetConfig(embedding_size=8, hidden_sizes=[8, 16], depths=[1, 1],
-                         id2label=dict(enumerate(LABELS)), label2id={n: i for i, n in enumerate(LABELS)})
-    path = tmp_path_factory.mktemp("victim") / "tiny"
-    T.ResNetForImageClassification(cfg).save_pretrained(path)
-    (path / "preprocessor_config.json").write_text(json.dumps(
-        {"size": {"height": 32, "width": 32}, "do_normalize": True,
-         "image_mean": [0.5, 0.5, 0.5], "image_std": [0.5, 0.5, 0.5]}))
-    return str(path)
+    return make_victim(tmp_path_factory.mktemp("victim") / "tiny")
 
 
 @pytest.fixture(scope="module")

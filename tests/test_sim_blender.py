@@ -20,6 +20,7 @@ import yaml
 from scipy.ndimage import binary_dilation
 
 from conftest import service_missing
+from farm_support import make_victim
 from projection import centroid, load, visible_mask
 from undream.errors import RenderError, SpecError, UndreamError
 from undream.scenedir.verify import read_mask
@@ -230,19 +231,7 @@ def test_a_server_that_dies_is_one_line(tmp_path, monkeypatch):
 @pytest.fixture(scope="module")
 def victim_dir(tmp_path_factory):
     """A tiny random HF ResNet over the built-in classes, saved locally (no network)."""
-    import torch
-    import transformers as T
-
-    labels = ["car", "sphere", "stop_sign", "traffic_cone", "trash_bin", "umbrella"]
-    torch.manual_seed(0)
-    cfg = T.ResNetConfig(embedding_size=8, hidden_sizes=[8, 16], depths=[1, 1],
-                         id2label=dict(enumerate(labels)), label2id={n: i for i, n in enumerate(labels)})
-    path = tmp_path_factory.mktemp("victim") / "tiny"
-    T.ResNetForImageClassification(cfg).save_pretrained(path)
-    (path / "preprocessor_config.json").write_text(json.dumps(
-        {"size": {"height": 32, "width": 32}, "do_normalize": True,
-         "image_mean": [0.5, 0.5, 0.5], "image_std": [0.5, 0.5, 0.5]}))
-    return str(path)
+    return make_victim(tmp_path_factory.mktemp("victim") / "tiny")
 
 
 def test_attack_run_with_cycles_frames(cycles, victim_dir, tmp_path, mi):
