@@ -21,6 +21,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 REDIS_HOST = os.environ.get("UNDREAM_TEST_REDIS", "127.0.0.1:6379")
+PG_ADMIN_URL = os.environ.get("UNDREAM_TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/test")
 REDIS_START = ["redis-server", "--daemonize", "yes", "--bind", "127.0.0.1", "-::1", "--port", "6379",
                "--save", "", "--appendonly", "no", "--dir", "/var/lib/redis",
                "--logfile", "/var/log/redis/ci.log"]
@@ -222,6 +223,21 @@ def postgres_database(admin_url: str) -> tuple[str, Callable[[], None]]:
         engine.dispose()
 
     return engine.url.set(database=name).render_as_string(hide_password=False), drop
+
+
+def fresh_postgres(admin_url: str = PG_ADMIN_URL) -> tuple[str, Callable[[], None]]:
+    """:func:`postgres_database`, or a skip saying why there is none (a failure under
+    ``UNDREAM_REQUIRE_SERVICES``, see tests/conftest.py)."""
+    import pytest
+
+    from conftest import service_missing
+
+    pytest.importorskip("psycopg", reason="psycopg not installed (pip install 'undream[postgres]')")
+    try:
+        return postgres_database(admin_url)
+    except Exception as exc:  # the server is down: sqlalchemy's or psycopg's error
+        service_missing(f"PostgreSQL unreachable at {admin_url}: {str(exc).splitlines()[0]}")
+        raise  # not reached: service_missing skips or fails
 
 
 def farm_inputs(tmp_path_factory, name: str, n_frames: int) -> dict:

@@ -17,7 +17,6 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from conftest import service_missing  # noqa: E402
 from dashboard_data import build_farm  # noqa: E402
 
 from undream.dashboard import create_app  # noqa: E402
@@ -27,7 +26,6 @@ from undream.store import RUN_STATUSES, open_store  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 TOKEN = "dashboard-secret-0123"
 MISSING = "00000000-0000-4000-8000-000000000000"
-PG_ADMIN_URL = os.environ.get("UNDREAM_TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/test")
 
 
 def _settings(blobs: Path, **env: str):
@@ -204,14 +202,9 @@ def test_an_unreachable_database_is_a_503_with_one_line(tmp_path):
 
 @pytest.fixture
 def pg_url():
-    psycopg = pytest.importorskip("psycopg", reason="psycopg not installed (pip install 'undream[postgres]')")
-    from farm_support import postgres_database
+    from farm_support import fresh_postgres
 
-    try:
-        url, drop = postgres_database(PG_ADMIN_URL)
-    except Exception as exc:  # the server is down: sqlalchemy's or psycopg's error
-        service_missing(f"PostgreSQL unreachable at {PG_ADMIN_URL}: {str(exc).splitlines()[0]}")
-    del psycopg
+    url, drop = fresh_postgres()
     yield url, drop
     drop()
 

@@ -21,26 +21,20 @@ from typing import Any
 
 import pytest
 
-from conftest import service_missing
 from farm_support import (
-    REDIS_START, Farm, cuda_driver_present, farm_inputs, postgres_database, redis_client, redis_up, run_config,
+    REDIS_START, Farm, cuda_driver_present, farm_inputs, fresh_postgres, redis_client, redis_up, run_config,
     wait_for, write_yaml,
 )
 
 ROOT = Path(__file__).resolve().parents[1]
 HEALTHCHECK = ROOT / "deploy" / "docker" / "healthcheck.py"
-PG_ADMIN_URL = os.environ.get("UNDREAM_TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/test")
 
 
 @pytest.fixture(scope="module")
 def topology(tmp_path_factory, mi):
     """Two one-core workers on PostgreSQL and Redis, sharing one blob folder; the tiny inputs."""
-    pytest.importorskip("psycopg", reason="psycopg not installed (pip install 'undream[postgres]')")
     inputs = farm_inputs(tmp_path_factory, "topology", 4)
-    try:
-        url, drop = postgres_database(PG_ADMIN_URL)
-    except Exception as exc:
-        service_missing(f"PostgreSQL unreachable at {PG_ADMIN_URL}: {str(exc).splitlines()[0]}")
+    url, drop = fresh_postgres()
     farm = Farm(inputs["root"] / "farm", database_url=url)
     farm.root.mkdir()
     dashboard = None

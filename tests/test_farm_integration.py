@@ -16,12 +16,10 @@ import pytest
 
 from scheduler.iteration import attacked_frames
 
-from conftest import service_missing
 from farm_support import (
-    REDIS_START, Farm, farm_inputs, postgres_database, redis_client, redis_up, run_config, wait_for, write_yaml,
+    REDIS_START, Farm, farm_inputs, fresh_postgres, redis_client, redis_up, run_config, wait_for, write_yaml,
 )
 
-PG_ADMIN_URL = os.environ.get("UNDREAM_TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/test")
 
 
 @pytest.fixture(scope="module")
@@ -135,11 +133,7 @@ def test_sigkill_of_a_worker_mid_iteration_loses_nothing(tiny):
 
 
 def test_a_run_on_postgresql(tiny):
-    pytest.importorskip("psycopg", reason="psycopg not installed (pip install 'undream[postgres]')")
-    try:
-        url, drop = postgres_database(PG_ADMIN_URL)
-    except Exception as exc:
-        service_missing(f"PostgreSQL unreachable at {PG_ADMIN_URL}: {str(exc).splitlines()[0]}")
+    url, drop = fresh_postgres()
     farm = Farm(tiny["root"] / "pg", database_url=url)
     farm.root.mkdir()
     try:

@@ -21,8 +21,7 @@ import numpy as np
 import pytest
 from sqlalchemy import text
 
-from conftest import service_missing
-from farm_support import make_scene, make_victim, postgres_database, run_config, write_yaml
+from farm_support import fresh_postgres, make_scene, make_victim, run_config, write_yaml
 from scheduler.lease import Lease, expire_stale, process_gone, stale_reason, this_process
 from undream.errors import StoreError
 from undream.store import open_store
@@ -30,7 +29,6 @@ from undream.store.models import utcnow
 
 ROOT = Path(__file__).resolve().parents[1]
 HOST = socket.gethostname()
-PG_ADMIN_URL = os.environ.get("UNDREAM_TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/test")
 
 
 def _undream(*args: str) -> subprocess.CompletedProcess:
@@ -149,11 +147,7 @@ def test_a_version_2_database_is_upgraded_in_place(backend, tmp_path):
     if backend == "sqlite":
         url = f"sqlite:///{tmp_path / 'v2.db'}"
     else:
-        pytest.importorskip("psycopg", reason="psycopg not installed (pip install 'undream[postgres]')")
-        try:
-            url, drop = postgres_database(PG_ADMIN_URL)
-        except Exception as exc:
-            service_missing(f"PostgreSQL unreachable at {PG_ADMIN_URL}: {str(exc).splitlines()[0]}")
+        url, drop = fresh_postgres()
     try:
         _downgrade_and_reopen(url, tmp_path)
     finally:
