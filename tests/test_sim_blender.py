@@ -284,3 +284,36 @@ def test_every_preset_agrees_with_mitsuba(cycles, tmp_path, mi):
             assert abs(b / a - 1) < tol, f"{f.environment.weather}: Cycles / Mitsuba = {b / a:.3f}"
     finally:
         sim.close()
+
+
+def test_cycles_threads_follow_the_setting(cycles, tmp_path, mi, monkeypatch):
+    """The server renders with the thread count it was given (``threads``, else
+    ``$UNDREAM_BLENDER_THREADS``, else this process's Dr.Jit thread count, which a farm worker sets from
+    ``drjit_threads``), and reports what Cycles uses."""
+    import drjit as dr
+
+    from undream.scene.poses import look_at
+    from undream.scenedir.init import InitOptions, init_scene
+    from undream.sim.blender import cycles_threads
+    from undream.spec import Asset, Camera, Frame, Sequence, TextureParam, Transform
+
+    cam = Camera(Transform.from_rows(look_at([1.5, 1.2, 2.0], [0, 0.5, 0])), 40.0, (8, 8))
+    seq = Sequence("t", Asset("ball", "builtin:sphere", texture=TextureParam(resolution=(4, 4))),
+                   (Frame(0, cam, Transform.identity()),))
+    scene = init_scene(seq, tmp_path / "scene", InitOptions(verify_spp=1))
+    monkeypatch.delenv("UNDREAM_BLENDER_THREADS", raising=False)
+    before = dr.thread_count()
+    try:
+        dr.set_thread_count(3)
+        assert cycles_threads() == 3 and cycles_threads(5) == 5
+        monkeypatch.setenv("UNDREAM_BLENDER_THREADS", "2")
+        assert cycles_threads() == 2
+        for given, expect in ((None, 2), (1, 1)):
+            sim = make_backend("blender", scene, threads=given)
+            try:
+                assert sim.started().server_threads == expect
+                assert sim.render(0, np.full((4, 4, 3), 0.5, np.float32), 1, 0).shape == (8, 8, 3)
+            finally:
+                sim.close()
+    finally:
+        dr.set_thread_count(before)

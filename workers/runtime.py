@@ -94,15 +94,22 @@ def claim_cores(n: int, lock_dir: Path) -> list[int]:
 
 
 def init_process(settings: "Settings") -> None:
-    """In a worker child as it starts: its cores, Dr.Jit's and torch's thread counts, Mitsuba's variant."""
+    """In a worker child as it starts: its cores, Dr.Jit's, Cycles' and torch's thread counts, Mitsuba's variant.
+
+    Cycles (``sim: blender``) renders on the same share of cores as Dr.Jit
+    unless ``$UNDREAM_BLENDER_THREADS`` says otherwise (its render server
+    inherits the pinning too).
+    """
     import drjit as dr
     import torch
 
+    from undream.sim.blender import THREADS_ENV
     from undream.variant import mitsuba
 
     threads = drjit_threads_for(settings)
     cores = claim_cores(threads, Path(settings.cache_dir) / "cores")
     dr.set_thread_count(max(threads, MIN_DRJIT_POOL))
+    os.environ.setdefault(THREADS_ENV, str(threads))
     torch.set_num_threads(settings.torch_threads)
     mitsuba()
     log.info("worker process %d: cores %s, Dr.Jit pool %d, torch threads %d", os.getpid(), cores,

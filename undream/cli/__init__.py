@@ -27,20 +27,32 @@ def main() -> None:
 @force_option
 @spp_option("--verify-spp", 16, "Samples per pixel of the verification renders.")
 @spp_option("--scene-spp", 64, "Default samples per pixel written into the scene XML files.", most=65536)
+@click.option("--object", "object_name", default=None, metavar="NAME",
+              help="For a .blend SPEC: the adversarial object (a UV-mapped mesh object's name).")
+@click.option("--camera", default=None, metavar="NAME",
+              help="For a .blend SPEC: the camera object (default: the scene's active camera).")
 @check_option
 @progress_option
 @one_line_errors
-def init_cmd(spec: Path, out: Path, force: bool, verify_spp: int, scene_spp: int, check: bool,
-             progress: bool) -> None:
-    """Write the scene directory of SPEC (trajectory YAML, Unreal export JSON or sequence.json)."""
-    from undream.scenedir.init import InitOptions, check_init, init_scene
+def init_cmd(spec: Path, out: Path, force: bool, verify_spp: int, scene_spp: int, object_name: str | None,
+             camera: str | None, check: bool, progress: bool) -> None:
+    """Write the scene directory of SPEC (trajectory YAML, Unreal export JSON, sequence.json, or a
+    Blender .blend with --object NAME)."""
+    from undream.bridge.blender_import import BlendSource
+    from undream.errors import SpecError
+    from undream.scenedir.init import InitOptions, Source, check_init, init_scene
 
+    source: Source = spec
+    if spec.suffix.lower() == ".blend" and object_name:
+        source = BlendSource(spec, object_name, camera)
+    elif spec.suffix.lower() != ".blend" and (object_name or camera):
+        raise SpecError(f"{spec}: --object and --camera are for .blend files only")
     options = InitOptions(force=force, verify_spp=verify_spp, scene_spp=scene_spp, progress=progress)
     if check:
-        click.echo(f"ok: {spec} can be written to {out}: {check_init(spec, out, options).describe()}; "
+        click.echo(f"ok: {spec} can be written to {out}: {check_init(source, out, options).describe()}; "
                    "nothing written")
         return
-    done = init_scene(spec, out, options)
+    done = init_scene(source, out, options)
     click.echo(f"wrote {done} (contact sheet: {done / 'verify' / 'contact_sheet.png'})")
 
 

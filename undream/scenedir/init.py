@@ -1,4 +1,4 @@
-"""``undream init``: a scene directory from a trajectory spec, an Unreal export or a sequence.json.
+"""``undream init``: a scene directory from a trajectory spec, an Unreal export, a sequence.json or a .blend.
 
 Layout written (atomically: into a temporary sibling, renamed at the end)::
 
@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from undream.bridge.blender_import import BlendSource
 from undream.color import linear_to_srgb, srgb_to_linear, to_uint8
 from undream.errors import AssetError, SpecError, already_exists
 from undream.progress import progress
@@ -35,6 +36,8 @@ from undream.scene.mitsuba_scene import OBJECT_ID, ScenePaths, scene_dict
 from undream.scene.xml import to_xml
 from undream.spec import Sequence, TextureParam, save_sequence
 from undream.spec.io import check_writable_target
+
+Source = str | Path | Sequence | BlendSource  # a spec file, a sequence, or a .blend and its object
 
 
 @dataclass(frozen=True)
@@ -59,7 +62,7 @@ class CheckedSource:
     estimate: Estimate  # memory and samples of the verification renders
 
 
-def check_source(source: str | Path | Sequence, options: InitOptions = InitOptions(),
+def check_source(source: Source, options: InitOptions = InitOptions(),
                  spec_text: str | None = None) -> CheckedSource:
     """Everything ``undream init`` checks before it writes: the spec parsed, meshes (with UVs)
     and the texture loaded, the verification renders' memory checked. Writes nothing.
@@ -82,12 +85,12 @@ def check_source(source: str | Path | Sequence, options: InitOptions = InitOptio
     return CheckedSource(seq, base_dir, spec_text, meshes, texture, estimate)
 
 
-def init_scene(source: str | Path | Sequence, out: str | Path, options: InitOptions = InitOptions(),
+def init_scene(source: Source, out: str | Path, options: InitOptions = InitOptions(),
                spec_text: str | None = None) -> Path:
     """Write the scene directory of ``source`` to ``out`` and return its path.
 
     ``source`` is a spec file (YAML trajectory, Unreal export JSON, canonical
-    sequence.json) or a :class:`Sequence`. Everything is checked first
+    sequence.json), a :class:`Sequence` or a :class:`BlendSource`. Everything is checked first
     (:func:`check_source`); nothing is left behind on error, and an existing
     ``out`` is only replaced with ``options.force``.
     """
@@ -106,7 +109,7 @@ def init_scene(source: str | Path | Sequence, out: str | Path, options: InitOpti
     return out
 
 
-def check_init(source: str | Path, out: str | Path, options: InitOptions = InitOptions()) -> Estimate:
+def check_init(source: Source, out: str | Path, options: InitOptions = InitOptions()) -> Estimate:
     """``undream init --check``: every check of :func:`init_scene`, nothing written; the estimate."""
     _check_target(Path(out), options.force)
     return check_source(source, options).estimate
@@ -118,10 +121,13 @@ def _check_target(out: Path, force: bool) -> None:
     check_writable_target(out.parent if out.is_dir() else out)
 
 
-def _resolve_source(source: str | Path | Sequence, spec_text: str | None) -> tuple[Sequence, Path | None, str | None]:
+def _resolve_source(source: Source, spec_text: str | None) -> tuple[Sequence, Path | None, str | None]:
     if isinstance(source, Sequence):
         return source, None, spec_text
     from undream.scene.sources import sequence_from_file
+
+    if isinstance(source, BlendSource):
+        return sequence_from_file(source), Path(source.path).parent, source.describe()
 
     path = Path(source)
     seq = sequence_from_file(path)

@@ -14,63 +14,56 @@ from __future__ import annotations
 import os
 import shutil
 import subprocess
-import tempfile
+import sys
 import weakref
-from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from undream.bridge.blender_python import HINT, blender_env, blender_python, bpy_problem, import_root
 from undream.color import srgb_to_linear
 from undream.errors import RenderError
 from undream.sim import register_backend
 from undream.sim.blender_protocol import ProtocolError, read_message, write_message
 
-PYTHON_ENV = "UNDREAM_BLENDER_PYTHON"
 THREADS_ENV = "UNDREAM_BLENDER_THREADS"
-PACKAGE_DIR = Path(__file__).resolve().parents[1]  # .../undream
-
-
-def blender_python() -> Path:
-    """The interpreter that has ``bpy``: ``$UNDREAM_BLENDER_PYTHON`` or ``<repo>/.venv-blender/bin/python``."""
-    env = os.environ.get(PYTHON_ENV)
-    return Path(env) if env else PACKAGE_DIR.parent / ".venv-blender" / "bin" / "python"
-
-
-@lru_cache(maxsize=4)
-def _check(python: Path) -> None:
-    hint = f"run ./deploy/setup.sh or set {PYTHON_ENV}"
-    if not python.is_file():
-        raise RenderError(f"sim: blender needs Blender's Python (bpy 5.0.1): {python} not found; {hint}")
-    probe = subprocess.run([str(python), "-c", "import bpy"], capture_output=True, text=True, timeout=120)
-    if probe.returncode != 0:
-        last = (probe.stderr.strip().splitlines() or ["no output"])[-1]
-        raise RenderError(f"sim: blender: {python} cannot import bpy ({last}); {hint}")
 
 
 def check_blender(python: Path | None = None) -> None:
     """Raise a one-line :class:`RenderError` unless Blender's Python exists and imports ``bpy`` (~1 s once)."""
-    _check(Path(python) if python else blender_python())
+    python = Path(python) if python else blender_python()
+    problem = bpy_problem(python)
+    if problem is None:
+        return
+    kind, reason = problem
+    if kind == "missing":
+        raise RenderError(f"sim: blender needs Blender's Python (bpy 5.0.1): {reason} not found; {HINT}")
+    raise RenderError(f"sim: blender: {python} cannot import bpy ({reason}); {HINT}")
 
 
-def _import_root() -> Path:
-    """A folder holding only a link to the undream package, for the server's ``PYTHONPATH``.
+def cycles_threads(threads: int | None = None) -> int:
+    """Cycles' CPU threads: ``threads`` if given, else ``$UNDREAM_BLENDER_THREADS``, else Dr.Jit's.
 
-    Not the package's parent itself: in a non-editable install that is
-    undream's site-packages, whose numpy 2 would shadow Blender's numpy 1.
+    Dr.Jit's is this process's render thread count: a farm worker sets it from
+    ``drjit_threads`` (its share of the cores, :func:`workers.runtime.init_process`),
+    so Cycles renders on the same share; 0 (when Dr.Jit is not loaded) means all cores.
     """
-    root = Path(tempfile.mkdtemp(prefix="undream-bpy-path-"))
-    (root / "undream").symlink_to(PACKAGE_DIR, target_is_directory=True)
-    return root
+    if threads is not None:
+        return int(threads)
+    if os.environ.get(THREADS_ENV):
+        return int(os.environ[THREADS_ENV])
+    drjit = sys.modules.get("drjit")
+    return int(drjit.thread_count()) if drjit is not None else 0
 
 
 @register_backend("blender")
 class BlenderSimulator:
     """Renders frames of ``scene_dir`` with Cycles (CPU) through a lazily started render server.
 
-    ``threads``: Cycles' CPU threads (default ``$UNDREAM_BLENDER_THREADS`` or
-    all cores); ``python``: Blender's interpreter (default :func:`blender_python`).
+    ``threads``: Cycles' CPU threads (default: :func:`cycles_threads`; 0: all
+    cores); ``python``: Blender's interpreter (default :func:`blender_python`).
+    :attr:`server_threads` is the count the started server reports Cycles uses.
     """
 
     name = "blender"
@@ -79,18 +72,19 @@ class BlenderSimulator:
                  **_shared: Any):
         self.scene_dir = Path(scene_dir).resolve()
         self.python = Path(python) if python else blender_python()
-        self.threads = int(threads if threads is not None else os.environ.get(THREADS_ENV, 0))
+        self.threads = cycles_threads(threads)
         self._proc: subprocess.Popen | None = None
         self._root: Path | None = None
         self._finalizer: weakref.finalize | None = None
         self._versions: dict[str, str] = {}
+        self.server_threads: int | None = None  # Cycles' threads, as the server reports them once started
         check_blender(self.python)
 
     def _start(self) -> subprocess.Popen:
         if self._proc is not None and self._proc.poll() is None:
             return self._proc
-        self._root = root = _import_root()
-        env = {**os.environ, "PYTHONPATH": str(root), "PYTHONNOUSERSITE": "1"}
+        self._root = root = import_root()
+        env = blender_env(root)
         cmd = [str(self.python), "-m", "undream.sim.blender_server", str(self.scene_dir),
                "--threads", str(self.threads)]
         with open(root / "server.log", "wb") as log:  # Blender's own output, for errors
@@ -100,6 +94,7 @@ class BlenderSimulator:
         self._finalizer = weakref.finalize(self, _shutdown, self._proc, root)
         header, _ = self._receive("starting the Cycles server")
         self._versions = {str(k): str(v) for k, v in header.get("versions", {}).items()}
+        self.server_threads = int(header["threads"]) if "threads" in header else None
         return self._proc
 
     def _receive(self, doing: str) -> tuple[dict[str, Any], np.ndarray | None]:
@@ -163,6 +158,11 @@ class BlenderSimulator:
     def versions(self) -> dict[str, str]:
         self._start()
         return dict(self._versions)
+
+    def started(self) -> "BlenderSimulator":
+        """Start the render server now (it starts on the first render otherwise); returns self."""
+        self._start()
+        return self
 
     def close(self) -> None:
         """Ask the server to quit and wait for it (killed after 10 s); a later render starts a new one."""

@@ -499,5 +499,9 @@ class CyclesScene:
              sc.render.image_settings.color_mode) = saved
         return alpha
 
+    def threads(self) -> int:
+        """The CPU threads Cycles renders with (fixed, or Blender's count of all cores)."""
+        return int(self.scene.render.threads)
+
     def versions(self) -> dict[str, str]:
         return {"blender": bpy.app.version_string, "cycles_device": "CPU", "numpy_blender": np.__version__}

@@ -4,8 +4,9 @@ Runs in Blender's own environment (``.venv-blender``: Python 3.11, ``bpy``
 5.0.1, numpy < 2), never in undream's: it imports bpy, numpy and the light
 parts of undream (spec, PLY reader, the Mitsuba scene *dictionaries*), no
 Mitsuba, torch or celery. It loads the scene directory once, answers with a
-``ready`` message (versions), then serves requests on stdin/stdout in the
-format of :mod:`undream.sim.blender_protocol`:
+``ready`` message (versions; ``threads``: the CPU threads Cycles renders
+with: ``--threads`` N > 0 fixed, 0 Blender's count of all cores), then serves
+requests on stdin/stdout in the format of :mod:`undream.sim.blender_protocol`:
 
 - ``{"cmd": "render", "index", "spp", "seed"}`` + H×W×3 float32 texture
   (LINEAR reflectance) → ``{"ok": true, "seconds"}`` + H×W×3 float32 frame
@@ -46,7 +47,7 @@ def serve(scene_dir: str, threads: int, inp: BinaryIO, out: BinaryIO) -> None:
     except Exception as err:  # reported to the client as one line, then the server exits
         write_message(out, {"error": f"loading {scene_dir}: {type(err).__name__}: {err}"})
         return
-    write_message(out, {"ready": True, "versions": scene.versions()})
+    write_message(out, {"ready": True, "versions": scene.versions(), "threads": scene.threads()})
     while True:
         try:
             header, array = read_message(inp)

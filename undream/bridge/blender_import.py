@@ -1,0 +1,310 @@
+"""Import a Blender scene (``.blend``: an animated camera and a named, UV-mapped object) as a canonical sequence.
+
+``undream init scene.blend --object NAME [--camera NAME] --out DIR`` (or
+:func:`sequence_from_blend`). Blender runs in its own interpreter
+(:mod:`undream.bridge.blender_python`): :mod:`undream.bridge.blender_export`
+writes Blender's values as JSON, and this module validates and converts them.
+The export format, version 1 (Blender's world: right-handed, Z up, metres)::
+
+    {"format": "undream-blender-export", "version": 1, "blend": PATH, "blender": "5.0.1",
+     "scene": "Scene", "fps": 24.0, "resolution": [W, H], "pixel_aspect": [1, 1],
+     "camera": {"name": "Camera"},
+     "object": {"name": "Crate", "mesh": {"vertices": [[x, y, z], ...],      # object-local
+                                           "triangles": [[i, j, k], ...],    # vertex indices
+                                           "uvs": [[[u, v] × 3], ...],       # per corner, v up
+                                           "normals": [[[x, y, z] × 3], ...]}},
+     "frames": [{"frame": 1,
+                 "camera": {"matrix_world": 4×4, "view_frame": [[x, y, z] × 4]},
+                 "object": {"matrix_world": 4×4}}, ...]}
+
+Conversion, matrices only (no Euler angles): a Blender point ``p_b`` is the
+canonical point ``Cᵀ p_b`` with ``C = [[1,0,0],[0,0,-1],[0,1,0]]`` (canonical
+y is Blender's z, canonical z is Blender's −y), the inverse of
+:mod:`undream.sim.blender_scene`'s mapping. The object keeps its up: its
+mesh becomes ``Cᵀ v`` (Blender's local +Z is the mesh's +Y) and its pose
+``Cᵀ·W·C``. Blender's camera looks along its local −Z with +X to the right,
+Mitsuba's along +Z with +X to the left: the camera pose is ``Cᵀ·W·diag(−1, 1, −1)``
+with any scale divided out. The horizontal field of view comes from the view
+frame, so the sensor fit (auto, horizontal, vertical), lens and sensor size
+are Blender's. UV ``v`` is flipped (``1 − v``: Mitsuba's runs down the rows).
+Frame indices are Blender's frame numbers (``frame_start`` to ``frame_end``,
+every ``frame_step``), times ``(frame − frame_start) / fps``.
+
+Not imported: lights, world, materials, other objects (the environment is
+undream's, :class:`~undream.spec.Environment`), lens shift, non-square
+pixels, orthographic or panoramic cameras (refused with one line), and mesh
+deformation over time (the mesh is the first frame's; its pose follows every
+frame). The mesh is written as a PLY file into a content-addressed cache
+(``$XDG_CACHE_HOME/undream/blend``) that the sequence's asset names;
+``undream init`` copies it into the scene directory like any mesh.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import re
+import shutil
+import subprocess
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from undream.bridge.blender_python import HINT, blender_env, blender_python, bpy_problem, import_root
+from undream.errors import BridgeError, SpecError
+from undream.spec import Asset, Camera, Environment, Frame, Sequence, TextureParam, Transform
+from undream.spec import _check
+
+FORMAT = "undream-blender-export"
+VERSION = 1
+C = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])  # canonical → Blender; Blender → canonical is C.T
+C4 = np.eye(4)
+C4[:3, :3] = C
+CAMERA_FLIP = np.diag([-1.0, 1.0, -1.0, 1.0])
+EXPORT_TIMEOUT_S = 600
+
+
+@dataclass(frozen=True)
+class BlendSource:
+    """A ``.blend`` file and what to take from it: the adversarial ``object`` (a mesh object's name)
+    and the ``camera`` (an object's name; None: the scene's active camera)."""
+
+    path: Path
+    object: str
+    camera: str | None = None
+
+    def __str__(self) -> str:
+        return str(self.path)
+
+    def describe(self) -> str:
+        """What ``metadata.json`` records as the spec."""
+        return json.dumps({"blend": str(Path(self.path).resolve()), "object": self.object, "camera": self.camera})
+
+
+@dataclass(frozen=True)
+class BlendMesh:
+    """The object's mesh in the canonical local frame: float (N,3) vertices, int (M,3) faces,
+    (N,2) UVs (Mitsuba's, v down), (N,3) unit normals."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    uvs: np.ndarray
+    normals: np.ndarray
+
+
+def sequence_from_blend(source: BlendSource, texture: TextureParam | None = None,
+                        environment: Environment | None = None, python: str | Path | None = None,
+                        cache_dir: str | Path | None = None) -> Sequence:
+    """Read ``source`` with Blender's Python and return its canonical sequence (see the module docstring).
+
+    Every error is one :class:`BridgeError` line naming the file: no Blender
+    Python, no such object or camera, an object without UVs, a camera undream
+    cannot reproduce. The object's mesh is written to ``cache_dir`` (default
+    ``$XDG_CACHE_HOME/undream/blend``) only once everything checked out.
+    """
+    path = Path(source.path)
+    if not path.is_file():
+        raise BridgeError(f"{path}: file not found")
+    data = run_export(source, python)
+    try:
+        seq, mesh = sequence_from_export(data, texture, environment, name=path.stem)
+    except (BridgeError, SpecError) as err:
+        raise BridgeError(" ".join(f"{path}: {err}".split())) from None
+    ply = write_cached_ply(mesh, Path(cache_dir) if cache_dir else _cache_home() / "undream" / "blend")
+    return _with_mesh(seq, str(ply))
+
+
+def run_export(source: BlendSource, python: str | Path | None = None) -> Mapping[str, Any]:
+    """Run :mod:`undream.bridge.blender_export` on ``source`` in Blender's interpreter; its JSON."""
+    path = Path(source.path)
+    python = Path(python) if python else blender_python()
+    problem = bpy_problem(python)
+    if problem is not None:
+        kind, reason = problem
+        what = f"{reason} not found" if kind == "missing" else f"{python} cannot import bpy ({reason})"
+        raise BridgeError(f"{path}: reading a .blend needs Blender's Python (bpy 5.0.1): {what}; {HINT}")
+    root = import_root()
+    try:
+        out = root / "export.json"
+        cmd = [str(python), "-m", "undream.bridge.blender_export", str(path.resolve()), "--object", source.object,
+               "--out", str(out)] + (["--camera", source.camera] if source.camera else [])
+        try:
+            proc = subprocess.run(cmd, capture_output=True, text=True, env=blender_env(root), cwd=str(root),
+                                  timeout=EXPORT_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            raise BridgeError(f"{path}: Blender did not finish the export in {EXPORT_TIMEOUT_S} s") from None
+        if not out.is_file():
+            last = (proc.stderr.strip().splitlines() or ["no output"])[-1][:300]
+            raise BridgeError(f"{path}: Blender's export ended without a result (exit code {proc.returncode}; "
+                              f"last output: {last})")
+        data = json.loads(out.read_text())
+    finally:
+        shutil.rmtree(root, ignore_errors=True)
+    if "error" in data:
+        raise BridgeError(" ".join(f"{path}: {data['error']}".split()))
+    return data
+
+
+# --- validation and conversion (no Blender needed) ------------------------------------------------
+
+def _array(value: Any, where: str, shape: tuple[int | None, ...], dtype: type = float) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=dtype)
+    except (TypeError, ValueError):
+        raise BridgeError(f"{where}: must be an array of shape {_shape(shape)}") from None
+    if arr.ndim != len(shape) or any(s is not None and a != s for a, s in zip(arr.shape, shape)):
+        raise BridgeError(f"{where}: must be an array of shape {_shape(shape)}, got {list(arr.shape)}")
+    if arr.dtype.kind == "f" and not np.isfinite(arr).all():
+        raise BridgeError(f"{where}: must be finite numbers")
+    return arr
+
+
+def _shape(shape: tuple[int | None, ...]) -> str:
+    return "(" + ", ".join("n" if s is None else str(s) for s in shape) + ")"
+
+
+def _fields(value: Any, where: str, required: tuple[str, ...]) -> Mapping[str, Any]:
+    if not isinstance(value, Mapping):
+        raise BridgeError(f"{where or 'export'}: must be a JSON object")
+    for k in required:
+        if k not in value:
+            raise BridgeError(f"{where + '.' if where else ''}{k}: is required")
+    return value
+
+
+def sequence_from_export(data: Any, texture: TextureParam | None = None, environment: Environment | None = None,
+                         name: str = "blend") -> tuple[Sequence, BlendMesh]:
+    """The canonical sequence (its asset's mesh a placeholder path) and the object's mesh of an export."""
+    d = _fields(data, "", ("format", "version", "fps", "resolution", "pixel_aspect", "object", "frames"))
+    if d["format"] != FORMAT or d["version"] != VERSION:
+        raise BridgeError(f"format: must be {FORMAT!r} version {VERSION}, got {d['format']!r} {d['version']!r}")
+    fps = _check.positive("fps", d["fps"])
+    res = _check.ints("resolution", d["resolution"], 2, 1, 16384)
+    aspect = _array(d["pixel_aspect"], "pixel_aspect", (2,))
+    if abs(aspect[0] - aspect[1]) > 1e-6 * max(aspect):
+        raise BridgeError(f"pixel_aspect: undream needs square pixels, got {aspect.tolist()}")
+    obj = _fields(d["object"], "object", ("name", "mesh"))
+    mesh = _mesh(obj["mesh"], "object.mesh")
+    frames_raw = d["frames"]
+    if not isinstance(frames_raw, list) or not frames_raw:
+        raise BridgeError("frames: the scene's frame range holds no frame")
+    start = frames_raw[0].get("frame", 0) if isinstance(frames_raw[0], Mapping) else 0
+    frames = tuple(_frame(f, f"frames[{i}]", res, fps, start, environment or Environment())
+                   for i, f in enumerate(frames_raw))
+    asset = Asset(_safe_name(str(obj["name"]), "object"), "blend-mesh.ply", texture=texture or TextureParam())
+    seq = Sequence(name=_safe_name(name, "blend"), asset=asset, frames=frames, fps=fps, source="blender")
+    return seq, mesh
+
+
+def _safe_name(name: str, fallback: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_-]", "_", name) or fallback
+
+
+def _mesh(value: Any, where: str) -> BlendMesh:
+    m = _fields(value, where, ("vertices", "triangles", "uvs", "normals"))
+    verts = _array(m["vertices"], f"{where}.vertices", (None, 3))
+    tris = _array(m["triangles"], f"{where}.triangles", (None, 3), np.int64)
+    n = len(tris)
+    uvs = _array(m["uvs"], f"{where}.uvs", (n, 3, 2))
+    normals = _array(m["normals"], f"{where}.normals", (n, 3, 3))
+    if n == 0:
+        raise BridgeError(f"{where}: has no faces")
+    if tris.min() < 0 or tris.max() >= len(verts):
+        raise BridgeError(f"{where}.triangles: vertex indices must be in [0, {len(verts)})")
+    # One undream vertex per distinct (Blender vertex, UV, normal) corner: UV seams and hard edges split.
+    corners = np.c_[tris.reshape(-1, 1), uvs.reshape(-1, 2), normals.reshape(-1, 3)]
+    unique, inverse = np.unique(corners, axis=0, return_inverse=True)
+    vi = unique[:, 0].astype(np.int64)
+    nrm = unique[:, 3:6] @ C  # (Cᵀ n)ᵀ = nᵀ C
+    length = np.linalg.norm(nrm, axis=1, keepdims=True)
+    nrm = np.where(length > 1e-12, nrm / np.maximum(length, 1e-12), [0.0, 1.0, 0.0])
+    uv = np.c_[unique[:, 1], 1.0 - unique[:, 2]]
+    return BlendMesh(verts[vi] @ C, inverse.reshape(-1, 3), uv, nrm)
+
+
+def _matrix(value: Any, where: str) -> np.ndarray:
+    m = _array(value, where, (4, 4))
+    if not np.allclose(m[3], [0, 0, 0, 1]):
+        raise BridgeError(f"{where}: must be an affine matrix (last row 0 0 0 1)")
+    return m
+
+
+def _frame(value: Any, where: str, res: tuple[int, int], fps: float, start: int, env: Environment) -> Frame:
+    f = _fields(value, where, ("frame", "camera", "object"))
+    number = f["frame"]
+    if isinstance(number, bool) or not isinstance(number, int) or number < 0:
+        raise BridgeError(f"{where}.frame: must be a frame number >= 0 (undream keeps Blender's numbers), "
+                          f"got {number!r}")
+    cam = _fields(f["camera"], f"{where}.camera", ("matrix_world", "view_frame"))
+    obj = _fields(f["object"], f"{where}.object", ("matrix_world",))
+    with _check.at(where, catch=(BridgeError, SpecError), raise_as=BridgeError):
+        camera = _camera(cam, res)
+        pose = C4.T @ _matrix(obj["matrix_world"], "object.matrix_world") @ C4
+        return Frame(index=number, camera=camera, object_to_world=Transform.from_rows(pose), environment=env,
+                     time=(number - start) / fps)
+
+
+def _camera(cam: Mapping[str, Any], res: tuple[int, int]) -> Camera:
+    m = C4.T @ _matrix(cam["matrix_world"], "camera.matrix_world") @ CAMERA_FLIP
+    lengths = np.linalg.norm(m[:3, :3], axis=0)
+    if lengths.min() < 1e-9:
+        raise BridgeError("camera.matrix_world: the camera is scaled to zero")
+    m[:3, :3] /= lengths
+    r = m[:3, :3]
+    if np.abs(r.T @ r - np.eye(3)).max() > 1e-4 or np.linalg.det(r) < 0:
+        raise BridgeError("camera.matrix_world: the camera is sheared or mirrored (undream needs a rigid camera)")
+    u, _, vt = np.linalg.svd(r)  # the nearest rotation (removes float noise)
+    m[:3, :3] = u @ vt
+    corners = _array(cam["view_frame"], "camera.view_frame", (4, 3))
+    depth = -corners[:, 2]
+    if depth.min() <= 0 or np.ptp(depth) > 1e-6 * depth.max():
+        raise BridgeError("camera.view_frame: must be a rectangle in front of the camera")
+    x0, x1, y0, y1 = corners[:, 0].min(), corners[:, 0].max(), corners[:, 1].min(), corners[:, 1].max()
+    if abs(x0 + x1) > 1e-5 * (x1 - x0) or abs(y0 + y1) > 1e-5 * (y1 - y0):
+        raise BridgeError("camera: lens shift is not supported (set shift x and y to 0)")
+    w, h = res
+    if abs((x1 - x0) / (y1 - y0) - w / h) > 1e-3 * w / h:
+        raise BridgeError(f"camera.view_frame: aspect {(x1 - x0) / (y1 - y0):.4f} is not the resolution's {w / h:.4f}")
+    fov = math.degrees(2.0 * math.atan(x1 / depth.mean()))
+    return Camera(Transform.from_rows(m), fov, res)
+
+
+def _with_mesh(seq: Sequence, mesh: str) -> Sequence:
+    from dataclasses import replace
+
+    return replace(seq, asset=replace(seq.asset, mesh=mesh))
+
+
+# --- the mesh file --------------------------------------------------------------------------------
+
+def ply_bytes(mesh: BlendMesh) -> bytes:
+    """Binary little-endian PLY (``x y z nx ny nz s t``, triangles), as Mitsuba and ``read_ply`` read it."""
+    n, m = len(mesh.vertices), len(mesh.faces)
+    head = ("ply\nformat binary_little_endian 1.0\n"
+            f"element vertex {n}\n" + "".join(f"property float {p}\n" for p in "x y z nx ny nz s t".split())
+            + f"element face {m}\nproperty list uchar int vertex_indices\nend_header\n").encode("ascii")
+    verts = np.c_[mesh.vertices, mesh.normals, mesh.uvs].astype("<f4")
+    faces = np.zeros(m, dtype=[("n", "u1"), ("i", "<i4", (3,))])
+    faces["n"], faces["i"] = 3, mesh.faces
+    return head + verts.tobytes() + faces.tobytes()
+
+
+def write_cached_ply(mesh: BlendMesh, cache: Path) -> Path:
+    """Write ``mesh`` as ``cache/<sha256 prefix>.ply`` (once; atomically) and return its path."""
+    blob = ply_bytes(mesh)
+    path = cache / f"{hashlib.sha256(blob).hexdigest()[:24]}.ply"
+    if not path.is_file():
+        cache.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=cache, suffix=".ply.tmp")
+        with os.fdopen(fd, "wb") as f:
+            f.write(blob)
+        os.replace(tmp, path)
+    return path
+
+
+def _cache_home() -> Path:
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
