@@ -250,9 +250,17 @@ def _replay(mi: Any, scene: Any, spp: int, seed: int) -> dict[str, np.ndarray]:
     dr.eval(value, hit, si.uv, pos, weights)
     # Only samples whose first hit is the object carry the texture: keep those.
     keep = dr.compress(hit & dr.any(value != 0))
+    rfilter = film.rfilter()
+    b = block.border_size()
+    common = {"wsum": np.array(weights, np.float64)[b:weights.shape[0] - b, b:weights.shape[1] - b, -1].ravel(),
+              "crop_offset": np.array([int(v) for v in film.crop_offset()], np.int64), "spp": np.array(spp_used)}
+    if dr.width(keep) == 0:  # the object is hidden in this frame: an empty transport, a zero gradient
+        taps = 1 if rfilter.is_box_filter() else 2 * int(np.ceil(rfilter.radius() - 0.5)) + 1
+        return {"value": np.zeros((0, 3), np.float32), "uv": np.zeros((0, 2), np.float32),
+                "base": np.zeros((0, 2), np.int64), "wx": np.zeros((0, taps), np.float32),
+                "wy": np.zeros((0, taps), np.float32), **common}
     value, uv, pos = dr.gather(type(value), value, keep), dr.gather(mi.Point2f, si.uv, keep), \
         dr.gather(mi.Point2f, pos, keep)
-    rfilter = film.rfilter()
     if rfilter.is_box_filter():  # the image block drops it: one pixel, weight 1
         base = dr.floor(pos)
         wx = wy = [dr.full(mi.Float, 1.0, dr.width(pos))]
@@ -261,8 +269,7 @@ def _replay(mi: Any, scene: Any, spp: int, seed: int) -> dict[str, np.ndarray]:
         base = dr.floor(pos) - n
         wx = [rfilter.eval(base.x + k + 0.5 - pos.x) for k in range(2 * n + 1)]
         wy = [rfilter.eval(base.y + k + 0.5 - pos.y) for k in range(2 * n + 1)]
-    dr.eval(value, uv, base, wx, wy, weights)
-    b = block.border_size()
+    dr.eval(value, uv, base, wx, wy)
     out = {
         "value": np.stack([np.array(value.x, np.float32), np.array(value.y, np.float32),
                            np.array(value.z, np.float32)], axis=1),
@@ -270,9 +277,7 @@ def _replay(mi: Any, scene: Any, spp: int, seed: int) -> dict[str, np.ndarray]:
         "base": np.stack([np.array(base.x, np.float64), np.array(base.y, np.float64)], axis=1).astype(np.int64),
         "wx": np.stack([np.array(v, np.float32) for v in wx], axis=1),
         "wy": np.stack([np.array(v, np.float32) for v in wy], axis=1),
-        "wsum": np.array(weights, np.float64)[b:weights.shape[0] - b, b:weights.shape[1] - b, -1].ravel(),
-        "crop_offset": np.array([int(v) for v in film.crop_offset()], np.int64),
-        "spp": np.array(spp_used),
+        **common,
     }
     del sampler, ray, weight, pos, L, value, si, block
     return out
