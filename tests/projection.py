@@ -70,15 +70,21 @@ def _world_tris(mesh, to_world) -> np.ndarray:
     return v[mesh.faces]
 
 
-def visible_mask(scene_dir: Path, frame: dict, seq: dict) -> np.ndarray:
-    """Pixels where the object is the nearest surface among the object and actors."""
+def mesh_file(scene_dir: Path, name: str, index: int) -> Path:
+    """``meshes/NAME.ply``, or frame ``index``'s ``meshes/NAME_NNNN.ply`` of a per-frame mesh."""
+    static = Path(scene_dir) / "meshes" / f"{name}.ply"
+    return static if static.is_file() else Path(scene_dir) / "meshes" / f"{name}_{index:04d}.ply"
+
+
+def visible_mask(scene_dir: Path, frame: dict, seq: dict, actors: bool = True) -> np.ndarray:
+    """Pixels where the object is the nearest surface among the object and (``actors``) the actors."""
     cam = frame["camera"]
     size = tuple(cam["resolution"])
-    obj = _world_tris(read_ply(scene_dir / "meshes" / "object.ply"), frame["object_to_world"])
+    obj = _world_tris(read_ply(mesh_file(scene_dir, "object", frame["index"])), frame["object_to_world"])
     zbuf_obj = _zbuf(obj, cam, size)
     zbuf_occ = np.full_like(zbuf_obj, np.inf)
-    for a in frame["actors"]:
-        tris = _world_tris(read_ply(scene_dir / "meshes" / f"{a['name']}.ply"), a["to_world"])
+    for a in frame["actors"] if actors else ():
+        tris = _world_tris(read_ply(mesh_file(scene_dir, a["name"], frame["index"])), a["to_world"])
         zbuf_occ = np.minimum(zbuf_occ, _zbuf(tris, cam, size))
     return np.isfinite(zbuf_obj) & (zbuf_obj <= zbuf_occ)
 

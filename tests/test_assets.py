@@ -26,11 +26,13 @@ BOUNDS = {
     "umbrella": ((-1.0, 0.0, -1.0), (1.0, 2.26, 1.0)),
     "traffic_cone": ((-0.2, 0.0, -0.2), (0.2, 0.7, 0.2)),
     "stop_sign": ((-0.375, 0.0, -0.03), (0.375, 2.125, 0.051)),
+    "pedestrian": ((-0.31, 0.0, -0.12), (0.31, 1.76, 0.12)),
 }
 
 # The main visible surface of each built-in, selected from face centroids c and unit normals n.
 MAIN = {
     "sphere": lambda c, n: np.ones(len(c), bool),
+    "pedestrian": lambda c, n: (n[:, 2] > 0.5) & (np.abs(c[:, 0]) < 0.21) & (c[:, 1] > 0.87) & (c[:, 1] < 1.47),
     "trash_bin": lambda c, n: (np.abs(n[:, 1]) < 0.5) & (c[:, 1] < 0.92),
     "car": lambda c, n: (np.abs(n[:, 0]) > 0.99) & (np.abs(np.abs(c[:, 0]) - 0.88) < 1e-3),
     "umbrella": lambda c, n: (n[:, 1] > 0.3) & (c[:, 1] > 1.79) & (np.hypot(c[:, 0], c[:, 2]) > 0.021),
@@ -208,7 +210,7 @@ def test_primitives_box_and_cylinder() -> None:
 
 
 def test_unknown_builtin() -> None:
-    with pytest.raises(AssetError, match=r"unknown builtin asset 'xyz' \(valid: car, sphere, stop_sign, "):
+    with pytest.raises(AssetError, match=r"unknown builtin asset 'xyz' \(valid: car, pedestrian, sphere, stop_sign, "):
         builtin_mesh("xyz")
 
 

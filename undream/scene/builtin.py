@@ -18,7 +18,8 @@ wheels, may be turned 90° in the atlas to pack better).
 
 Sizes (metres, see each function): sphere Ø1.0; trash_bin Ø0.62 × 1.0;
 car 1.8 (x) × 1.5 (y) × 4.2 (z); umbrella Ø2.0 canopy × 2.26; traffic_cone
-0.4 × 0.7 × 0.4; stop_sign 0.75 across flats, top at 2.125.
+0.4 × 0.7 × 0.4; stop_sign 0.75 across flats, top at 2.125; pedestrian
+0.62 × 1.76 × 0.24 (a box-bodied walker, legs together).
 """
 from __future__ import annotations
 
@@ -366,9 +367,37 @@ def stop_sign() -> Mesh:
                    band, *pole])
 
 
+def _rot_x(deg: float) -> np.ndarray:
+    a = math.radians(deg)
+    return np.array([[1.0, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]])
+
+
+def pedestrian(phase: float = 0.0, stride_deg: float = 25.0) -> Mesh:
+    """A box-bodied walker 1.76 m tall, 0.62 m across the arms, facing +Z, at ``phase`` of its gait.
+
+    Legs (0.88 m, hips at y = 0.88) swing ±``stride_deg`` about the hips with
+    ``sin(2π·phase)``, arms (0.62 m, shoulders at y = 1.45) the other way at
+    0.8 of that; torso 0.42 × 0.60 × 0.24 m (its front, the shirt, is the
+    main chart), head a Ø 0.2 m, 0.24 m cylinder. Phase
+    0 (the built-in ``pedestrian``) has both legs straight down; one file per
+    frame at phases k/n is a walk cycle (``examples/meshes/make_walker.py``).
+    The parts are closed boxes that overlap at the joints.
+    """
+    swing = stride_deg * math.sin(2.0 * math.pi * phase)
+    charts: list[_Chart] = []
+    for side in (-1.0, 1.0):
+        leg = _hexa(_box_corners((0.14, 0.88, 0.16), (0.0, -0.44, 0.0)), {"+z": 1.5})
+        charts += _move(leg, _rot_x(side * swing), (side * 0.1, 0.88, 0.0))
+        arm = _hexa(_box_corners((0.09, 0.62, 0.11), (0.0, -0.3, 0.0)), {"+z": 1.5})
+        charts += _move(arm, _rot_x(-0.8 * side * swing), (side * 0.265, 1.45, 0.0))
+    charts += _hexa(_box_corners((0.42, 0.60, 0.24), (0.0, 1.17, 0.0)), {"+z": 12.0, "-z": 2.0})
+    charts += _free(_frustum(0.1, 0.09, 1.52, 1.76, 12, weights=(1.0, 0.2, 0.2)))
+    return _atlas(charts)
+
+
 BUILTINS: dict[str, Callable[[], Mesh]] = {
-    "car": car, "sphere": sphere, "stop_sign": stop_sign, "traffic_cone": traffic_cone,
-    "trash_bin": trash_bin, "umbrella": umbrella,
+    "car": car, "pedestrian": pedestrian, "sphere": sphere, "stop_sign": stop_sign,
+    "traffic_cone": traffic_cone, "trash_bin": trash_bin, "umbrella": umbrella,
 }
 
 
@@ -379,16 +408,18 @@ def builtin_mesh(name: str) -> Mesh:
     return BUILTINS[name]()
 
 
-def asset_mesh(asset: Asset, base_dir: Path | None = None) -> Mesh:
+def asset_mesh(asset: Asset, base_dir: Path | None = None, index: int | None = None) -> Mesh:
     """The asset's mesh (built-in or OBJ/PLY file) scaled by ``asset.scale``.
 
     Relative file paths are resolved against ``base_dir`` when given (else
-    against the working directory).
+    against the working directory). A per-frame mesh needs the frame ``index``.
     """
     name = asset.builtin
     if name is not None:
         mesh = builtin_mesh(name)
     else:
-        path = Path(asset.mesh)
+        if asset.per_frame and index is None:
+            raise AssetError(f"{asset.mesh}: a per-frame mesh needs a frame index")
+        path = Path(asset.mesh_at(index if index is not None else 0))
         mesh = load_mesh_file(path if path.is_absolute() or base_dir is None else Path(base_dir) / path)
     return mesh if asset.scale == 1.0 else mesh.scaled(asset.scale)

@@ -16,6 +16,11 @@ def frame_name(kind: str, index: int) -> str:
     return f"{kind}_{index:0{FRAME_DIGITS}d}"
 
 
+def mesh_name(name: str, index: int) -> str:
+    """``NAME_NNNN``: the stem of frame ``index``'s file of a per-frame mesh (``meshes/NAME_NNNN.ply``)."""
+    return frame_name(name, index)
+
+
 def frame_xml(scene_dir: str | Path, kind: str, index: int) -> Path:
     """``scene_dir/frames/<kind>_NNNN.xml``: the Mitsuba scene of frame ``index`` (kind sim or grad)."""
     return Path(scene_dir) / "frames" / f"{frame_name(kind, index)}.xml"

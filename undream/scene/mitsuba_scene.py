@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from undream.scene import background, environment
+from undream.scene.layout import mesh_name
 from undream.scene.xml import Default, Mat4, UVScale
 from undream.spec import Frame, Sequence
 
@@ -39,8 +40,9 @@ class ScenePaths:
 
     root: str  # the scene directory, relative to the XML file ("..") or absolute
 
-    def mesh(self, name: str) -> str:
-        return f"{self.root}/meshes/{name}.ply"
+    def mesh(self, name: str, index: int | None = None) -> str:
+        """``meshes/NAME.ply``, or ``meshes/NAME_NNNN.ply``: frame ``index``'s file of a per-frame mesh."""
+        return f"{self.root}/meshes/{name if index is None else mesh_name(name, index)}.ply"
 
     def texture(self, name: str) -> str:
         return f"{self.root}/textures/{name}.exr"
@@ -71,7 +73,8 @@ def texture_node(seq: Sequence, paths: ScenePaths) -> dict[str, Any]:
 
 
 def _object(seq: Sequence, frame: Frame, paths: ScenePaths, kind: str) -> dict[str, Any]:
-    node: dict[str, Any] = {"type": "ply", "filename": paths.mesh(OBJECT_ID),
+    index = frame.index if seq.asset.per_frame else None
+    node: dict[str, Any] = {"type": "ply", "filename": paths.mesh(OBJECT_ID, index),
                             "to_world": Mat4.of(frame.object_to_world.matrix)}
     if kind == "mask":
         node["bsdf"] = {"type": "diffuse", "reflectance": _rgb((0, 0, 0))}
@@ -113,7 +116,8 @@ def scene_dict(seq: Sequence, frame: Frame, paths: ScenePaths, kind: str) -> dic
     d["ground"] = _occluder(background.ground(env.background, lambda c: environment.ground_tint(env, c)), kind)
     d[OBJECT_ID] = _object(seq, frame, paths, kind)
     for asset, pose in _actor_poses(seq, frame):
-        node = {"type": "ply", "filename": paths.mesh(asset.name), "to_world": Mat4.of(pose.to_world.matrix),
+        index = frame.index if asset.per_frame else None
+        node = {"type": "ply", "filename": paths.mesh(asset.name, index), "to_world": Mat4.of(pose.to_world.matrix),
                 "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": _rgb(asset.color)}}}
         d[f"actor_{asset.name}"] = _occluder(node, kind)
     if kind != "grad":

@@ -6,6 +6,7 @@ Layout written (atomically: into a temporary sibling, renamed at the end)::
     metadata.json            spec, seed, versions, verification settings
     meshes/object.ply        the adversarial mesh (canonical, metres, UV-mapped)
     meshes/<actor>.ply       one per extra actor
+    meshes/<id>_NNNN.ply     instead, frame NNNN's mesh of a per-frame mesh (``{frame}`` in its path)
     textures/<name>.exr      initial texture, LINEAR float (what the scenes load, raw)
     textures/<name>.png      the same, sRGB 8-bit (what a person looks at)
     frames/sim_NNNN.xml      the whole scene of frame NNNN
@@ -31,7 +32,8 @@ from undream.color import linear_to_srgb, srgb_to_linear, to_uint8
 from undream.errors import AssetError, SpecError, already_exists
 from undream.progress import progress
 from undream.render.budget import Estimate, init_estimate
-from undream.scene.layout import frame_name, frame_xml, mask_png
+from undream.scene.layout import frame_name, frame_xml, mask_png, mesh_name
+from undream.scene.mesh import Mesh
 from undream.scene.mitsuba_scene import OBJECT_ID, ScenePaths, scene_dict
 from undream.scene.xml import to_xml
 from undream.spec import Sequence, TextureParam, save_sequence
@@ -57,7 +59,7 @@ class CheckedSource:
     sequence: Sequence
     base_dir: Path | None  # relative mesh and texture paths resolve against it (the spec's folder)
     spec_text: str | None
-    meshes: dict[str, object]  # mesh id → mesh (the object's under OBJECT_ID)
+    meshes: dict[str, object]  # file stem in meshes/ → mesh (OBJECT_ID, actor names, NAME_NNNN per frame)
     texture: np.ndarray  # the starting texture, H×W×3 sRGB in [0, 1]
     estimate: Estimate  # memory and samples of the verification renders
 
@@ -135,15 +137,44 @@ def _resolve_source(source: Source, spec_text: str | None) -> tuple[Sequence, Pa
 
 
 def _load_meshes(seq: Sequence, base_dir: Path | None) -> dict[str, object]:
+    """Mesh file stem in ``meshes/`` → mesh: ``object``, each actor's name, or ``NAME_NNNN`` per frame.
+
+    A per-frame mesh needs a file for every frame that shows it; the
+    adversarial object's must all share the first one's triangles and UVs
+    (one UV layout, so a texel stays on the same piece of surface).
+    """
     from undream.scene.builtin import asset_mesh
 
-    out = {}
+    out: dict[str, object] = {}
+    shown = {a.name: [f.index for f in seq.frames if any(p.name == a.name for p in f.actors)] for a in seq.actors}
     for field, asset in [("asset", seq.asset)] + [(f"actors[{i}]", a) for i, a in enumerate(seq.actors)]:
+        key = OBJECT_ID if field == "asset" else asset.name
         try:
-            out[OBJECT_ID if field == "asset" else asset.name] = asset_mesh(asset, base_dir)
+            if not asset.per_frame:
+                out[key] = asset_mesh(asset, base_dir)
+                continue
+            loaded: dict[str, Mesh] = {}  # one load per distinct file
+            for index in ([f.index for f in seq.frames] if field == "asset" else shown[asset.name]):
+                file = asset.mesh_at(index)
+                if file not in loaded:
+                    loaded[file] = asset_mesh(asset, base_dir, index)
+                out[mesh_name(key, index)] = loaded[file]
+                if field == "asset":
+                    _same_uv_layout(loaded[file], out[mesh_name(key, seq.frames[0].index)], file, index)
         except AssetError as err:
             raise AssetError(f"{field}.mesh ({asset.name!r}): {err}") from None
     return out
+
+
+def _same_uv_layout(mesh: Mesh, first: Mesh, file: str, index: int) -> None:
+    if mesh is first:
+        return
+    if mesh.n_vertices != first.n_vertices or not np.array_equal(mesh.faces, first.faces) \
+            or not np.allclose(mesh.uvs, first.uvs, atol=1e-6):
+        raise AssetError(f"{file} (frame {index}) has another UV layout than the first frame's "
+                         f"({mesh.n_vertices} vertices, {mesh.n_faces} triangles against {first.n_vertices}, "
+                         f"{first.n_faces}, or other UVs); the adversarial object's per-frame meshes may move "
+                         "their vertices but must keep their triangles and UVs")
 
 
 def texture_from_spec(tex: TextureParam, base_dir: Path | None) -> np.ndarray:
@@ -200,7 +231,7 @@ def _mesh_sources(seq: Sequence, base_dir: Path | None) -> dict[str, str]:
     """Where each mesh came from: ``builtin:NAME`` or the file's absolute path."""
     out = {}
     for key, asset in [(OBJECT_ID, seq.asset)] + [(a.name, a) for a in seq.actors]:
-        path = Path(asset.mesh)
+        path = Path(asset.mesh)  # a per-frame mesh's pattern ({frame}), resolved
         out[key] = asset.mesh if asset.builtin is not None else \
             str((path if path.is_absolute() or base_dir is None else base_dir / path).resolve())
     return out

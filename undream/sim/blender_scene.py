@@ -478,13 +478,14 @@ class CyclesScene:
         saved = (sc.render.film_transparent, cy.pixel_filter_type, cy.filter_width,
                  sc.render.image_settings.color_mode)
         changed = []
-        for o in self._objects.values():
+        for sig, o in self._objects.items():
+            key = sig.split("|", 1)[0]  # Blender renames a second "object" (per-frame meshes) "object.001"
             if o.hide_render:
                 continue
-            if o.name.startswith("fog_volume"):
+            if key == "fog_volume":
                 o.hide_render = True
                 changed.append((o, "hide_render", False))
-            elif o.name != OBJECT_ID:
+            elif key != OBJECT_ID:
                 o.is_holdout = True
                 changed.append((o, "is_holdout", False))
         sc.render.film_transparent = True

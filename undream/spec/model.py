@@ -132,6 +132,10 @@ class Asset:
 
     Mesh coordinates are canonical (Y up) metres, multiplied by ``scale``.
     ``texture`` is set for the adversarial object; other actors use ``color``.
+    An animated mesh is one file per frame: a path with a ``{frame}`` field
+    (Python format syntax, e.g. ``walk_{frame:04d}.ply``) that the frame's
+    *index* fills (:meth:`mesh_at`); the adversarial object's files must
+    then share one UV layout (checked by ``undream init``).
     """
 
     name: str
@@ -146,6 +150,14 @@ class Asset:
             raise c.fail("mesh", self.mesh, "must be 'builtin:NAME' or a path to an .obj or .ply file")
         if not self.mesh.startswith(BUILTIN_PREFIX) and not self.mesh.lower().endswith((".obj", ".ply")):
             raise c.fail("mesh", self.mesh, "must be 'builtin:NAME' or a path to an .obj or .ply file")
+        if self.per_frame:
+            if self.builtin is not None:
+                raise c.fail("mesh", self.mesh, "a builtin mesh has no per-frame files ('{frame}')")
+            try:
+                self.mesh_at(0)
+            except (KeyError, IndexError, ValueError, AttributeError):
+                raise c.fail("mesh", self.mesh, "must be a path whose only field is {frame}, "
+                             "e.g. 'walk_{frame:04d}.ply'") from None
         object.__setattr__(self, "scale", c.positive("scale", self.scale))
         object.__setattr__(self, "color", c.color("color", self.color))
         if self.texture is not None and not isinstance(self.texture, TextureParam):
@@ -154,6 +166,15 @@ class Asset:
     @property
     def builtin(self) -> str | None:
         return self.mesh[len(BUILTIN_PREFIX):] if self.mesh.startswith(BUILTIN_PREFIX) else None
+
+    @property
+    def per_frame(self) -> bool:
+        """True when the mesh is one file per frame (a ``{frame}`` field in :attr:`mesh`)."""
+        return "{" in self.mesh
+
+    def mesh_at(self, index: int) -> str:
+        """The mesh of frame ``index``: :attr:`mesh` with ``{frame}`` filled in (the path itself if static)."""
+        return self.mesh.format(frame=index) if self.per_frame else self.mesh
 
     def to_json(self) -> dict[str, Any]:
         d: dict[str, Any] = {"name": self.name, "mesh": self.mesh, "scale": self.scale,
