@@ -70,8 +70,8 @@ def test_run_config_sim_field():
     assert RunConfig(scene="s").sim == "mitsuba"
     cfg = RunConfig(scene="s", sim="blender")
     assert RunConfig.from_json(json.loads(json.dumps(cfg.to_json()))) == cfg
-    with pytest.raises(SpecError, match="sim.*unreal"):
-        RunConfig(scene="s", sim="unreal")
+    with pytest.raises(SpecError, match="sim.*cycles"):
+        RunConfig(scene="s", sim="cycles")
 
 
 def test_missing_interpreter_is_one_line(tmp_path, monkeypatch):

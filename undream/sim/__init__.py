@@ -4,7 +4,9 @@ The engine asks a backend for frame ``index`` of a scene directory rendered
 with texture ``T`` (sRGB H×W×3 in [0, 1]) at ``spp`` samples with ``seed``,
 and gets back H×W×3 LINEAR radiance. The gradient always comes from Mitsuba's
 gradient scene (:mod:`undream.render.differentiable`), whatever the backend.
-Backends register by name; ``mitsuba`` is the embedded default.
+Backends register by name; ``mitsuba`` is the embedded default, ``blender``
+renders with Cycles (:mod:`undream.sim.blender`), ``unreal`` hands frames to
+an Unreal editor through a spool folder (:mod:`undream.sim.unreal`).
 """
 from __future__ import annotations
 
@@ -66,7 +68,11 @@ def check_simulator(name: str) -> None:
         from undream.sim.blender import check_blender
 
         check_blender()
+    if name == "unreal":
+        from undream.sim.unreal import check_unreal
+
+        check_unreal()
 
 
 def _load_builtin() -> None:
-    from undream.sim import blender, mitsuba  # noqa: F401  (register 'blender' and 'mitsuba')
+    from undream.sim import blender, mitsuba, unreal  # noqa: F401  (register 'blender', 'mitsuba', 'unreal')

@@ -15,7 +15,7 @@ from undream.spec.io import read_yaml
 
 TASK_LOSSES = {"classification": ("ce", "targeted_ce", "dlr"), "detection": ("vanish", "mislabel", "box")}
 ALL_LOSSES = tuple(k for kinds in TASK_LOSSES.values() for k in kinds)
-SIMULATORS = ("mitsuba", "blender")  # undream.sim backends a run may name
+SIMULATORS = ("mitsuba", "blender", "unreal")  # undream.sim backends a run may name
 
 
 @dataclass(frozen=True)
