@@ -141,7 +141,8 @@ def test_per_frame_meshes_load_the_right_file(grow):
         assert f"meshes/object_{k:04d}.ply" in xml and f"meshes/prop_{k:04d}.ply" in xml
         assert np.allclose(read_ply(scene / "meshes" / f"object_{k:04d}.ply").vertices,
                            _ball(0.6 + 0.2 * k).vertices, atol=1e-6)
-        assert read_ply(scene / "meshes" / f"prop_{k:04d}.ply").n_vertices == read_ply(folder / f"prop_{k:02d}.ply").n_vertices
+        written, given = read_ply(scene / "meshes" / f"prop_{k:04d}.ply"), read_ply(folder / f"prop_{k:02d}.ply")
+        assert written.n_vertices == given.n_vertices
     assert not (scene / "meshes" / "object.ply").exists()
     areas = [int(read_mask(scene, k).sum()) for k in range(4)]
     assert areas == sorted(areas) and areas[-1] > 2 * areas[0], areas  # the ball grows in Mitsuba's masks

@@ -99,6 +99,20 @@ def test_cli_run_without_bpy_writes_nothing(tmp_path):
     assert not out.exists()
 
 
+def test_a_worker_gives_cycles_its_drjit_share(tmp_path):
+    """A farm worker process with ``drjit_threads: 1`` renders Cycles on 1 thread too, unless
+    ``UNDREAM_BLENDER_THREADS`` says otherwise (no Blender needed: the count the backend would pass)."""
+    code = ("from undream.settings import Settings; from workers.runtime import init_process; "
+            f"init_process(Settings(drjit_threads=1, cache_dir={str(tmp_path)!r})); "
+            "from undream.sim.blender import cycles_threads; print(cycles_threads())")
+    env = {k: v for k, v in __import__("os").environ.items() if k != "UNDREAM_BLENDER_THREADS"}
+    for extra, expect in (({}, "1"), ({"UNDREAM_BLENDER_THREADS": "3"}, "3")):
+        res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT,
+                             env={**env, **extra}, timeout=300)
+        assert res.returncode == 0, res.stderr
+        assert res.stdout.strip().splitlines()[-1] == expect
+
+
 # --- with Blender ------------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")

@@ -314,3 +314,11 @@ def test_attack_run_with_unreal_frames(tmp_path, spool, monkeypatch, mi):
     assert len(res["loss_per_iteration"]) == 2 and all(np.isfinite(res["loss_per_iteration"]))
     assert sorted({j.frame for j in renderer.jobs}) == [0, 1, 2] and len(renderer.jobs) >= 3 * 2 + 3
     assert len(list((tmp_path / "out" / "frames_adversarial").glob("*.png"))) == 3
+
+
+def test_bad_timeout_is_one_line(scene, spool, monkeypatch):
+    monkeypatch.setenv("UNDREAM_UNREAL_TIMEOUT", "soon")
+    with pytest.raises(RenderError, match="UNDREAM_UNREAL_TIMEOUT.*must be a number of seconds > 0, got 'soon'"):
+        make_backend("unreal", scene, spool=spool)
+    with pytest.raises(RenderError, match="got -1"):
+        make_backend("unreal", scene, spool=spool, timeout_s=-1)

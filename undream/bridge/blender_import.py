@@ -48,7 +48,7 @@ import re
 import shutil
 import subprocess
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -274,8 +274,6 @@ def _camera(cam: Mapping[str, Any], res: tuple[int, int]) -> Camera:
 
 
 def _with_mesh(seq: Sequence, mesh: str) -> Sequence:
-    from dataclasses import replace
-
     return replace(seq, asset=replace(seq.asset, mesh=mesh))
 
 

@@ -93,9 +93,14 @@ class UnrealSimulator:
     def __init__(self, scene_dir: Path, spool: str | Path | None = None, timeout_s: float | None = None,
                  poll_s: float = 0.05, **_shared: Any):
         self.spool = spool_folder(spool)
-        timeout = timeout_s if timeout_s is not None else float(os.environ.get(TIMEOUT_ENV, DEFAULT_TIMEOUT_S))
+        given: Any = timeout_s if timeout_s is not None else os.environ.get(TIMEOUT_ENV, DEFAULT_TIMEOUT_S)
+        try:
+            timeout = float(given)
+        except (TypeError, ValueError):
+            timeout = float("nan")
         if not timeout > 0:
-            raise RenderError(f"sim: unreal: timeout must be > 0 s, got {timeout!r}")
+            raise RenderError(f"sim: unreal: the timeout ({TIMEOUT_ENV} or timeout_s) must be a number of "
+                              f"seconds > 0, got {given!r}")
         self.timeout_s, self.poll_s = float(timeout), float(poll_s)
         self.seq = load_sequence(Path(scene_dir) / "sequence.json")
         self.frames = {f.index: f for f in self.seq.frames}
@@ -193,7 +198,9 @@ class UnrealSimulator:
             info = json.loads((self.spool / "worker.json").read_text())
         except (OSError, ValueError):
             info = {}
-        engine = self._engine or (info.get("engine") if isinstance(info, dict) else None)
+        if not isinstance(info, dict) or info.get("format") != WORKER_FORMAT:
+            info = {}
+        engine = self._engine or info.get("engine")
         out["unreal"] = str(engine) if engine else "unknown (no worker.json yet)"
         return out
 
