@@ -1,6 +1,6 @@
 """Build a tiny .blend for tests/test_blender_import.py (runs in Blender's Python: ``python make_blend.py OUT.blend``).
 
-The scene: 32×24 px, 10 fps, frames 1–5; a keyframed perspective camera ``Cam``
+The scene: 48×36 px, 10 fps, frames 1–5; a keyframed perspective camera ``Cam``
 (vertical sensor fit, so the horizontal field of view must come from the
 aspect ratio) that moves and turns; ``Crate``, a UV-mapped box, scaled,
 moving and turning; ``Bare``, a plane without UVs; ``Flat``, an orthographic
@@ -16,7 +16,7 @@ import bpy
 from bpy_extras.object_utils import world_to_camera_view
 from mathutils import Vector
 
-W, H = 32, 24
+W, H = 48, 36
 
 
 def aim(obj, target):

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from conftest import service_missing
-from projection import load, project, visible_mask
+from projection import centroid, load, project, visible_mask
 from undream.bridge.blender_import import BlendSource, ply_bytes, sequence_from_blend, sequence_from_export
 from undream.errors import BridgeError, SpecError, UndreamError
 from undream.scene.mesh import read_ply
@@ -159,8 +159,18 @@ def test_blend_matches_blenders_projection(blend, tmp_path, mi):
     for f in data["frames"]:
         mine, theirs = read_mask(scene, f["index"]), visible_mask(scene, f, data)
         assert theirs.sum() >= 12 and (mine & theirs).sum() / (mine | theirs).sum() > 0.8
+        assert np.linalg.norm(centroid(mine) - centroid(theirs)) <= 1.5
     meta = json.loads((scene / "metadata.json").read_text())
     assert json.loads(meta["spec"])["object"] == "Crate" and meta["source"] == "blender"
+    from undream.sim import make_backend
+
+    cycles = make_backend("blender", scene, threads=2)  # and back into Blender: Cycles sees the same object
+    try:
+        for f in data["frames"]:
+            mine, theirs = cycles.coverage(f["index"], spp=16) > 0.5, read_mask(scene, f["index"])
+            assert (mine & theirs).sum() / (mine | theirs).sum() > 0.8, f"frame {f['index']}"
+    finally:
+        cycles.close()
 
 
 @pytest.mark.parametrize("name, camera, message", [
