@@ -322,3 +322,14 @@ def test_bad_timeout_is_one_line(scene, spool, monkeypatch):
         make_backend("unreal", scene, spool=spool)
     with pytest.raises(RenderError, match="got -1"):
         make_backend("unreal", scene, spool=spool, timeout_s=-1)
+
+
+def test_two_editors_share_a_spool(scene, spool):
+    """Each request is claimed by exactly one worker (a rename), so several editors may serve one spool."""
+    first, second = RecordedFrames(), RecordedFrames()
+    sim = make_backend("unreal", scene, spool=spool, timeout_s=20)
+    with Editor(spool, first), Editor(spool, second):
+        for k in range(6):
+            sim.render(k % 3, _texture([0.1 * k, 0.5, 0.5]), 1, k)
+    ids = [j.id for j in first.jobs + second.jobs]
+    assert len(ids) == 6 and len(set(ids)) == 6

@@ -129,7 +129,13 @@ class Spool:
         A request that cannot be served is answered with an error at once and
         None is returned for it (the next call looks again).
         """
-        for path in sorted(self.requests.glob("*.json"), key=lambda p: (p.stat().st_mtime, p.name)):
+        waiting = []
+        for path in self.requests.glob("*.json"):
+            try:
+                waiting.append((path.stat().st_mtime, path.name, path))
+            except FileNotFoundError:  # claimed by another worker meanwhile
+                continue
+        for _, _, path in sorted(waiting):
             taken = path.with_name(path.name + ".taken")
             try:
                 os.replace(path, taken)  # atomic: of two workers on one spool, one wins
