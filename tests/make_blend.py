@@ -41,6 +41,16 @@ def main(out):
         crate.keyframe_insert("location", frame=frame)
         crate.keyframe_insert("rotation_euler", frame=frame)
 
+    bpy.ops.mesh.primitive_cube_add(size=1.0)
+    post = bpy.context.active_object
+    post.name = "Post"
+    post.scale = (0.15, 0.15, 1.2)
+    while post.data.uv_layers:
+        post.data.uv_layers.remove(post.data.uv_layers[0])
+    for frame, loc in ((1, (1.5, -2.0, 0.6)), (5, (-1.0, -1.5, 0.6))):
+        post.location = loc
+        post.keyframe_insert("location", frame=frame)
+
     bpy.ops.mesh.primitive_plane_add(size=1.0, location=(3.0, 3.0, 0.0))
     bare = bpy.context.active_object
     bare.name = "Bare"
@@ -75,7 +85,10 @@ def main(out):
         for p in points:
             v = world_to_camera_view(scene, cam, p)
             pixels.append([v.x * W, (1.0 - v.y) * H])
-        expected.append({"frame": frame, "origin": pixels[0], "corners": pixels[1:]})
+        posts = [world_to_camera_view(scene, cam, post.matrix_world @ Vector((x, y, z)))
+                 for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (-0.5, 0.5)]
+        expected.append({"frame": frame, "origin": pixels[0], "corners": pixels[1:],
+                         "post": [[v.x * W, (1.0 - v.y) * H] for v in posts]})
     bpy.ops.wm.save_as_mainfile(filepath=out)
     with open(out[:-len(".blend")] + ".json", "w") as f:
         json.dump(expected, f)

@@ -48,7 +48,8 @@ def _export(**over) -> dict:
 
 
 def test_export_converts_axes_camera_and_uvs():
-    seq, mesh = sequence_from_export(_export(), name="my scene")
+    seq, meshes = sequence_from_export(_export(), name="my scene")
+    mesh = meshes["Tri_001"]
     cam = np.array(seq.frames[0].camera.to_world.matrix)
     # Blender +Y (the view) is canonical −Z; Blender +Z (up) is canonical +Y; the image's left is −X.
     assert np.allclose(cam[:3, 2], [0, 0, -1]) and np.allclose(cam[:3, 1], [0, 1, 0])
@@ -86,6 +87,22 @@ def test_lens_shift_and_negative_frames_are_refused():
     data = _export()
     data["frames"][0]["frame"] = -1
     with pytest.raises(BridgeError, match=r"frames\[0\].frame: must be a frame number >= 0"):
+        sequence_from_export(data)
+
+
+def test_export_actors_convert_like_the_object():
+    data = _export()
+    mesh = data["object"]["mesh"]
+    data["actors"] = [{"name": "Post", "mesh": mesh}]
+    moved = [[1, 0, 0, 2], [0, 1, 0, 3], [0, 0, 1, 4], [0, 0, 0, 1]]  # Blender (2, 3, 4)
+    for f in data["frames"]:
+        f["actors"] = {"Post": {"matrix_world": moved}}
+    seq, meshes = sequence_from_export(data)
+    assert [a.name for a in seq.actors] == ["Post"] and set(meshes) == {"Tri_001", "Post"}
+    pose = np.array(seq.frames[1].actors[0].to_world.matrix)
+    assert np.allclose(pose[:3, 3], [2, 4, -3]) and np.allclose(pose[:3, :3], np.eye(3))  # (x, z, −y)
+    del data["frames"][1]["actors"]
+    with pytest.raises(BridgeError, match=r"frames\[1\].actors: must hold the matrix of every actor \(Post\)"):
         sequence_from_export(data)
 
 
@@ -135,21 +152,24 @@ def test_blend_matches_blenders_projection(blend, tmp_path, mi):
     from undream.scenedir.init import InitOptions, init_scene
 
     path, expected = blend
-    seq = sequence_from_blend(BlendSource(path, "Crate"), cache_dir=tmp_path / "cache")
+    seq = sequence_from_blend(BlendSource(path, "Crate", actors=("Post",)), cache_dir=tmp_path / "cache")
     assert [f.index for f in seq.frames] == [1, 2, 3, 4, 5] and seq.fps == 10.0
-    mesh = read_ply(seq.asset.mesh)
+    mesh, post = read_ply(seq.asset.mesh), read_ply(seq.actors[0].mesh)
     assert mesh.n_faces == 12 and mesh.uvs.min() >= 0 and mesh.uvs.max() <= 1
+    assert seq.actors[0].name == "Post" and post.n_faces == 12 and np.ptp(post.uvs, axis=0).max() == 0  # no UVs: one
     worst = 0.0
     for f, want in zip(seq.frames, expected):
         cam = f.camera.to_json()
         m = np.array(f.object_to_world.matrix)
         origin, _ = project(m[None, :3, 3], cam)
         worst = max(worst, float(np.linalg.norm(origin[0] - want["origin"])))
-        corners = (m @ np.c_[mesh.vertices, np.ones(mesh.n_vertices)].T).T[:, :3]
-        px, depth = project(corners, cam)
-        assert (depth > 0).all()
-        for point in want["corners"]:  # each Blender corner is one of the imported mesh's vertices
-            worst = max(worst, float(np.linalg.norm(px - point, axis=1).min()))
+        for shape, pose, points in ((mesh, m, want["corners"]),
+                                    (post, np.array(f.actors[0].to_world.matrix), want["post"])):
+            corners = (pose @ np.c_[shape.vertices, np.ones(shape.n_vertices)].T).T[:, :3]
+            px, depth = project(corners, cam)
+            assert (depth > 0).all()
+            for point in points:  # each Blender corner is one of the imported mesh's vertices
+                worst = max(worst, float(np.linalg.norm(px - point, axis=1).min()))
     print(f"worst distance to Blender's projection: {worst:.2e} px")
     assert worst < 1.5
     scene = init_scene(BlendSource(path, "Crate"), tmp_path / "scene", InitOptions(verify_spp=4))
@@ -174,15 +194,18 @@ def test_blend_matches_blenders_projection(blend, tmp_path, mi):
 
 
 @pytest.mark.parametrize("name, camera, message", [
-    ("Nope", None, "no object named 'Nope' (mesh objects: Bare, Crate)"),
+    ("Nope", None, "no object named 'Nope' (mesh objects: Bare, Crate, Post)"),
     ("Bare", None, "object 'Bare' has no UV map"),
     ("Crate", "Flat", "camera 'Flat' is ORTHO"),
     ("Crate", "Ghost", "no camera named 'Ghost'"),
+    ("Crate", ("Crate",), "--actor names each object once, and not the adversarial object 'Crate'"),
+    ("Crate", ("Nobody",), "no object named 'Nobody'"),
 ])
 def test_bad_blend_input_is_one_line(blend, tmp_path, name, camera, message):
     path, _ = blend
+    camera, actors = (None, camera) if isinstance(camera, tuple) else (camera, ())
     with pytest.raises(BridgeError) as err:
-        sequence_from_blend(BlendSource(path, name, camera), cache_dir=tmp_path / "cache")
+        sequence_from_blend(BlendSource(path, name, camera, actors), cache_dir=tmp_path / "cache")
     msg = str(err.value)
     assert msg.startswith(f"{path}: ") and message in msg and "\n" not in msg
     assert not (tmp_path / "cache").exists()
@@ -201,15 +224,17 @@ def test_cli_init_blend(blend, tmp_path):
     assert not out.exists()
     out = tmp_path / "good"
     res = subprocess.run([sys.executable, "-m", "undream.cli", "init", str(path), "--object", "Crate", "--camera",
-                          "Cam", "--out", str(out), "--verify-spp", "1", "--no-progress"],
+                          "Cam", "--actor", "Post", "--out", str(out), "--verify-spp", "1", "--no-progress"],
                          capture_output=True, text=True, cwd=ROOT, env=env, timeout=300)
     assert res.returncode == 0, res.stderr
     assert len(list((out / "frames").glob("sim_*.xml"))) == 5 and (out / "meshes" / "object.ply").is_file()
+    assert (out / "meshes" / "Post.ply").is_file()
+    assert "meshes/Post.ply" in (out / "frames" / "sim_0003.xml").read_text()
 
 
 def test_cli_object_option_only_for_blend(tmp_path):
     res = subprocess.run([sys.executable, "-m", "undream.cli", "init", str(ROOT / "examples" / "bin_park.yaml"),
                           "--object", "Crate", "--out", str(tmp_path / "x")], capture_output=True, text=True,
                          cwd=ROOT, timeout=300)
-    assert res.returncode == 2 and "--object and --camera are for .blend files only" in res.stderr
+    assert res.returncode == 2 and "--object, --camera and --actor are for .blend files only" in res.stderr
     assert not (tmp_path / "x").exists()

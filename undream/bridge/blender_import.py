@@ -13,9 +13,11 @@ The export format, version 1 (Blender's world: right-handed, Z up, metres)::
                                            "triangles": [[i, j, k], ...],    # vertex indices
                                            "uvs": [[[u, v] × 3], ...],       # per corner, v up
                                            "normals": [[[x, y, z] × 3], ...]}},
+     "actors": [{"name": "Walker", "mesh": {...}}, ...],               # --actor objects (UVs (0, 0) if none)
      "frames": [{"frame": 1,
                  "camera": {"matrix_world": 4×4, "view_frame": [[x, y, z] × 4]},
-                 "object": {"matrix_world": 4×4}}, ...]}
+                 "object": {"matrix_world": 4×4},
+                 "actors": {"Walker": {"matrix_world": 4×4}, ...}}, ...]}
 
 Conversion, matrices only (no Euler angles): a Blender point ``p_b`` is the
 canonical point ``Cᵀ p_b`` with ``C = [[1,0,0],[0,0,-1],[0,1,0]]`` (canonical
@@ -30,13 +32,16 @@ are Blender's. UV ``v`` is flipped (``1 − v``: Mitsuba's runs down the rows).
 Frame indices are Blender's frame numbers (``frame_start`` to ``frame_end``,
 every ``frame_step``), times ``(frame − frame_start) / fps``.
 
-Not imported: lights, world, materials, other objects (the environment is
-undream's, :class:`~undream.spec.Environment`), lens shift, non-square
-pixels, orthographic or panoramic cameras (refused with one line), and mesh
-deformation over time (the mesh is the first frame's; its pose follows every
-frame). The mesh is written as a PLY file into a content-addressed cache
-(``$XDG_CACHE_HOME/undream/blend``) that the sequence's asset names;
-``undream init`` copies it into the scene directory like any mesh.
+Objects named as actors (``--actor NAME``: occluders, other traffic; UVs
+optional) come with their meshes and poses, converted like the object's, in
+undream's default grey. Not imported: lights, world, materials, other
+objects (the environment is undream's, :class:`~undream.spec.Environment`),
+lens shift, non-square pixels, orthographic or panoramic cameras (refused
+with one line), and mesh deformation over time (a mesh is the first
+frame's; its pose follows every frame). Meshes are written as PLY files into
+a content-addressed cache (``$XDG_CACHE_HOME/undream/blend``) that the
+sequence's assets name; ``undream init`` copies them into the scene
+directory like any mesh.
 """
 from __future__ import annotations
 
@@ -56,7 +61,7 @@ import numpy as np
 
 from undream.bridge.blender_python import HINT, blender_env, blender_python, bpy_problem, import_root
 from undream.errors import BridgeError, SpecError
-from undream.spec import Asset, Camera, Environment, Frame, Sequence, TextureParam, Transform
+from undream.spec import ActorPose, Asset, Camera, Environment, Frame, Sequence, TextureParam, Transform
 from undream.spec import _check
 
 FORMAT = "undream-blender-export"
@@ -70,19 +75,22 @@ EXPORT_TIMEOUT_S = 600
 
 @dataclass(frozen=True)
 class BlendSource:
-    """A ``.blend`` file and what to take from it: the adversarial ``object`` (a mesh object's name)
-    and the ``camera`` (an object's name; None: the scene's active camera)."""
+    """A ``.blend`` file and what to take from it: the adversarial ``object`` (a mesh object's name),
+    the ``camera`` (an object's name; None: the scene's active camera) and extra ``actors`` (mesh
+    objects' names: occluders, other traffic; UVs optional)."""
 
     path: Path
     object: str
     camera: str | None = None
+    actors: tuple[str, ...] = ()
 
     def __str__(self) -> str:
         return str(self.path)
 
     def describe(self) -> str:
         """What ``metadata.json`` records as the spec."""
-        return json.dumps({"blend": str(Path(self.path).resolve()), "object": self.object, "camera": self.camera})
+        return json.dumps({"blend": str(Path(self.path).resolve()), "object": self.object, "camera": self.camera,
+                           "actors": list(self.actors)})
 
 
 @dataclass(frozen=True)
@@ -111,11 +119,13 @@ def sequence_from_blend(source: BlendSource, texture: TextureParam | None = None
         raise BridgeError(f"{path}: file not found")
     data = run_export(source, python)
     try:
-        seq, mesh = sequence_from_export(data, texture, environment, name=path.stem)
+        seq, meshes = sequence_from_export(data, texture, environment, name=path.stem)
     except (BridgeError, SpecError) as err:
         raise BridgeError(" ".join(f"{path}: {err}".split())) from None
-    ply = write_cached_ply(mesh, Path(cache_dir) if cache_dir else _cache_home() / "undream" / "blend")
-    return _with_mesh(seq, str(ply))
+    cache = Path(cache_dir) if cache_dir else _cache_home() / "undream" / "blend"
+    files = {name: str(write_cached_ply(mesh, cache)) for name, mesh in meshes.items()}
+    return replace(seq, asset=replace(seq.asset, mesh=files[seq.asset.name]),
+                   actors=tuple(replace(a, mesh=files[a.name]) for a in seq.actors))
 
 
 def run_export(source: BlendSource, python: str | Path | None = None) -> Mapping[str, Any]:
@@ -132,6 +142,8 @@ def run_export(source: BlendSource, python: str | Path | None = None) -> Mapping
         out = root / "export.json"
         cmd = [str(python), "-m", "undream.bridge.blender_export", str(path.resolve()), "--object", source.object,
                "--out", str(out)] + (["--camera", source.camera] if source.camera else [])
+        for actor in source.actors:
+            cmd += ["--actor", actor]
         try:
             proc = subprocess.run(cmd, capture_output=True, text=True, env=blender_env(root), cwd=str(root),
                                   timeout=EXPORT_TIMEOUT_S)
@@ -177,8 +189,8 @@ def _fields(value: Any, where: str, required: tuple[str, ...]) -> Mapping[str, A
 
 
 def sequence_from_export(data: Any, texture: TextureParam | None = None, environment: Environment | None = None,
-                         name: str = "blend") -> tuple[Sequence, BlendMesh]:
-    """The canonical sequence (its asset's mesh a placeholder path) and the object's mesh of an export."""
+                         name: str = "blend") -> tuple[Sequence, dict[str, BlendMesh]]:
+    """The canonical sequence of an export (its assets' meshes placeholder paths) and the meshes by asset name."""
     d = _fields(data, "", ("format", "version", "fps", "resolution", "pixel_aspect", "object", "frames"))
     if d["format"] != FORMAT or d["version"] != VERSION:
         raise BridgeError(f"format: must be {FORMAT!r} version {VERSION}, got {d['format']!r} {d['version']!r}")
@@ -188,16 +200,26 @@ def sequence_from_export(data: Any, texture: TextureParam | None = None, environ
     if abs(aspect[0] - aspect[1]) > 1e-6 * max(aspect):
         raise BridgeError(f"pixel_aspect: undream needs square pixels, got {aspect.tolist()}")
     obj = _fields(d["object"], "object", ("name", "mesh"))
-    mesh = _mesh(obj["mesh"], "object.mesh")
+    asset = Asset(_safe_name(str(obj["name"]), "object"), "blend-mesh.ply", texture=texture or TextureParam())
+    meshes = {asset.name: _mesh(obj["mesh"], "object.mesh")}
+    actors_raw = d.get("actors", [])
+    if not isinstance(actors_raw, list):
+        raise BridgeError("actors: must be a list")
+    labels: dict[str, str] = {}  # Blender name → asset name
+    for i, a in enumerate(actors_raw):
+        a = _fields(a, f"actors[{i}]", ("name", "mesh"))
+        labels[str(a["name"])] = _safe_name(str(a["name"]), f"actor{i}")
+        meshes[labels[str(a["name"])]] = _mesh(a["mesh"], f"actors[{i}].mesh")
     frames_raw = d["frames"]
     if not isinstance(frames_raw, list) or not frames_raw:
         raise BridgeError("frames: the scene's frame range holds no frame")
     start = frames_raw[0].get("frame", 0) if isinstance(frames_raw[0], Mapping) else 0
-    frames = tuple(_frame(f, f"frames[{i}]", res, fps, start, environment or Environment())
+    frames = tuple(_frame(f, f"frames[{i}]", res, fps, start, environment or Environment(), labels)
                    for i, f in enumerate(frames_raw))
-    asset = Asset(_safe_name(str(obj["name"]), "object"), "blend-mesh.ply", texture=texture or TextureParam())
-    seq = Sequence(name=_safe_name(name, "blend"), asset=asset, frames=frames, fps=fps, source="blender")
-    return seq, mesh
+    actors = tuple(Asset(n, "blend-mesh.ply") for n in labels.values())
+    seq = Sequence(name=_safe_name(name, "blend"), asset=asset, frames=frames, actors=actors, fps=fps,
+                   source="blender")
+    return seq, meshes
 
 
 def _safe_name(name: str, fallback: str) -> str:
@@ -233,7 +255,8 @@ def _matrix(value: Any, where: str) -> np.ndarray:
     return m
 
 
-def _frame(value: Any, where: str, res: tuple[int, int], fps: float, start: int, env: Environment) -> Frame:
+def _frame(value: Any, where: str, res: tuple[int, int], fps: float, start: int, env: Environment,
+           labels: Mapping[str, str]) -> Frame:
     f = _fields(value, where, ("frame", "camera", "object"))
     number = f["frame"]
     if isinstance(number, bool) or not isinstance(number, int) or number < 0:
@@ -241,11 +264,17 @@ def _frame(value: Any, where: str, res: tuple[int, int], fps: float, start: int,
                           f"got {number!r}")
     cam = _fields(f["camera"], f"{where}.camera", ("matrix_world", "view_frame"))
     obj = _fields(f["object"], f"{where}.object", ("matrix_world",))
+    actors = f.get("actors", {})
+    if not isinstance(actors, Mapping) or set(actors) != set(labels):
+        raise BridgeError(f"{where}.actors: must hold the matrix of every actor ({', '.join(labels) or 'none'})")
     with _check.at(where, catch=(BridgeError, SpecError), raise_as=BridgeError):
         camera = _camera(cam, res)
         pose = C4.T @ _matrix(obj["matrix_world"], "object.matrix_world") @ C4
+        poses = tuple(ActorPose(labels[k], Transform.from_rows(
+            C4.T @ _matrix(_fields(actors[k], f"actors.{k}", ("matrix_world",))["matrix_world"],
+                           f"actors.{k}.matrix_world") @ C4)) for k in labels)
         return Frame(index=number, camera=camera, object_to_world=Transform.from_rows(pose), environment=env,
-                     time=(number - start) / fps)
+                     actors=poses, time=(number - start) / fps)
 
 
 def _camera(cam: Mapping[str, Any], res: tuple[int, int]) -> Camera:
@@ -271,10 +300,6 @@ def _camera(cam: Mapping[str, Any], res: tuple[int, int]) -> Camera:
         raise BridgeError(f"camera.view_frame: aspect {(x1 - x0) / (y1 - y0):.4f} is not the resolution's {w / h:.4f}")
     fov = math.degrees(2.0 * math.atan(x1 / depth.mean()))
     return Camera(Transform.from_rows(m), fov, res)
-
-
-def _with_mesh(seq: Sequence, mesh: str) -> Sequence:
-    return replace(seq, asset=replace(seq.asset, mesh=mesh))
 
 
 # --- the mesh file --------------------------------------------------------------------------------

@@ -31,11 +31,13 @@ def main() -> None:
               help="For a .blend SPEC: the adversarial object (a UV-mapped mesh object's name).")
 @click.option("--camera", default=None, metavar="NAME",
               help="For a .blend SPEC: the camera object (default: the scene's active camera).")
+@click.option("--actor", "actors", multiple=True, metavar="NAME",
+              help="For a .blend SPEC: a mesh object to bring along as an actor (repeatable).")
 @check_option
 @progress_option
 @one_line_errors
 def init_cmd(spec: Path, out: Path, force: bool, verify_spp: int, scene_spp: int, object_name: str | None,
-             camera: str | None, check: bool, progress: bool) -> None:
+             camera: str | None, actors: tuple[str, ...], check: bool, progress: bool) -> None:
     """Write the scene directory of SPEC (trajectory YAML, Unreal export JSON, sequence.json, or a
     Blender .blend with --object NAME)."""
     from undream.bridge.blender_import import BlendSource
@@ -44,9 +46,9 @@ def init_cmd(spec: Path, out: Path, force: bool, verify_spp: int, scene_spp: int
 
     source: Source = spec
     if spec.suffix.lower() == ".blend" and object_name:
-        source = BlendSource(spec, object_name, camera)
-    elif spec.suffix.lower() != ".blend" and (object_name or camera):
-        raise SpecError(f"{spec}: --object and --camera are for .blend files only")
+        source = BlendSource(spec, object_name, camera, actors)
+    elif spec.suffix.lower() != ".blend" and (object_name or camera or actors):
+        raise SpecError(f"{spec}: --object, --camera and --actor are for .blend files only")
     options = InitOptions(force=force, verify_spp=verify_spp, scene_spp=scene_spp, progress=progress)
     if check:
         click.echo(f"ok: {spec} can be written to {out}: {check_init(source, out, options).describe()}; "
