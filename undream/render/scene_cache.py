@@ -38,11 +38,16 @@ KINDS = ("sim", "grad")
 _VARYING = re.compile(
     r'(<matrix value=|<rgb name="[a-z_0-9]+" value=|<float name="(?:sigma_t|radius)" value=)"[^"]*"'
     r'|(<vector name="(?:direction|position|center)") x="[^"]*" y="[^"]*" z="[^"]*"')
+# A per-frame mesh (meshes/NAME_NNNN.ply): its buffers (vertex positions, normals, UVs, faces)
+# are traversable too. Frames whose meshes have buffers of the same sizes join one group and get
+# their buffers written per frame like any other value; other sizes start a group (_differences).
+_PER_FRAME_MESH = re.compile(r'(<string name="filename" value="[^"]*/meshes/[^"/]*_)\d{4,}(\.ply")')
 
 
 def structure_key(xml_text: str) -> str:
     """The scene file with the numbers that ``mi.traverse`` can change per frame blanked out."""
-    return _VARYING.sub(lambda m: (m.group(1) or m.group(2)) + ' "#"', xml_text)
+    text = _PER_FRAME_MESH.sub(lambda m: m.group(1) + "#" + m.group(2), xml_text)
+    return _VARYING.sub(lambda m: (m.group(1) or m.group(2)) + ' "#"', text)
 
 
 @dataclass
@@ -196,6 +201,8 @@ class SceneCache:
                 if key not in group.base:  # host-side value: must be equal
                     if not _equal(mine, theirs):
                         return None
+                elif not _same_size(mine, theirs):  # another mesh: a buffer cannot change its size
+                    return None
                 elif not _equal(mine, theirs):
                     out[key] = _copy(mine)
             return out
@@ -252,6 +259,13 @@ def _as_numpy(value: Any) -> np.ndarray:
     if hasattr(value, "matrix"):
         value = value.matrix
     return np.asarray(np.array(value), dtype=np.float64)
+
+
+def _same_size(a: Any, b: Any) -> bool:
+    try:
+        return _as_numpy(a).shape == _as_numpy(b).shape
+    except (TypeError, ValueError):
+        return True
 
 
 def _equal(a: Any, b: Any) -> bool:
