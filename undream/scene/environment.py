@@ -13,6 +13,12 @@ backend translates the same Mitsuba dictionaries):
   wet ground (darker: :func:`ground_tint`);
 - ``snow``: sun at 15 %, a bright sky, a light haze and a snow-covered
   ground. Falling drops and flakes are not modelled (in either simulator).
+
+A user's environment map (``Environment.envmap``) replaces the sky and the
+sun with one ``envmap`` emitter (Mitsuba's frame: +Y up, the map's centre
+column along −Z, u = 1/4 along +X), ``envmap_scale`` times its radiance,
+turned by ``envmap_rotation_deg`` about +Y; the weather keeps its medium,
+its ground and its night lamp.
 """
 from __future__ import annotations
 
@@ -21,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from undream.scene.xml import Mat4
 from undream.spec import Environment, sun_direction
 
 SUN_IRRADIANCE = 2.0  # clear-sky sun, W/m² in undream's display-referred units
@@ -40,18 +47,33 @@ def _sun_colour(elev_deg: float) -> np.ndarray:
     return np.array([1.0, 0.95 - 0.25 * warm, 0.88 - 0.5 * warm])
 
 
-def emitters(env: Environment, anchor: np.ndarray) -> dict[str, dict[str, Any]]:
-    """Emitters for one frame: ``sky`` (constant), ``sun`` (directional), ``lamp`` at night.
+def envmap_rotation(degrees: float) -> np.ndarray:
+    """4×4 rotation about +Y by ``degrees`` (right-handed: +X turns towards −Z)."""
+    a = math.radians(degrees)
+    m = np.eye(4)
+    m[0, 0], m[0, 2], m[2, 0], m[2, 2] = math.cos(a), math.sin(a), -math.sin(a), math.cos(a)
+    return m
+
+
+def emitters(env: Environment, anchor: np.ndarray, envmap_file: str | None = None) -> dict[str, dict[str, Any]]:
+    """Emitters for one frame: ``sky`` (constant, or the user's ``envmap``), ``sun`` (directional;
+    none with an envmap), ``lamp`` at night.
 
     ``anchor`` (metres) is where a night lamp stands near: the object's origin.
+    ``envmap_file``: the map's path as the scene file names it (``env.envmap`` if not given).
     """
     direction, elev = sun_direction(env)
     day = float(np.clip(math.sin(math.radians(elev)) * 3.0, 0.0, 1.0))  # fades in at sunrise
     out: dict[str, dict[str, Any]] = {}
+    if env.envmap is not None:
+        out["sky"] = {"type": "envmap", "filename": envmap_file or env.envmap, "scale": float(env.envmap_scale),
+                      "to_world": Mat4.of(envmap_rotation(env.envmap_rotation_deg))}
     if env.weather == "night":
-        out["sky"] = {"type": "constant", "radiance": _rgb(0.010, 0.013, 0.028)}
+        out.setdefault("sky", {"type": "constant", "radiance": _rgb(0.010, 0.013, 0.028)})
         lamp = np.asarray(anchor, float) + np.array([2.5, 6.0, 2.5])
         out["lamp"] = {"type": "point", "position": lamp.tolist(), "intensity": _rgb(30.0, 25.0, 18.0)}
+        return out
+    if env.envmap is not None:
         return out
     sun_scale, sky = {
         "clear": (1.0, np.array([0.26, 0.34, 0.48])),

@@ -18,6 +18,7 @@ differentiable (Mitsuba ≥ 3.9 does not differentiate 8-bit bitmaps).
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from typing import Any
 
@@ -46,6 +47,10 @@ class ScenePaths:
 
     def texture(self, name: str) -> str:
         return f"{self.root}/textures/{name}.exr"
+
+    def envmap(self, path: str) -> str:
+        """An environment map's path: relative ones (``textures/envmap.exr``) are inside the scene directory."""
+        return path if os.path.isabs(path) else f"{self.root}/{path}"
 
 
 def _rgb(v: Any) -> dict[str, Any]:
@@ -108,7 +113,7 @@ def scene_dict(seq: Sequence, frame: Frame, paths: ScenePaths, kind: str) -> dic
     d["sensor"] = sensor(frame, "box" if kind == "mask" else "gaussian")
     anchor = np.array(frame.object_to_world.translation)
     if kind != "mask":
-        d.update(environment.emitters(env, anchor))
+        d.update(environment.emitters(env, anchor, None if env.envmap is None else paths.envmap(env.envmap)))
     if fog:
         d["fog"] = environment.fog_medium(env)
         d["sensor"]["medium"] = {"type": "ref", "id": "fog"}

@@ -56,7 +56,7 @@ def sequence_from_trajectory(spec: Mapping[str, Any], base_dir: Path | None = No
             actor_poses.append(_object_path(a, n))
     with c.at("camera"):
         cams = _cameras(c.mapping("camera", c.require(spec, "camera")), n, obj_poses)
-    envs = _environments(spec.get("environment", {}), n)
+    envs = _environments(spec.get("environment", {}), n, base_dir)
     frames = tuple(
         Frame(index=i, time=i / fps, camera=cams[i],
               object_to_world=Transform.from_rows(obj_poses[i]), environment=envs[i],
@@ -209,15 +209,23 @@ def _keyframed_rotations(path: Mapping[str, Any], n: int) -> Rotation:
     return RotationSpline(t, Rotation.concatenate(rots))(x)
 
 
-def _environments(d: Any, n: int) -> list[Environment]:
+def _environments(d: Any, n: int, base_dir: Path | None = None) -> list[Environment]:
     if isinstance(d, list):
         if len(d) != n:
             raise c.fail("environment", f"{len(d)} entries", f"must be one mapping or a list of {n} (one per frame)")
         out = []
         for i, e in enumerate(d):
             with c.at(f"environment[{i}]"):
-                out.append(Environment.from_json(e))
+                out.append(Environment.from_json(_resolve_envmap(e, base_dir)))
         return out
     with c.at("environment"):
-        env = Environment.from_json(d)
+        env = Environment.from_json(_resolve_envmap(d, base_dir))
     return [env] * n
+
+
+def _resolve_envmap(d: Any, base_dir: Path | None) -> Any:
+    """A relative ``envmap`` path resolved against the spec's folder, as mesh paths are."""
+    if not isinstance(d, Mapping) or not isinstance(d.get("envmap"), str) or base_dir is None:
+        return d
+    path = Path(d["envmap"])
+    return {**d, "envmap": str(path if path.is_absolute() else (base_dir / path).resolve())}

@@ -96,7 +96,7 @@ def _category(value: Mapping[str, Any], key: str) -> str:
         "path": "integrator", "volpath": "integrator", "prb": "integrator", "direct": "integrator",
         "aov": "integrator", "perspective": "sensor", "hdrfilm": "film", "independent": "sampler",
         "box": "rfilter", "gaussian": "rfilter", "tent": "rfilter",
-        "constant": "emitter", "directional": "emitter", "point": "emitter", "area": "emitter",
+        "constant": "emitter", "envmap": "emitter", "directional": "emitter", "point": "emitter", "area": "emitter",
         "spot": "emitter", "diffuse": "bsdf", "null": "bsdf", "twosided": "bsdf",
         "bitmap": "texture", "checkerboard": "texture", "homogeneous": "medium",
         "ply": "shape", "obj": "shape", "rectangle": "shape", "sphere": "shape", "cube": "shape",

@@ -36,6 +36,7 @@ from undream.scene.layout import frame_name, frame_xml, mask_png, mesh_name
 from undream.scene.mesh import Mesh
 from undream.scene.mitsuba_scene import OBJECT_ID, ScenePaths, scene_dict
 from undream.scene.xml import to_xml
+from undream.scenedir.envmaps import Envmap, envmap_sources, load_envmaps, write_envmaps
 from undream.spec import Sequence, TextureParam, save_sequence
 from undream.spec.io import check_writable_target
 
@@ -62,6 +63,7 @@ class CheckedSource:
     meshes: dict[str, object]  # file stem in meshes/ → mesh (OBJECT_ID, actor names, NAME_NNNN per frame)
     texture: np.ndarray  # the starting texture, H×W×3 sRGB in [0, 1]
     estimate: Estimate  # memory and samples of the verification renders
+    envmaps: tuple[Envmap, ...] = ()  # environment maps, as the scene directory holds them
 
 
 def check_source(source: Source, options: InitOptions = InitOptions(),
@@ -72,19 +74,22 @@ def check_source(source: Source, options: InitOptions = InitOptions(),
     Mesh and texture paths may point anywhere (relative ones resolve against
     the spec's folder, ``..`` included): their content is copied into the
     scene directory, which never refers to a file outside itself, and
-    ``metadata.json`` records where each mesh came from.
+    ``metadata.json`` records where each mesh came from. Environment maps
+    likewise: copied to ``textures/envmap*.exr``, which the written
+    ``sequence.json`` names (:mod:`undream.scenedir.envmaps`).
     """
     seq, base_dir, spec_text = _resolve_source(source, spec_text)
     try:
         meshes = _load_meshes(seq, base_dir)
         texture = texture_from_spec(seq.texture, base_dir)
+        seq, envmaps = load_envmaps(seq, base_dir)
     except AssetError as err:
         raise AssetError(f"{source}: {err}" if not isinstance(source, Sequence) else str(err)) from None
     try:
         estimate = init_estimate(seq, options.verify_spp)
     except SpecError as err:
         raise SpecError(f"{source}: {err}" if not isinstance(source, Sequence) else str(err)) from None
-    return CheckedSource(seq, base_dir, spec_text, meshes, texture, estimate)
+    return CheckedSource(seq, base_dir, spec_text, meshes, texture, estimate, tuple(envmaps))
 
 
 def init_scene(source: Source, out: str | Path, options: InitOptions = InitOptions(),
@@ -212,6 +217,7 @@ def _write(checked: CheckedSource, root: Path, opt: InitOptions) -> None:
     tex = seq.texture
     mi.Bitmap(srgb_to_linear(texture)).write(str(root / "textures" / f"{tex.name}.exr"))
     Image.fromarray(to_uint8(texture)).save(root / "textures" / f"{tex.name}.png")
+    write_envmaps(list(checked.envmaps), root)
     rel = ScenePaths("..")
     defaults = {"spp": opt.scene_spp}
     tiles = []
@@ -246,6 +252,7 @@ def _write_metadata(checked: CheckedSource, root: Path, opt: InitOptions, mi) ->
         "undream": __version__, "created_unix": time.time(), "seed": seq.seed, "source": seq.source,
         "spec": spec_text, "frames": len(seq.frames), "object_id": OBJECT_ID,
         "mesh_sources": _mesh_sources(seq, checked.base_dir),
+        "envmap_sources": envmap_sources(list(checked.envmaps)),
         "texture": {"name": seq.texture.name, "file": f"textures/{seq.texture.name}.exr",
                     "space": "linear (raw)", "srgb_preview": f"textures/{seq.texture.name}.png"},
         "verify_spp": opt.verify_spp, "scene_spp": opt.scene_spp, "variant": mi.variant(),

@@ -20,7 +20,8 @@ Row = tuple[float, float, float, float]
 Matrix = tuple[Row, Row, Row, Row]
 
 WEATHERS = ("clear", "cloudy", "night", "fog", "rain", "snow")
-BACKGROUNDS = ("plain", "park", "street")
+BACKGROUNDS = ("plain", "park", "street", "city")
+ENVMAP_SUFFIXES = (".exr", ".hdr")
 BUILTIN_PREFIX = "builtin:"
 
 
@@ -204,6 +205,15 @@ class Environment:
     :func:`sun_direction`); ``fog_density`` is the extinction in 1/m used when
     the weather is ``fog`` (``rain`` and ``snow`` bring their own, lighter
     haze: :mod:`undream.scene.environment`).
+
+    ``envmap``: the path of an equirectangular HDR map (``.exr`` or ``.hdr``,
+    width = 2 × height, linear radiance; row 0 is straight up, the centre
+    column looks along −Z, a quarter of the width in looks along +X) that
+    replaces the procedural sky *and* the sun (the map carries its light);
+    the weather keeps its medium, its ground and, at night, its lamp.
+    ``envmap_scale`` multiplies the map's radiance; ``envmap_rotation_deg``
+    turns it about +Y (right-handed: +X towards −Z). In a scene directory
+    the path is relative to the directory (``textures/envmap.exr``).
     """
 
     weather: str = "clear"
@@ -211,10 +221,18 @@ class Environment:
     background: str = "plain"
     sun_max_elevation_deg: float = 60.0
     fog_density: float = 0.08
+    envmap: str | None = None
+    envmap_scale: float = 1.0
+    envmap_rotation_deg: float = 0.0
 
     def __post_init__(self) -> None:
         c.choice("weather", self.weather, WEATHERS)
         c.choice("background", self.background, BACKGROUNDS)
+        if self.envmap is not None and (not isinstance(self.envmap, str)
+                                        or not self.envmap.lower().endswith(ENVMAP_SUFFIXES)):
+            raise c.fail("envmap", self.envmap, "must be the path of an .exr or .hdr equirectangular map")
+        object.__setattr__(self, "envmap_scale", c.positive("envmap_scale", self.envmap_scale))
+        object.__setattr__(self, "envmap_rotation_deg", c.finite("envmap_rotation_deg", self.envmap_rotation_deg))
         t = c.finite("time_of_day", self.time_of_day)
         if not 0 <= t < 24:
             raise c.fail("time_of_day", self.time_of_day, "must be hours in [0, 24)")
@@ -226,10 +244,14 @@ class Environment:
         object.__setattr__(self, "fog_density", c.positive("fog_density", self.fog_density))
 
     def to_json(self) -> dict[str, Any]:
-        return {"weather": self.weather, "time_of_day": self.time_of_day,
-                "background": self.background,
-                "sun_max_elevation_deg": self.sun_max_elevation_deg,
-                "fog_density": self.fog_density}
+        d: dict[str, Any] = {"weather": self.weather, "time_of_day": self.time_of_day,
+                             "background": self.background,
+                             "sun_max_elevation_deg": self.sun_max_elevation_deg,
+                             "fog_density": self.fog_density}
+        if self.envmap is not None:  # absent otherwise: sequences without a map keep their files
+            d.update(envmap=self.envmap, envmap_scale=self.envmap_scale,
+                     envmap_rotation_deg=self.envmap_rotation_deg)
+        return d
 
     @classmethod
     def from_json(cls, d: Any) -> "Environment":
