@@ -29,6 +29,13 @@ Conventions:
   4π·I (W) with zero radius.
 - Path length: Mitsuba's ``max_depth`` d counts the camera segment and
   emission, Cycles' bounces do not: ``max_bounces = d − 2``.
+- Environment maps: Mitsuba's ``envmap`` looks a canonical direction d up at
+  u = atan2(d.x, −d.z)/2π, v = acos(d.y)/π; Cycles' equirectangular
+  Environment Texture a Blender direction b at u = 1/2 − atan2(b.y, b.x)/2π,
+  v = 1/2 + asin(b.z)/π (v up). With b = C·d the two agree after turning b
+  by 90° − θ about Blender's +Z (θ: ``envmap_rotation_deg``, Mitsuba's turn
+  about +Y, the same turn about Blender's +Z); ``scale`` is the Background's
+  strength.
 """
 from __future__ import annotations
 
@@ -218,6 +225,22 @@ class CyclesScene:
         sc.world.use_nodes = True
         self.sky = sc.world.node_tree.nodes["Background"]
         self.sky.inputs["Strength"].default_value = 1.0
+        self._setup_envmap_nodes()
+
+    def _setup_envmap_nodes(self) -> None:
+        """Generated (the view direction) → Mapping (a turn about +Z) → Environment Texture; linked to
+        the Background only in frames with an envmap."""
+        nodes = self.scene.world.node_tree.nodes
+        coords = nodes.new("ShaderNodeTexCoord")
+        self.env_mapping = nodes.new("ShaderNodeMapping")
+        self.env_mapping.vector_type = "POINT"
+        self.env_texture = nodes.new("ShaderNodeTexEnvironment")
+        self.env_texture.projection = "EQUIRECTANGULAR"
+        self.env_texture.interpolation = "Linear"
+        links = self.scene.world.node_tree.links
+        links.new(coords.outputs["Generated"], self.env_mapping.inputs["Vector"])
+        links.new(self.env_mapping.outputs["Vector"], self.env_texture.inputs["Vector"])
+        self._env_images: dict[str, Any] = {}
 
     def _setup_texture(self) -> None:
         tex = self.seq.texture
@@ -374,9 +397,30 @@ class CyclesScene:
         cw, ch = int(film.get("crop_width", fw)), int(film.get("crop_height", fh))
         return fw, fh, (ox, oy, cw, ch)
 
+    def _world(self, sky: dict[str, Any] | None) -> None:
+        """The world: a constant colour, or the frame's envmap (image loaded once per file)."""
+        links = self.scene.world.node_tree.links
+        colour_in = self.sky.inputs["Color"]
+        for link in list(colour_in.links):
+            links.remove(link)
+        if sky is None or sky["type"] != "envmap":
+            colour_in.default_value = (*_rgb(sky["radiance"]), 1.0) if sky else (0.0, 0.0, 0.0, 1.0)
+            self.sky.inputs["Strength"].default_value = 1.0
+            return
+        path = str(Path(sky["filename"]).resolve())
+        if path not in self._env_images:
+            img = bpy.data.images.load(path, check_existing=False)
+            img.colorspace_settings.name = "Non-Color"  # linear radiance as stored, no transform
+            self._env_images[path] = img
+        self.env_texture.image = self._env_images[path]
+        m = _mat(sky)[:3, :3]
+        theta = math.atan2(m[0, 2], m[0, 0])  # the envmap's turn about +Y (envmap_rotation)
+        self.env_mapping.inputs["Rotation"].default_value = (0.0, 0.0, math.pi / 2 - theta)
+        self.sky.inputs["Strength"].default_value = float(sky.get("scale", 1.0))
+        links.new(self.env_texture.outputs["Color"], colour_in)
+
     def _lights(self, d: dict[str, Any]) -> None:
-        self.sky.inputs["Color"].default_value = (*_rgb(d["sky"]["radiance"]), 1.0) if "sky" in d \
-            else (0.0, 0.0, 0.0, 1.0)
+        self._world(d.get("sky"))
         sun = d.get("sun")
         self.sun.hide_render = sun is None
         if sun is not None:

@@ -1,0 +1,273 @@
+"""A user's HDR environment map (``environment.envmap``): the spec's fields, ``undream init``'s checks
+and copy, its orientation in Mitsuba (the lit side of a sphere faces the map's bright direction) and
+in Cycles (the same side, the same mean radiance).
+
+Maps are made here (32×16, numpy + Mitsuba's Bitmap): no downloads. Cycles tests skip without
+Blender's Python (fail where ``UNDREAM_REQUIRE_SERVICES`` is set), as in tests/test_sim_blender.py.
+"""
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from conftest import service_missing
+from projection import centroid, project
+from undream.errors import AssetError, SpecError, UndreamError
+from undream.spec import Environment
+
+ROOT = Path(__file__).resolve().parents[1]
+H, W = 16, 32  # the test maps' height and width
+
+
+def _pixel_of(direction: np.ndarray) -> tuple[int, int]:
+    """(row, col) of a canonical direction in an equirectangular map as Mitsuba reads it:
+    u = atan2(x, −z)/2π, v = acos(y)/π (row 0 straight up)."""
+    x, y, z = np.asarray(direction, float) / np.linalg.norm(direction)
+    u = (math.atan2(x, -z) / (2 * math.pi)) % 1.0
+    v = math.acos(np.clip(y, -1, 1)) / math.pi
+    return min(int(v * H), H - 1), int(u * W) % W
+
+
+def _spot_map(direction: np.ndarray, dim: float = 0.03, bright: float = 60.0) -> np.ndarray:
+    """A dark map with a bright 2×2-pixel spot around ``direction``."""
+    img = np.full((H, W, 3), dim, np.float32)
+    r, col = _pixel_of(direction)
+    img[max(r - 1, 0):r + 1, [col - 1, col % W]] = bright  # the 2×2 texels nearest the direction
+    return img
+
+
+def _smooth_map() -> np.ndarray:
+    """A sky brightening towards the zenith over a dark lower half, with a broad warm glow at +X."""
+    v, u = np.meshgrid((np.arange(H) + 0.5) / H, (np.arange(W) + 0.5) / W, indexing="ij")
+    y = np.cos(np.pi * v)
+    dx = np.sin(2 * np.pi * u) * np.sin(np.pi * v)  # the x component of the texel's direction
+    sky = np.where(y > 0, 0.25 + 0.35 * y, 0.05)
+    glow = 1.5 * np.exp(8 * (dx - 1)) * (y > -0.1)
+    return np.stack([sky + glow, sky + 0.8 * glow, sky * 1.3 + 0.5 * glow], axis=-1).astype(np.float32)
+
+
+def _write(mi, img: np.ndarray, path: Path) -> Path:
+    mi.Bitmap(np.ascontiguousarray(img, np.float32)).write(str(path))
+    return path
+
+
+def _spec(tmp_path: Path, environment, frames: int = 1, res: int = 32) -> Path:
+    spec = {"name": "envmap", "seed": 0, "frames": frames,
+            "camera": {"fov": 35, "resolution": [res, res], "path": {"type": "static", "position": [0, 1.2, 3.4]},
+                       "look_at": [0, 0.5, 0]},
+            "object": {"asset": {"name": "ball", "mesh": "builtin:sphere", "texture": {"resolution": [16, 8]}},
+                       "path": {"type": "static", "position": [0, 0, 0]}},
+            "environment": environment}
+    path = tmp_path / "spec.yaml"
+    path.write_text(yaml.safe_dump(spec))
+    return path
+
+
+# --- the spec ------------------------------------------------------------------------------------
+
+def test_environment_fields_round_trip_and_bad_values():
+    env = Environment(envmap="/maps/sky.exr", envmap_scale=2.0, envmap_rotation_deg=-30)
+    assert Environment.from_json(json.loads(json.dumps(env.to_json()))) == env
+    assert "envmap" not in Environment().to_json()  # sequences without a map keep their files
+    with pytest.raises(SpecError, match=r"envmap: must be the path of an \.exr or \.hdr"):
+        Environment(envmap="sky.png")
+    with pytest.raises(SpecError, match="envmap_scale"):
+        Environment(envmap="sky.exr", envmap_scale=0)
+    with pytest.raises(SpecError, match="envmap_rotation_deg"):
+        Environment(envmap="sky.exr", envmap_rotation_deg=float("nan"))
+
+
+# --- undream init --------------------------------------------------------------------------------
+
+def test_init_copies_the_map_and_records_its_source(tmp_path, mi):
+    """A relative path resolves against the spec's folder; the scene directory holds the map (an
+    .hdr becomes linear EXR) and refers to nothing outside itself; metadata.json names the source."""
+    from undream.scenedir.init import InitOptions, init_scene
+    from undream.spec import load_sequence
+
+    (tmp_path / "maps").mkdir()
+    img = _smooth_map()
+    _write(mi, img, tmp_path / "maps" / "sky.hdr")
+    spec = _spec(tmp_path, {"envmap": "maps/sky.hdr", "envmap_scale": 0.5, "envmap_rotation_deg": 20}, res=16)
+    scene = init_scene(spec, tmp_path / "scene", InitOptions(verify_spp=1))
+    copied = np.array(mi.Bitmap(str(scene / "textures" / "envmap.exr")), np.float32)
+    assert copied.shape == (H, W, 3)
+    assert np.allclose(copied, img, rtol=0.02, atol=1e-3)  # RGBE keeps about 1 % of each value
+    env = load_sequence(scene / "sequence.json").frames[0].environment
+    assert (env.envmap, env.envmap_scale, env.envmap_rotation_deg) == ("textures/envmap.exr", 0.5, 20.0)
+    meta = json.loads((scene / "metadata.json").read_text())
+    assert meta["envmap_sources"] == {"textures/envmap.exr": str((tmp_path / "maps" / "sky.hdr").resolve())}
+    for xml in (scene / "frames").glob("*.xml"):
+        assert 'value="../textures/envmap.exr"' in xml.read_text()
+        assert str(tmp_path / "maps") not in xml.read_text()
+
+
+def _nan_map(mi, path: Path) -> Path:
+    img = _smooth_map()
+    img[3, 4, 1] = np.nan
+    return _write(mi, img, path)
+
+
+def _negative_map(mi, path: Path) -> Path:
+    img = _smooth_map()
+    img[2, 2] = -0.5
+    return _write(mi, img, path)
+
+
+def _square_map(mi, path: Path) -> Path:
+    return _write(mi, np.ones((16, 16, 3), np.float32), path)
+
+
+def _not_an_image(mi, path: Path) -> Path:
+    path.write_text("this is not an OpenEXR file\n")
+    return path
+
+
+@pytest.mark.parametrize("make, words", [
+    (None, "environment map not found"),
+    (_not_an_image, "not a readable .exr/.hdr image"),
+    (_nan_map, "1 pixels hold NaN or infinite values"),
+    (_negative_map, "1 pixels hold negative radiance"),
+    (_square_map, "twice as wide as high, got 16×16"),
+])
+def test_bad_maps_are_one_line_and_write_nothing(tmp_path, mi, make, words):
+    from undream.scenedir.init import init_scene
+
+    path = tmp_path / "sky.exr"
+    if make is not None:
+        make(mi, path)
+    spec = _spec(tmp_path, {"envmap": "sky.exr"})
+    with pytest.raises(AssetError) as err:
+        init_scene(spec, tmp_path / "scene")
+    msg = str(err.value)
+    assert "\n" not in msg and words in msg and "environment.envmap" in msg and str(path) in msg, msg
+    assert not (tmp_path / "scene").exists()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".scene")]
+
+
+def test_cli_missing_map_is_one_line(tmp_path):
+    spec = _spec(tmp_path, [{"envmap": "sky.exr"}, {"weather": "clear"}], frames=2)
+    out = tmp_path / "scene"
+    res = subprocess.run([sys.executable, "-m", "undream.cli", "init", str(spec), "--out", str(out)],
+                         capture_output=True, text=True, cwd=ROOT, timeout=300)
+    lines = res.stderr.strip().splitlines()
+    assert res.returncode == 2 and len(lines) == 1, res.stderr
+    assert "environment[0].envmap" in lines[0] and str(tmp_path / "sky.exr") in lines[0]
+    assert not out.exists()
+
+
+# --- orientation and radiometry --------------------------------------------------------------------
+
+BRIGHT = np.array([1.0, 0.7, 0.0])  # towards +X, 35° above the horizon
+# (rotation about +Y in degrees, where the light then comes from): R_y(θ) turns +X towards −Z
+TURNS = ((0.0, BRIGHT), (180.0, BRIGHT * [-1, 1, 1]), (-90.0, np.array([0.0, 0.7, 1.0])))
+
+
+@pytest.fixture(scope="module")
+def spot_scene(tmp_path_factory, mi):
+    """Three frames of one sphere under the spot map, turned by each of :data:`TURNS`."""
+    from undream.scenedir.init import InitOptions, init_scene
+
+    tmp = tmp_path_factory.mktemp("spot")
+    _write(mi, _spot_map(BRIGHT), tmp / "spot.exr")
+    envs = [{"envmap": "spot.exr", "envmap_rotation_deg": t} for t, _ in TURNS]
+    return init_scene(_spec(tmp, envs, frames=len(TURNS)), tmp / "scene", InitOptions(verify_spp=4))
+
+
+def _lit_offset(img: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Where the sphere's light is, from its mask's centroid, in pixels (x right, y down)."""
+    lum = img.mean(axis=2) * mask
+    rows, cols = np.indices(mask.shape)
+    lit = np.array([(cols * lum).sum(), (rows * lum).sum()]) / lum.sum() + 0.5
+    return lit - centroid(mask)
+
+
+def _expected_offset(scene: Path, index: int, direction: np.ndarray) -> np.ndarray:
+    """The image direction in which ``direction`` points from the sphere's centre (independent projection)."""
+    from projection import load
+    from undream.scene.mesh import read_ply
+
+    seq = load(scene)
+    cam = seq["frames"][index]["camera"]
+    centre = read_ply(scene / "meshes" / "object.ply").vertices.mean(axis=0)
+    a, b = project(np.array([centre, centre + 0.5 * direction / np.linalg.norm(direction)]), cam)[0]
+    return b - a
+
+
+def _cos(a: np.ndarray, b: np.ndarray) -> float:
+    return float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)))
+
+
+def _check_orientation(scene: Path, frames: list[np.ndarray], who: str) -> None:
+    from undream.scenedir.verify import read_mask
+
+    means = []
+    for i, (turn, direction) in enumerate(TURNS):
+        mask = read_mask(scene, i)
+        means.append(frames[i][mask].mean())
+        if turn == -90.0:
+            continue  # lit from the camera's side: no sideways offset to test
+        got, expect = _lit_offset(frames[i], mask), _expected_offset(scene, i, direction)
+        print(f"{who}, turned {turn:+.0f}°: lit side {got.round(2)} px, expected towards {expect.round(2)}")
+        assert _cos(got, expect) > 0.8, f"{who}, turned {turn}°: lit side {got} px, light towards {expect}"
+    assert means[2] > 1.5 * max(means[:2]), f"{who}: lit from the front should be brightest, {means}"
+
+
+def test_mitsuba_lights_the_side_facing_the_bright_direction(spot_scene):
+    from undream.sim import make_backend
+
+    tex = np.full((8, 16, 3), 0.7, np.float32)
+    sim = make_backend("mitsuba", spot_scene)
+    _check_orientation(spot_scene, [sim.render(i, tex, 64, 1) for i in range(len(TURNS))], "Mitsuba")
+
+
+@pytest.fixture(scope="module")
+def cycles():
+    from undream.sim.blender import blender_python, check_blender
+
+    try:
+        check_blender()
+    except UndreamError as err:
+        service_missing(f"Blender's Python is not usable ({err}); {blender_python()}")
+    return blender_python()
+
+
+def test_cycles_lights_the_same_side(cycles, spot_scene):
+    from undream.sim import make_backend
+
+    tex = np.full((8, 16, 3), 0.7, np.float32)
+    sim = make_backend("blender", spot_scene, threads=2)
+    try:
+        frames = [sim.render(i, tex, 64, 1) for i in range(len(TURNS))]
+    finally:
+        sim.close()
+    _check_orientation(spot_scene, frames, "Cycles")
+
+
+def test_cycles_mean_radiance_matches_mitsuba(cycles, tmp_path, mi):
+    """A smooth map, scaled and turned: the frame's mean linear radiance Cycles / Mitsuba within 5 %,
+    and the sky's own pixels (where the camera sees the map) within 5 % too."""
+    from undream.scenedir.init import InitOptions, init_scene
+    from undream.sim import make_backend
+
+    _write(mi, _smooth_map(), tmp_path / "sky.exr")
+    scene = init_scene(_spec(tmp_path, {"envmap": "sky.exr", "envmap_scale": 1.7, "envmap_rotation_deg": 30}),
+                       tmp_path / "scene", InitOptions(verify_spp=1))
+    tex = np.full((8, 16, 3), 0.6, np.float32)
+    a = make_backend("mitsuba", scene).render(0, tex, 256, 2)
+    sim = make_backend("blender", scene, threads=2)
+    try:
+        b = sim.render(0, tex, 256, 2)
+    finally:
+        sim.close()
+    ratio = b.mean() / a.mean()
+    top = b[:6].mean() / a[:6].mean()  # the upper rows: sky seen directly
+    print(f"Cycles / Mitsuba mean radiance {ratio:.3f}; sky rows {top:.3f}")
+    assert abs(ratio - 1) < 0.05 and abs(top - 1) < 0.05
