@@ -271,3 +271,27 @@ def test_cycles_mean_radiance_matches_mitsuba(cycles, tmp_path, mi):
     top = b[:6].mean() / a[:6].mean()  # the upper rows: sky seen directly
     print(f"Cycles / Mitsuba mean radiance {ratio:.3f}; sky rows {top:.3f}")
     assert abs(ratio - 1) < 0.05 and abs(top - 1) < 0.05
+
+
+def test_eot_light_scale_scales_the_envmap_and_turns_are_per_frame(spot_scene, mi):
+    """EOT's light factor scales an envmap (``sky.scale``) in the gradient scene; frames that differ only
+    in the map's turn share one loaded scene, and each shows its own turn."""
+    from undream.render.differentiable import render_linear
+    from undream.render.jitter import Conditions
+    from undream.render.scene_cache import SceneCache
+
+    tex = np.full((8, 16, 3), 0.5, np.float32)
+    scenes = SceneCache(spot_scene, mi, frozen=False)
+    fresh = SceneCache(spot_scene, mi, frozen=False, share=False)
+    try:
+        plain = render_linear(scenes, 0, tex, spp=4, seed=11, kind="grad")
+        brighter = render_linear(scenes, 0, tex, spp=4, seed=11, kind="grad",
+                                 conditions=Conditions(np.zeros(3), np.eye(3), np.eye(3), 1.25))
+        np.testing.assert_allclose(brighter, 1.25 * plain, rtol=1e-4, atol=1e-6)
+        for i in (1, 2, 0):
+            np.testing.assert_allclose(render_linear(scenes, i, tex, spp=4, seed=11),
+                                       render_linear(fresh, i, tex, spp=4, seed=11), rtol=1e-5, atol=1e-6)
+        assert scenes.group_count("sim") == 1
+    finally:
+        scenes.close()
+        fresh.close()

@@ -12,7 +12,7 @@ scenes (simulation and gradient alike), for that one render.
 
 Units: camera shift in metres (world axes, Y up), turns in degrees (about a
 random axis; the camera's in its own frame, the sun's in the world), light
-scale a factor on the sun's irradiance and the sky's radiance.
+scale a factor on the sun's irradiance and the sky's radiance (an envmap's scale).
 """
 from __future__ import annotations
 
@@ -24,7 +24,7 @@ from scipy.spatial.transform import Rotation
 
 EOT_STREAM = 0xE07  # keeps EOT's random numbers apart from every other stream of (seed, iteration, frame)
 CAMERA_KEY, SUN_KEY = "sensor.to_world", "sun.to_world"
-LIGHT_KEYS = ("sun.irradiance.value", "sky.radiance.value", "lamp.intensity.value")
+LIGHT_KEYS = ("sun.irradiance.value", "sky.radiance.value", "sky.scale", "lamp.intensity.value")  # sky.scale: an envmap
 
 
 @dataclass(frozen=True)
