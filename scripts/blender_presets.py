@@ -1,10 +1,13 @@
-"""One sequence under every weather preset in both simulators: a contact sheet and the bundled
-victims' benign accuracy per preset and simulator.
+"""One sequence under every weather preset, the city background and an HDR environment map in
+both simulators: a contact sheet and the bundled victims' benign accuracy per row and simulator.
 
     .venv/bin/python scripts/blender_presets.py --spec examples/bin_orbit.yaml --out /tmp/presets \\
         --sheet docs/presets.png --frames 0 6 12 18 --spp 64
 
-Writes ``--sheet`` (rows: presets; columns: the chosen frames, Mitsuba on the
+Rows (:data:`ROWS`): the weather presets on the spec's own background, then
+``city`` (clear weather, ``background: city``) and ``envmap`` (a procedural
+sky map written to ``OUT/sky.exr`` by :func:`write_sky_map`, no download).
+``--rows`` picks some of them. Writes ``--sheet`` (rows; columns: the chosen frames, Mitsuba on the
 left and Cycles on the right, sRGB) and prints a Markdown table of benign
 accuracy (classifier: top-1 is the object's class; detector: the top
 detection has the right class and IoU ≥ 0.5 with the mask's box) over every
@@ -30,14 +33,39 @@ from undream.sim import make_backend
 from undream.spec import WEATHERS
 
 PRESETS = ("clear", "cloudy", "fog", "night", "rain", "snow")
+SKY_MAP = "sky.exr"  # in --out; the envmap row's map
+# Row name → the environment fields it sets on every frame (SKY_MAP stands for the map's path).
+ROWS: dict[str, dict[str, str]] = {**{w: {"weather": w} for w in PRESETS},
+                                   "city": {"weather": "clear", "background": "city"},
+                                   "envmap": {"weather": "clear", "envmap": SKY_MAP}}
 
 
-def scene_for(spec: Path, weather: str, out: Path) -> Path:
-    """The spec's sequence with every frame's weather set to ``weather``, initialised into ``out``."""
+def write_sky_map(path: Path, width: int = 256) -> Path:
+    """A procedural equirectangular sky (width × width/2, linear RGB): a blue gradient over a dim
+    ground, a warm sun 30° up towards +X and south-west (−Z) haze."""
+    from undream.variant import mitsuba
+
+    h = width // 2
+    v, u = np.meshgrid((np.arange(h) + 0.5) / h, (np.arange(width) + 0.5) / width, indexing="ij")
+    theta, phi = np.pi * v, 2 * np.pi * u  # Mitsuba: direction (sin θ sin φ, cos θ, −sin θ cos φ)
+    d = np.stack([np.sin(theta) * np.sin(phi), np.cos(theta), -np.sin(theta) * np.cos(phi)], axis=-1)
+    up = np.clip(d[..., 1], 0.0, 1.0)
+    sky = np.where(d[..., 1:2] > 0, np.array([0.55, 0.7, 0.95]) * (0.35 + 0.35 * up[..., None]),
+                   np.array([0.12, 0.11, 0.10]))
+    sun_dir = np.array([np.cos(np.radians(30)), np.sin(np.radians(30)), 0.0])
+    sun = np.exp(400 * (d @ sun_dir - 1))[..., None] * np.array([150.0, 130.0, 100.0])  # ≈ 2 W/m² on a face
+    haze = np.exp(6 * (d @ np.array([-0.6, 0.0, -0.8]) - 1))[..., None] * 0.3 * (d[..., 1:2] > -0.05)
+    mitsuba().Bitmap(np.ascontiguousarray(sky + sun + haze, np.float32)).write(str(path))
+    return path
+
+
+def scene_for(spec: Path, row: str, out: Path, sky_map: Path) -> Path:
+    """The spec's sequence with every frame's environment set as ``ROWS[row]`` says, initialised into ``out``."""
     seq = sequence_from_file(spec)
-    frames = tuple(dataclasses.replace(f, environment=dataclasses.replace(f.environment, weather=weather))
+    fields = {k: str(sky_map) if v == SKY_MAP else v for k, v in ROWS[row].items()}
+    frames = tuple(dataclasses.replace(f, environment=dataclasses.replace(f.environment, **fields))
                    for f in seq.frames)
-    seq = dataclasses.replace(seq, name=f"{seq.name}_{weather}", frames=frames)
+    seq = dataclasses.replace(seq, name=f"{seq.name}_{row}", frames=frames)
     if (out / "sequence.json").is_file():
         return out
     return init_scene(seq, out, InitOptions(verify_spp=16))
@@ -110,15 +138,18 @@ def main() -> None:
     ap.add_argument("--frames", type=int, nargs="+", default=[0, 6, 12, 18], help="frame positions on the sheet")
     ap.add_argument("--spp", type=int, default=64)
     ap.add_argument("--victims", nargs="*", default=["bundled:classifier", "bundled:detector"])
+    ap.add_argument("--rows", nargs="+", choices=list(ROWS), default=list(ROWS), help="rows of the sheet")
     args = ap.parse_args()
     from undream.victims import load_victim
 
     assert set(PRESETS) <= set(WEATHERS)
     victims = [load_victim(v, device="cpu") for v in args.victims]
+    args.out.mkdir(parents=True, exist_ok=True)
+    sky_map = write_sky_map(args.out / SKY_MAP) if "envmap" in args.rows else args.out / SKY_MAP
     rows: dict[str, dict[str, list[np.ndarray]]] = {}
     table = []
-    for preset in PRESETS:
-        scene = scene_for(args.spec, preset, args.out / preset)
+    for preset in args.rows:
+        scene = scene_for(args.spec, preset, args.out / preset, sky_map)
         rows[preset] = {}
         row = {"preset": preset}
         for backend in ("mitsuba", "blender"):
