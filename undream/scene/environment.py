@@ -15,8 +15,8 @@ backend translates the same Mitsuba dictionaries):
   ground. Falling drops and flakes are not modelled (in either simulator).
 
 A user's environment map (``Environment.envmap``) replaces the sky and the
-sun with one ``envmap`` emitter (Mitsuba's frame: +Y up, the map's centre
-column along −Z, u = 1/4 along +X), ``envmap_scale`` times its radiance,
+sun with one ``envmap`` emitter (Mitsuba's frame: +Y up; the map's left edge
+looks along −Z, a quarter in along +X, the centre along +Z), ``envmap_scale`` times its radiance,
 turned by ``envmap_rotation_deg`` about +Y; the weather keeps its medium,
 its ground and its night lamp.
 """

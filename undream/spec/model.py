@@ -207,8 +207,8 @@ class Environment:
     haze: :mod:`undream.scene.environment`).
 
     ``envmap``: the path of an equirectangular HDR map (``.exr`` or ``.hdr``,
-    width = 2 × height, linear radiance; row 0 is straight up, the centre
-    column looks along −Z, a quarter of the width in looks along +X) that
+    width = 2 × height, linear radiance; row 0 is straight up; the left edge
+    looks along −Z, a quarter of the width in along +X, the centre along +Z) that
     replaces the procedural sky *and* the sun (the map carries its light);
     the weather keeps its medium, its ground and, at night, its lamp.
     ``envmap_scale`` multiplies the map's radiance; ``envmap_rotation_deg``
