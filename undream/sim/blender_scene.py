@@ -413,6 +413,11 @@ class CyclesScene:
             img.colorspace_settings.name = "Non-Color"  # linear radiance as stored, no transform
             self._env_images[path] = img
         self.env_texture.image = self._env_images[path]
+        # Cycles' automatic importance map is 1024 wide and rebuilt every render (no persistent data):
+        # 2.3 s against 0.5 s per 64² frame of a 256-wide map; the map's own width samples it as well.
+        world = self.scene.world.cycles
+        world.sampling_method = "MANUAL"
+        world.sample_map_resolution = int(min(max(self.env_texture.image.size[0], 32), 1024))
         m = _mat(sky)[:3, :3]
         theta = math.atan2(m[0, 2], m[0, 0])  # the envmap's turn about +Y (envmap_rotation)
         self.env_mapping.inputs["Rotation"].default_value = (0.0, 0.0, math.pi / 2 - theta)
