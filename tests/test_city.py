@@ -106,6 +106,9 @@ def test_city_props_keep_clear_of_object_actors_cameras_and_sight_lines(name):
     assert len(out) >= 30, f"{name}: only {len(out)} city props survive"
     boxes = [_box_of(p) for p in out]
     actors = {a.name: a for a in seq.actors}
+    cams = [np.array(f.camera.to_world.translation) for f in seq.frames]
+    for c0, c1 in zip(cams, cams[1:]):  # the camera's path between frames, too
+        assert not any(_segment_hits(c0, c1, box) for box in boxes), f"{name}: a prop stands on the camera's path"
     for f in seq.frames:
         obj = _mesh_box(seq.asset, ROOT / "examples", f.index, f.object_to_world)
         cam = np.array(f.camera.to_world.translation)

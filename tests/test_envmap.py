@@ -84,6 +84,18 @@ def test_environment_fields_round_trip_and_bad_values():
         Environment(envmap="sky.exr", envmap_rotation_deg=float("nan"))
 
 
+def test_an_envmap_replaces_sky_and_sun_and_keeps_the_night_lamp():
+    from undream.scene.environment import emitters
+
+    day = emitters(Environment(envmap="/maps/sky.exr", envmap_scale=2.0, envmap_rotation_deg=90), np.zeros(3))
+    assert set(day) == {"sky"} and day["sky"]["type"] == "envmap" and day["sky"]["scale"] == 2.0
+    turn = np.array(day["sky"]["to_world"].m, float).reshape(4, 4)
+    np.testing.assert_allclose(turn[:3, :3] @ [1, 0, 0], [0, 0, -1], atol=1e-12)  # +X turns towards −Z
+    night = emitters(Environment("night", envmap="/maps/sky.exr"), np.zeros(3))
+    assert set(night) == {"sky", "lamp"} and night["sky"]["type"] == "envmap"
+    assert set(emitters(Environment(), np.zeros(3))) == {"sky", "sun"}
+
+
 # --- undream init --------------------------------------------------------------------------------
 
 def test_init_copies_the_map_and_records_its_source(tmp_path, mi):
