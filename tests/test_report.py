@@ -205,3 +205,13 @@ def test_a_store_target_on_the_default_sqlite_database(tmp_path):
                              env={"UNDREAM_DATABASE_URL": ""})
     assert res.exit_code == 2, res.output
     assert "the SQLite store in" in res.stderr and not (tmp_path / "rep").exists()
+
+
+def test_a_finished_sweep_read_with_another_blob_folder_says_where_it_looked(farm, tmp_path):
+    """The farm's database with the wrong --blobs used to say only 'no final texture in the store'."""
+    database = farm["db"][1]
+    elsewhere = tmp_path / "other_blobs"
+    res = _cli("tiny", "--out", str(tmp_path / "rep"), "--database", database, "--blobs", str(elsewhere))
+    assert res.exit_code == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert f"no final texture under {elsewhere}" in res.stderr and "UNDREAM_BLOB_URL / --blobs" in res.stderr
+    _nothing_written(tmp_path, tmp_path / "rep")

@@ -128,7 +128,10 @@ def textures_of(store: "Store", run: "RunSnapshot") -> tuple[np.ndarray, np.ndar
     """(benign T0, evaluated final texture), both 8-bit quantised sRGB in [0, 1]."""
     final = store.final_texture(run.id)
     if final is None:
-        raise StoreError(f"run {run.id} ({run.name}): no final texture in the store")
+        where = getattr(store.blobs, "root", "the blob store")
+        hint = (" (its blobs are where the farm's UNDREAM_BLOB_URL / --blobs pointed: is that this folder?)"
+                if run.status == "done" else f" (status {run.status})")
+        raise StoreError(f"run {run.id} ({run.name}): no final texture under {where}{hint}")
     state0 = store.attack_state(run.id, 0) or {}
     start = state0.get("T0")
     if not isinstance(start, np.ndarray):
