@@ -23,6 +23,19 @@ def service_missing(reason: str) -> None:
 
 
 @pytest.fixture(scope="session")
+def cycles():
+    """Blender's Python (for ``sim: blender`` tests): skip, or fail in CI, unless it can import bpy."""
+    from undream.errors import UndreamError
+    from undream.sim.blender import blender_python, check_blender
+
+    try:
+        check_blender()
+    except UndreamError as err:
+        service_missing(f"Blender's Python is not usable ({err}); {blender_python()}")
+    return blender_python()
+
+
+@pytest.fixture(scope="session")
 def mi():
     from undream.variant import mitsuba
     return mitsuba()

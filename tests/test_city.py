@@ -13,9 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import service_missing
 from projection import centroid, load, visible_mask
-from undream.errors import SpecError, UndreamError
+from undream.errors import SpecError
 from undream.scene.background import Prop, props
 from undream.spec import BACKGROUNDS, Environment, Sequence
 
@@ -161,16 +160,6 @@ def test_mitsuba_renders_the_city_and_the_object_where_the_projection_puts_it(ci
         err = float(np.linalg.norm(centroid(mask) - centroid(expect)))
         assert err <= 1.5, f"frame {f['index']}: Mitsuba's mask centroid off by {err:.2f} px"
 
-
-@pytest.fixture(scope="module")
-def cycles():
-    from undream.sim.blender import blender_python, check_blender
-
-    try:
-        check_blender()
-    except UndreamError as err:
-        service_missing(f"Blender's Python is not usable ({err}); {blender_python()}")
-    return blender_python()
 
 
 def test_cycles_renders_the_city_and_agrees_with_mitsuba(cycles, city_scene):

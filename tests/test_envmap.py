@@ -17,9 +17,8 @@ import numpy as np
 import pytest
 import yaml
 
-from conftest import service_missing
 from projection import centroid, project
-from undream.errors import AssetError, SpecError, UndreamError
+from undream.errors import AssetError, SpecError
 from undream.spec import Environment
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -239,16 +238,6 @@ def test_mitsuba_lights_the_side_facing_the_bright_direction(spot_scene):
     sim = make_backend("mitsuba", spot_scene)
     _check_orientation(spot_scene, [sim.render(i, tex, 64, 1) for i in range(len(TURNS))], "Mitsuba")
 
-
-@pytest.fixture(scope="module")
-def cycles():
-    from undream.sim.blender import blender_python, check_blender
-
-    try:
-        check_blender()
-    except UndreamError as err:
-        service_missing(f"Blender's Python is not usable ({err}); {blender_python()}")
-    return blender_python()
 
 
 def test_cycles_lights_the_same_side(cycles, spot_scene):

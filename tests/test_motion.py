@@ -13,9 +13,8 @@ import pytest
 import yaml
 from click.testing import CliRunner
 
-from conftest import service_missing
 from projection import load, visible_mask
-from undream.errors import AssetError, SpecError, UndreamError
+from undream.errors import AssetError, SpecError
 from undream.scene.builtin import builtin_mesh, pedestrian
 from undream.scene.mesh import Mesh, read_ply, write_ply
 from undream.scenedir.init import InitOptions, init_scene
@@ -24,16 +23,6 @@ from undream.spec import Asset, load_sequence
 
 ROOT = Path(__file__).resolve().parents[1]
 CROSSING = ROOT / "examples" / "pedestrian_crossing.yaml"
-
-
-@pytest.fixture(scope="module")
-def cycles():
-    from undream.sim.blender import check_blender
-
-    try:
-        check_blender()
-    except UndreamError as err:
-        service_missing(f"Blender's Python is not usable ({err})")
 
 
 # --- the pedestrian ---------------------------------------------------------------------------------

@@ -19,10 +19,9 @@ import pytest
 import yaml
 from scipy.ndimage import binary_dilation
 
-from conftest import service_missing
 from farm_support import make_victim
 from projection import centroid, load, visible_mask
-from undream.errors import RenderError, SpecError, UndreamError
+from undream.errors import RenderError, SpecError
 from undream.scenedir.verify import read_mask
 from undream.sim import make_backend
 from undream.sim.blender_protocol import ProtocolError, read_message, write_message
@@ -31,17 +30,6 @@ from undream.spec.run import RunConfig
 ROOT = Path(__file__).resolve().parents[1]
 MIN_PIXELS = 12  # as tests/test_init.py: fewer pixels say little about a centroid
 
-
-@pytest.fixture(scope="session")
-def cycles():
-    """Skip (or fail in CI) unless Blender's Python can import bpy."""
-    from undream.sim.blender import blender_python, check_blender
-
-    try:
-        check_blender()
-    except UndreamError as err:
-        service_missing(f"Blender's Python is not usable ({err}); {blender_python()}")
-    return blender_python()
 
 
 # --- no Blender needed ---------------------------------------------------------------------------
