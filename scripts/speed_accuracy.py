@@ -18,10 +18,11 @@ grad_spp 8, the lean gradient scene with direct light only (prb ``max_depth``
 
 For every setting it measures, in this one process:
 
-- **time per iteration**: the mean of ``--timing-rounds`` iterations (simulator
-  frames, victim, texture gradient; transports captured once per 5 iterations,
-  as in a run), the settings taking turns round by round so that other work on
-  the machine slows them alike; the CSV also keeps each run's own figure
+- **time per iteration**: the mean of ``--timing-iterations`` iterations
+  (simulator frames, victim, texture gradient; one transport capture per 5
+  iterations, as in a run) after 5 warm-up ones, each setting timed in a
+  process of its own, one after the other (run it on a quiet machine; the
+  load average is recorded); the CSV also keeps each run's own figure
   (``run_seconds_per_iteration``, from ``results.json``);
 - **gradient fidelity**: the cosine between the iteration's texture gradient
   (sum over the step's frames, at the starting texture, iterations 0–2) and a
@@ -85,7 +86,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--steps", type=int, default=30)
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     parser.add_argument("--only", nargs="+", help="setting names to run (default: all)")
-    parser.add_argument("--timing-rounds", type=int, default=10, help="interleaved timed iterations per setting")
+    parser.add_argument("--timing-iterations", type=int, default=10,
+                        help="timed iterations per setting (each setting in a process of its own)")
+    parser.add_argument("--time-one", metavar="SETTING", help=argparse.SUPPRESS)  # used by the timing
     parser.add_argument("--reuse", action="store_true", help="keep runs that finished earlier under OUT")
     parser.add_argument("--replot", action="store_true", help="only redraw the table and chart from OUT's CSV")
     args = parser.parse_args(argv)
@@ -105,22 +108,28 @@ def main(argv: list[str] | None = None) -> int:
     start = time.monotonic()
     base = yaml.safe_load((ROOT / "examples" / "runs" / "bin_orbit_pgd.yaml").read_text())
     base.update(attack={**base["attack"], "eps": args.eps, "steps": args.steps})
-    scenes = _scenes(args.out / "scenes", {s.scene for s in settings} | {"base", REFERENCE.scene})
+    scenes = _scenes(args.out / "scenes", {s.scene for s in settings} | {"base", REFERENCE.scene}
+                     if not args.time_one else {"base", next(s.scene for s in SETTINGS if s.name == args.time_one)})
     victim = load_victim(base["victim"])
+    if args.time_one:
+        _time_one(args, base, scenes, next(s for s in SETTINGS if s.name == args.time_one), victim)
+        return 0
     print(f"scenes ready ({time.monotonic() - start:.0f} s); load average {_load()}", flush=True)
     ref = _Setup(base, scenes, REFERENCE, victim)
     reference, second = ref.gradient(0), ref.gradient(1)
     ref.close()
     print(f"reference gradient ({time.monotonic() - start:.0f} s): two draws of it agree to cosine "
           f"{_cosine(second, reference):.3f} (its own noise)", flush=True)
-    setups = {s.name: _Setup(base, scenes, s, victim) for s in settings}
-    cosines = {name: [_cosine(setup.gradient(it), reference) for it in (0, 1, 2)] for name, setup in setups.items()}
-    print(f"gradient fidelity ({time.monotonic() - start:.0f} s)", flush=True)
-    timing, timing_load = _interleaved_times(setups, args.timing_rounds), _load()
-    print(f"interleaved timing, {args.timing_rounds} rounds ({time.monotonic() - start:.0f} s, load {timing_load})",
-          flush=True)
-    for setup in setups.values():
+    cosines = {}
+    for s in settings:
+        setup = _Setup(base, scenes, s, victim)
+        cosines[s.name] = [_cosine(setup.gradient(it), reference) for it in (0, 1, 2)]
         setup.close()
+    print(f"gradient fidelity ({time.monotonic() - start:.0f} s)", flush=True)
+    timing = {s.name: _time_in_own_process(args, s) for s in settings}
+    timing_load = _load()
+    print(f"timing, {args.timing_iterations} iterations a setting ({time.monotonic() - start:.0f} s, "
+          f"load {timing_load})", flush=True)
     judge = _Judge(base, scenes["base"], victim)
     rows = []
     for s in settings:
@@ -235,19 +244,28 @@ class _Setup:
         self.ctx.scenes.close()
 
 
-def _interleaved_times(setups: dict[str, _Setup], rounds: int) -> dict[str, float]:
-    """Mean seconds of an iteration per setting, the settings taking turns round by round (each
-    round starting one further along), so that other work on the machine slows them alike.
-    Iterations 3, 4, ... (after the fidelity's 0-2): one transport capture per 5, as in a run."""
-    names = list(setups)
-    spent = {n: 0.0 for n in names}
-    for r in range(rounds):
-        for j in range(len(names)):
-            name = names[(r + j) % len(names)]
-            t0 = time.perf_counter()
-            setups[name].gradient(3 + r)
-            spent[name] += time.perf_counter() - t0
-    return {n: spent[n] / rounds for n in names}
+def _time_in_own_process(args: argparse.Namespace, s: Setting) -> float:
+    """Mean seconds of an iteration of setting ``s``, timed in a process of its own (``--time-one``)."""
+    import subprocess
+
+    cmd = [sys.executable, __file__, "--out", str(args.out), "--eps", str(args.eps), "--steps", str(args.steps),
+           "--time-one", s.name, "--timing-iterations", str(args.timing_iterations)]
+    done = subprocess.run(cmd, capture_output=True, text=True, check=True)
+    return float(json.loads(done.stdout.strip().splitlines()[-1])["seconds_per_iteration"])
+
+
+def _time_one(args: argparse.Namespace, base: dict, scenes: dict[str, Path], s: Setting, victim) -> None:
+    """Print the mean seconds of iterations 5 .. 5 + n - 1 of setting ``s`` (after 0-4 warm the
+    scenes, the kernels and the first transports; one capture per 5 iterations, as in a run)."""
+    setup = _Setup(base, scenes, s, victim)
+    for it in range(5):
+        setup.gradient(it)
+    t0 = time.perf_counter()
+    for it in range(5, 5 + args.timing_iterations):
+        setup.gradient(it)
+    print(json.dumps({"setting": s.name, "seconds_per_iteration": (time.perf_counter() - t0)
+                      / args.timing_iterations}))
+    setup.close()
 
 
 def _cosine(a: np.ndarray, b: np.ndarray) -> float:
@@ -301,7 +319,7 @@ def _summary(rows: list[dict]) -> list[dict]:
         for key in ("held_out_accuracy", "held_out_true_prob", "attacked_accuracy"):
             vals = [float(r[key]) for r in rs]
             agg[key], agg[key + "_std"] = float(np.mean(vals)), float(np.std(vals))
-        agg["seconds_per_iteration"] = float(rs[0]["seconds_per_iteration"])  # the interleaved timing
+        agg["seconds_per_iteration"] = float(rs[0]["seconds_per_iteration"])  # one timing per setting
         out.append(agg)
     return out
 
@@ -319,7 +337,7 @@ def _write(args: argparse.Namespace, rows: list[dict]) -> None:
         writer.writerows(rows)
     summary = _summary(rows)
     print(f"\nPGD ε={args.eps:g}, {args.steps} steps, seeds {args.seeds}; mean ± std over seeds")
-    print("| setting | s/iteration (interleaved) | gradient cosine | held-out accuracy | held-out p(true) | attacked accuracy |")
+    print("| setting | s/iteration | gradient cosine | held-out accuracy | held-out p(true) | attacked accuracy |")
     print("|---|---|---|---|---|---|")
     for a in summary:
         print(f"| {a['knob']}: {a['value']} | {a['seconds_per_iteration']:.3f} | {a['cosine_mean']:.3f} ± "
