@@ -222,3 +222,16 @@ def test_bundled_detector_offline(offline, held_out):
     q = DETR_ARCH["num_queries"]
     assert out.logits.shape == (2, q, len(CLASSES) + 1) and out.activation == "softmax"
     assert out.boxes.shape == (2, q, 4)
+
+
+def test_classes_are_the_bundled_victims_and_built_in_assets():
+    """A new built-in asset (the pedestrian) once became a class and broke the bundled victims' labels."""
+    import json
+
+    from undream.scene.builtin import BUILTINS
+    from undream.victims.registry import bundled_path
+
+    assert set(CLASSES) <= set(BUILTINS)
+    for name in ("classifier", "detector"):
+        config = json.loads((bundled_path(name) / "config.json").read_text())
+        assert [config["id2label"][str(i)] for i in range(len(config["id2label"]))] == list(CLASSES)

@@ -43,7 +43,7 @@ import numpy as np
 from undream.color import linear_to_srgb, srgb_to_linear, to_uint8
 from undream.errors import UndreamError
 from undream.progress import progress as progress_bar
-from undream.scene.builtin import BUILTINS, builtin_mesh
+from undream.scene.builtin import builtin_mesh
 from undream.scene.mesh import write_ply
 from undream.scene.mitsuba_scene import OBJECT_ID, ScenePaths, scene_dict
 from undream.scene.poses import look_at, object_pose, yaw_rotation
@@ -52,7 +52,9 @@ from undream.scenedir.verify import mask_box
 from undream.spec import Asset, Camera, Environment, Frame, Sequence, TextureParam, Transform
 from undream.versions import versions
 
-CLASSES: tuple[str, ...] = tuple(sorted(BUILTINS))
+# The bundled victims' classes: the built-in assets they were trained on (fixed, so that a new
+# built-in asset, such as the pedestrian actor, changes neither the data set nor the victims).
+CLASSES: tuple[str, ...] = ("car", "sphere", "stop_sign", "traffic_cone", "trash_bin", "umbrella")
 SPLITS = ("train", "test")
 DATASET_VERSION = 1
 LABELS_FILE = "labels.jsonl"
