@@ -42,7 +42,9 @@ class Sweep:
     spec: dict[str, Any]  # as written, for the store
 
 
-def _set(data: dict[str, Any], dotted: str, value: Any, where: str) -> None:
+def set_dotted(data: dict[str, Any], dotted: str, value: Any, where: str) -> None:
+    """Set ``data[a][b]... = value`` for ``dotted`` = "a.b...", copying the mappings on the way
+    (the caller's nested mappings are not changed); ``where`` names the field in errors."""
     *parents, leaf = dotted.split(".")
     node = data
     for i, part in enumerate(parents):
@@ -85,7 +87,7 @@ def load_sweep(path: str | Path) -> Sweep:
         values = dict(zip(map(str, grid), combo))
         config = copy.deepcopy(base)
         for key, value in values.items():
-            _set(config, key, value, f"{path}: grid.{key}")
+            set_dotted(config, key, value, f"{path}: grid.{key}")
         config["name"] = f"{name}-{i:03d}"
         try:
             runs.append(SweepRun(RunConfig.from_json(config), base_dir, values))

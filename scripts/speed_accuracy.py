@@ -207,14 +207,12 @@ def _rewrite_gradient_scene(scene_dir: Path, full: bool, depth: int) -> None:
 # -- gradients, runs, judging ---------------------------------------------------------------------
 
 def _config(base: dict, scenes: dict[str, Path], s: Setting, seed: int, name: str):
+    from scheduler.sweep import set_dotted
     from undream.spec.run import RunConfig
 
-    d = {**base, "attack": dict(base["attack"]), "seed": seed, "name": name, "scene": str(scenes[s.scene])}
+    d = {**base, "seed": seed, "name": name, "scene": str(scenes[s.scene])}
     for key, value in s.run.items():
-        if key.startswith("attack."):
-            d["attack"][key.split(".", 1)[1]] = value
-        else:
-            d[key] = value
+        set_dotted(d, key, value, f"setting {s.name}")
     return RunConfig.from_json(d)
 
 

@@ -143,6 +143,7 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     sys.path.insert(0, str(ROOT))
     from scheduler.local import run_local
+    from scheduler.sweep import set_dotted
     from undream.errors import UndreamError
     from undream.scenedir.init import InitOptions, init_scene
     from undream.spec.run import RunConfig
@@ -170,13 +171,9 @@ def main(argv: list[str] | None = None) -> int:
         visible = _visible_pixels(scene)
         for seed in args.seeds:
             out = args.out / "runs" / f"{name}_s{seed}"
-            d = {**base_run, "attack": dict(base_run["attack"]), "seed": seed, "scene": str(scene),
-                 "name": f"{name}-s{seed}".replace("_", "-")}
+            d = {**base_run, "seed": seed, "scene": str(scene), "name": f"{name}-s{seed}".replace("_", "-")}
             for key, value in overrides.items():
-                if key.startswith("attack."):
-                    d["attack"][key.split(".", 1)[1]] = value
-                else:
-                    d[key] = value
+                set_dotted(d, key, value, f"case {name}")
             row = {"case": name, "seed": seed, "visible_px_mean": round(float(np.mean(visible)), 1),
                    "visible_px_min": int(np.min(visible)), "eps": d["attack"]["eps"], "loss": d["loss"]}
             try:

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
+from scheduler.sweep import set_dotted
 from undream.scene.trajectory import sequence_from_trajectory
 from undream.spec.run import RunConfig
 
@@ -64,10 +65,9 @@ def test_stability_cases_are_valid_specs_and_runs(case):
     if case == "tiny":
         assert np.linalg.norm(np.asarray(seq.frames[0].camera.to_world.translation)) > 25
     base = yaml.safe_load((ROOT / "examples" / "runs" / "bin_orbit_pgd.yaml").read_text())
-    d = {**base, "attack": dict(base["attack"]), "scene": "x"}
+    d = {**base, "scene": "x"}
     for key, value in overrides.items():
-        if key.startswith("attack."):
-            d["attack"][key.split(".", 1)[1]] = value
-        else:
-            d[key] = value
-    RunConfig.from_json(d)
+        set_dotted(d, key, value, case)
+    config = RunConfig.from_json(d)
+    assert config.attack["eps"] == overrides.get("attack.eps", base["attack"]["eps"])
+    assert base["attack"]["eps"] == 255, "the base config itself is left as it was"

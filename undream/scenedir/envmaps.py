@@ -19,6 +19,7 @@ import numpy as np
 
 from undream.errors import AssetError
 from undream.spec import Sequence
+from undream.spec.io import resolve_against
 
 ENVMAP_DIR = "textures"
 
@@ -50,7 +51,7 @@ def load_envmaps(seq: Sequence, base_dir: Path | None) -> tuple[Sequence, list[E
     for i, f in enumerate(seq.frames):
         env = f.environment
         if env.envmap is not None:
-            source = _resolve(env.envmap, base_dir)
+            source = resolve_against(env.envmap, base_dir)
             if source not in maps:
                 field = "environment.envmap" if one_env else f"environment[{i}].envmap"
                 maps[source] = Envmap(envmap_file(len(maps)), source, read_envmap(source, field))
@@ -60,11 +61,6 @@ def load_envmaps(seq: Sequence, base_dir: Path | None) -> tuple[Sequence, list[E
     if not maps:
         return seq, []
     return dataclasses.replace(seq, frames=tuple(frames)), list(maps.values())
-
-
-def _resolve(path: str, base_dir: Path | None) -> str:
-    p = Path(path)
-    return str((p if p.is_absolute() or base_dir is None else base_dir / p).resolve())
 
 
 def read_envmap(path: str | Path, field: str = "environment.envmap") -> np.ndarray:

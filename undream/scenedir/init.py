@@ -38,7 +38,7 @@ from undream.scene.mitsuba_scene import OBJECT_ID, ScenePaths, scene_dict
 from undream.scene.xml import to_xml
 from undream.scenedir.envmaps import Envmap, envmap_sources, load_envmaps, write_envmaps
 from undream.spec import Sequence, TextureParam, save_sequence
-from undream.spec.io import check_writable_target
+from undream.spec.io import check_writable_target, resolve_against
 
 Source = str | Path | Sequence | BlendSource  # a spec file, a sequence, or a .blend and its object
 
@@ -237,9 +237,8 @@ def _mesh_sources(seq: Sequence, base_dir: Path | None) -> dict[str, str]:
     """Where each mesh came from: ``builtin:NAME`` or the file's absolute path."""
     out = {}
     for key, asset in [(OBJECT_ID, seq.asset)] + [(a.name, a) for a in seq.actors]:
-        path = Path(asset.mesh)  # a per-frame mesh's pattern ({frame}), resolved
-        out[key] = asset.mesh if asset.builtin is not None else \
-            str((path if path.is_absolute() or base_dir is None else base_dir / path).resolve())
+        # a per-frame mesh: its pattern ({frame}), resolved
+        out[key] = asset.mesh if asset.builtin is not None else resolve_against(asset.mesh, base_dir)
     return out
 
 

@@ -62,6 +62,13 @@ def save_sequence(seq: Sequence, path: str | Path) -> None:
     Path(path).write_text(json.dumps(seq.to_json(), indent=1) + "\n")
 
 
+def resolve_against(path: str | Path, base_dir: Path | None) -> str:
+    """``path`` as an absolute path: a relative one against ``base_dir`` (the spec's folder; the
+    working directory when None)."""
+    p = Path(path)
+    return str((p if p.is_absolute() or base_dir is None else Path(base_dir) / p).resolve())
+
+
 def check_writable_target(out: str | Path, option: str = "--out") -> None:
     """Refuse an output folder that cannot be created or written, before anything is written.
 
