@@ -11,11 +11,11 @@ from pathlib import Path
 
 import click
 
-from undream.cli.errors import one_line_errors
+from undream.cli.errors import OneLineGroup, one_line_errors
 from undream.cli.options import check_option, force_option, out_option, progress_option, spp_option
 
 
-@click.group()
+@click.group(cls=OneLineGroup)
 @click.version_option(package_name="undream")
 def main() -> None:
     """undream: adversarial textures for 3D objects, judged in the simulator."""

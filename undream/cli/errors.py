@@ -22,3 +22,33 @@ def one_line_errors(fn: Callable[..., Any]) -> Callable[..., Any]:
             click.echo(f"undream: error: {' '.join(str(err).split())}", err=True)
             sys.exit(EXIT_BAD_INPUT)
     return wrapper
+
+
+class OneLineGroup(click.Group):
+    """The ``undream`` group: click's own errors (a bad option, a missing argument, a value out of
+    range) are one stderr line and exit 2 too, instead of click's usage block."""
+
+    def main(self, *args: Any, standalone_mode: bool = True, **kwargs: Any) -> Any:
+        if not standalone_mode:
+            return super().main(*args, standalone_mode=False, **kwargs)
+        try:
+            rv = super().main(*args, standalone_mode=False, **kwargs)
+        except click.exceptions.Abort:
+            click.echo("undream: aborted", err=True)
+            sys.exit(1)
+        except click.exceptions.NoArgsIsHelpError as err:  # `undream` alone: its help, as click shows it
+            click.echo(err.ctx.get_help(), err=True)
+            sys.exit(err.exit_code)
+        except click.ClickException as err:
+            click.echo(f"undream: error: {_usage_line(err)}", err=True)
+            sys.exit(err.exit_code)
+        sys.exit(rv if isinstance(rv, int) and not isinstance(rv, bool) else 0)
+
+
+def _usage_line(err: click.ClickException) -> str:
+    """``err``'s message on one line, with the command whose ``--help`` lists what is valid."""
+    message = " ".join(err.format_message().split())
+    ctx = getattr(err, "ctx", None)
+    if isinstance(err, click.UsageError) and ctx is not None:
+        return f"{ctx.command_path}: {message} (see {ctx.command_path} --help)"
+    return message
