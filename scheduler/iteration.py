@@ -89,7 +89,9 @@ def reduce_and_step(store: "Store", attack: "Attack", run_id: str, k: int) -> bo
 
     Refuses (:class:`MissingResults`) while an expected frame job has no
     result: a job that never ran or failed is never averaged away. Frames with
-    a NaN/Inf gradient or loss are dropped with a warning and counted; when
+    a NaN/Inf gradient or loss, or recorded not finite (a NaN in the victim's
+    image gradient, see :func:`undream.engine.job.render_and_grad`), are
+    dropped from both means with a warning and counted (``n_bad``); when
     none is left the run fails with :class:`AllFramesFailed`. Returns False
     when the run is no longer at iteration ``k`` or no longer active (the
     callback already ran, or the run was cancelled): calling it twice never
@@ -114,7 +116,7 @@ def reduce_and_step(store: "Store", attack: "Attack", run_id: str, k: int) -> bo
     grads = [torch.from_numpy(rows[f].grad) for f in expected]
     losses = [float("nan") if rows[f].loss is None else rows[f].loss for f in expected]
     try:
-        G, loss, kept = average_frames(grads, losses)
+        G, loss, kept = average_frames(grads, losses, [rows[f].finite for f in expected])
     except AttackError:
         msg = f"iteration {k}: all {len(expected)} frames gave a non-finite gradient or loss; run stopped"
         store.set_status(run_id, "failed", error=msg)

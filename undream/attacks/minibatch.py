@@ -33,16 +33,22 @@ def frame_batch(n_frames: int, batch_size: int | None, iteration: int, seed: int
     return sorted(int(i) for i in rng.choice(n_frames, size=batch_size, replace=False))
 
 
-def average_frames(grads: Sequence[torch.Tensor],
-                   losses: Sequence[Any]) -> tuple[torch.Tensor, float, list[int]]:
+def average_frames(grads: Sequence[torch.Tensor], losses: Sequence[Any],
+                   finite: Sequence[bool] | None = None) -> tuple[torch.Tensor, float, list[int]]:
     """Mean gradient and mean loss over the frames whose gradient and loss are
-    finite, and the positions of those frames. No finite frame: AttackError."""
-    if len(grads) != len(losses) or not grads:
-        raise AttackError(f"average_frames: need one loss per gradient and at least one frame, "
-                          f"got {len(grads)} gradients and {len(losses)} losses")
+    finite, and the positions of those frames. No finite frame: AttackError.
+
+    ``finite``: one flag per frame, False for a frame known to be bad although
+    its gradient looks finite (a NaN in the victim's image gradient that the
+    renderer's backward pass turned into a finite texture gradient); None: all True.
+    """
+    if len(grads) != len(losses) or not grads or (finite is not None and len(finite) != len(grads)):
+        raise AttackError(f"average_frames: need one loss (and finiteness flag) per gradient and at "
+                          f"least one frame, got {len(grads)} gradients and {len(losses)} losses")
     values = [float(v) for v in losses]
-    kept = [i for i, (g, v) in enumerate(zip(grads, values))
-            if math.isfinite(v) and bool(torch.isfinite(g).all())]
+    flags = [True] * len(grads) if finite is None else [bool(f) for f in finite]
+    kept = [i for i, (g, v, ok) in enumerate(zip(grads, values, flags))
+            if ok and math.isfinite(v) and bool(torch.isfinite(g).all())]
     if not kept:
         raise AttackError(f"average_frames: all {len(grads)} frames have a non-finite "
                           "gradient or loss")
