@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any, Callable
 import click
 
 from undream.cli.errors import one_line_errors
+from undream.cli.options import check_option
 
 if TYPE_CHECKING:
     from celery import Celery
@@ -104,9 +105,10 @@ def _cell(value: Any) -> str:
 @click.argument("run_yaml", type=click.Path(path_type=Path))
 @click.option("--out", "out", type=click.Path(path_type=Path), default=None,
               help="Output folder, reachable from the workers (default: <blobs>/outputs/<name>-<id>).")
+@check_option
 @settings_options
 @one_line_errors
-def submit_cmd(run_yaml: Path, out: Path | None, settings: Callable[..., "Settings"]) -> None:
+def submit_cmd(run_yaml: Path, out: Path | None, check: bool, settings: Callable[..., "Settings"]) -> None:
     """Validate RUN_YAML, then queue it on the farm; prints the run id."""
     from scheduler.submit import Validator, dispatch_starts, record
     from undream.errors import SpecError, StoreError, UndreamError
@@ -114,6 +116,14 @@ def submit_cmd(run_yaml: Path, out: Path | None, settings: Callable[..., "Settin
 
     cfg = settings()
     config = load_run_config(run_yaml)
+    if check:  # the run's own checks only: no broker, no database, nothing written
+        with tempfile.TemporaryDirectory(prefix="undream-submit-") as tmp:
+            try:
+                Validator(Path(tmp))(config, run_yaml.parent)
+            except UndreamError as err:
+                raise SpecError(f"{run_yaml}: {err}") from None
+        click.echo(f"ok: {run_yaml} is valid; nothing written or queued")
+        return
     app = _app(cfg)
     store = _store(cfg)
     with tempfile.TemporaryDirectory(prefix="undream-submit-") as tmp:
@@ -233,34 +243,48 @@ def resume_cmd(run: str, settings: Callable[..., "Settings"]) -> None:
 @click.argument("sweep_yaml", type=click.Path(path_type=Path))
 @click.option("--out", "out", type=click.Path(path_type=Path), default=None,
               help="Output folder; each run writes OUT/<run name> (default: under the blob folder).")
+@check_option
 @settings_options
 @one_line_errors
-def sweep_cmd(sweep_yaml: Path, out: Path | None, settings: Callable[..., "Settings"]) -> None:
+def sweep_cmd(sweep_yaml: Path, out: Path | None, check: bool, settings: Callable[..., "Settings"]) -> None:
     """Expand SWEEP_YAML's grid into runs, validate them all, then queue them; prints the sweep id."""
-    from scheduler.submit import Validator, dispatch_starts, record
+    from scheduler.submit import dispatch_starts, record
     from scheduler.sweep import load_sweep
-    from undream.errors import SpecError, StoreError, UndreamError
 
     cfg = settings()
     sweep = load_sweep(sweep_yaml)
+    if check:  # every run's own checks only: no broker, no database, nothing written
+        with tempfile.TemporaryDirectory(prefix="undream-sweep-") as tmp:
+            _validate_sweep(sweep, sweep_yaml, Path(tmp))
+        click.echo(f"ok: {sweep_yaml} is valid: {len(sweep.runs)} runs; nothing written or queued")
+        return
     app = _app(cfg)
     store = _store(cfg)
     with tempfile.TemporaryDirectory(prefix="undream-sweep-") as tmp:
-        validate = Validator(Path(tmp))
-        prepared = []
-        for i, run in enumerate(sweep.runs):
-            try:
-                prepared.append(validate(run.config, run.base_dir))
-            except StoreError:
-                raise
-            except UndreamError as err:
-                raise SpecError(f"{sweep_yaml}: run {i} ({run.config.name}): {err}") from None
+        prepared = _validate_sweep(sweep, sweep_yaml, Path(tmp))
         sweep_id = store.create_sweep(sweep.name, sweep.spec)
         run_ids = record(store, prepared, cfg, out, sweep_id=sweep_id, out_per_run=True)
     _send(f"sweep {sweep_id}", lambda: dispatch_starts(_dispatch(app), run_ids))
     click.echo(sweep_id)
     click.echo(_table([{"run": r, "name": p.config.name, **s.values}
                        for r, p, s in zip(run_ids, prepared, sweep.runs)]))
+
+
+def _validate_sweep(sweep: Any, sweep_yaml: Path, tmp: Path) -> list[Any]:
+    """Every run of ``sweep`` validated (:class:`scheduler.submit.Validator`, scenes prepared in ``tmp``);
+    the first error names the sweep file and the run."""
+    from scheduler.submit import Validator
+    from undream.errors import SpecError, StoreError, UndreamError
+
+    validate, prepared = Validator(tmp), []
+    for i, run in enumerate(sweep.runs):
+        try:
+            prepared.append(validate(run.config, run.base_dir))
+        except StoreError:
+            raise
+        except UndreamError as err:
+            raise SpecError(f"{sweep_yaml}: run {i} ({run.config.name}): {err}") from None
+    return prepared
 
 
 @click.command("results")
