@@ -109,31 +109,25 @@ def _cell(value: Any) -> str:
 @settings_options
 @one_line_errors
 def submit_cmd(run_yaml: Path, out: Path | None, check: bool, settings: Callable[..., "Settings"]) -> None:
-    """Validate RUN_YAML, then queue it on the farm; prints the run id."""
+    """Validate RUN_YAML, then queue it on the farm; prints the run id (--check: validate only)."""
     from scheduler.submit import Validator, dispatch_starts, record
     from undream.errors import SpecError, StoreError, UndreamError
     from undream.spec.run import load_run_config
 
     cfg = settings()
     config = load_run_config(run_yaml)
-    if check:  # the run's own checks only: no broker, no database, nothing written
-        with tempfile.TemporaryDirectory(prefix="undream-submit-") as tmp:
-            try:
-                Validator(Path(tmp))(config, run_yaml.parent)
-            except UndreamError as err:
-                raise SpecError(f"{run_yaml}: {err}") from None
-        click.echo(f"ok: {run_yaml} is valid; nothing written or queued")
-        return
-    app = _app(cfg)
-    store = _store(cfg)
     with tempfile.TemporaryDirectory(prefix="undream-submit-") as tmp:
-        try:
+        try:  # the run's own checks first: bad input is refused before the services are needed
             prepared = Validator(Path(tmp))(config, run_yaml.parent)
         except StoreError:
             raise
         except UndreamError as err:
             raise SpecError(f"{run_yaml}: {err}") from None
-        (run_id,) = record(store, [prepared], cfg, out)
+        if check:
+            click.echo(f"ok: {run_yaml} is valid; nothing written or queued")
+            return
+        app = _app(cfg)
+        (run_id,) = record(_store(cfg), [prepared], cfg, out)
     _send(f"run {run_id}", lambda: dispatch_starts(_dispatch(app), [run_id]))
     click.echo(run_id)
 
@@ -247,21 +241,20 @@ def resume_cmd(run: str, settings: Callable[..., "Settings"]) -> None:
 @settings_options
 @one_line_errors
 def sweep_cmd(sweep_yaml: Path, out: Path | None, check: bool, settings: Callable[..., "Settings"]) -> None:
-    """Expand SWEEP_YAML's grid into runs, validate them all, then queue them; prints the sweep id."""
+    """Expand SWEEP_YAML's grid into runs, validate them all, then queue them; prints the sweep id
+    (--check: validate only)."""
     from scheduler.submit import dispatch_starts, record
     from scheduler.sweep import load_sweep
 
     cfg = settings()
     sweep = load_sweep(sweep_yaml)
-    if check:  # every run's own checks only: no broker, no database, nothing written
-        with tempfile.TemporaryDirectory(prefix="undream-sweep-") as tmp:
-            _validate_sweep(sweep, sweep_yaml, Path(tmp))
-        click.echo(f"ok: {sweep_yaml} is valid: {len(sweep.runs)} runs; nothing written or queued")
-        return
-    app = _app(cfg)
-    store = _store(cfg)
     with tempfile.TemporaryDirectory(prefix="undream-sweep-") as tmp:
-        prepared = _validate_sweep(sweep, sweep_yaml, Path(tmp))
+        prepared = _validate_sweep(sweep, sweep_yaml, Path(tmp))  # before the services are needed
+        if check:
+            click.echo(f"ok: {sweep_yaml} is valid: {len(sweep.runs)} runs; nothing written or queued")
+            return
+        app = _app(cfg)
+        store = _store(cfg)
         sweep_id = store.create_sweep(sweep.name, sweep.spec)
         run_ids = record(store, prepared, cfg, out, sweep_id=sweep_id, out_per_run=True)
     _send(f"sweep {sweep_id}", lambda: dispatch_starts(_dispatch(app), run_ids))
