@@ -10,11 +10,14 @@
 """
 from __future__ import annotations
 
+import subprocess
+import time
+
 import numpy as np
 import pytest
 import torch
 
-from farm_support import make_scene, make_victim
+from farm_support import Farm, make_scene, make_victim, redis_up, run_config, write_yaml
 from undream.spec.run import RunConfig
 
 
@@ -84,3 +87,82 @@ def test_every_frame_nan_still_fails_the_run(tiny, tmp_path, monkeypatch):
     _nan_victim_gradient(monkeypatch, {0, 1, 2})
     with pytest.raises(AllFramesFailed, match="all 3 frames gave a non-finite gradient"):
         run_local(_config(tiny), tmp_path / "out", progress=False)
+
+
+# --- a worker that cannot write its blob folder -------------------------------------------------
+
+@pytest.fixture
+def read_only(tmp_path):
+    """A read-only tmpfs mounted in tmp_path: as root, chmod would not stop writes (needs root;
+    skipped with the reason otherwise)."""
+    mount = tmp_path / "ro"
+    mount.mkdir()
+    res = subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=1m", "tmpfs", str(mount)],
+                         capture_output=True, text=True)
+    if res.returncode != 0:
+        pytest.skip(f"cannot mount a read-only tmpfs here: {res.stderr.strip()}")
+    yield mount
+    subprocess.run(["umount", str(mount)], check=True)
+
+
+@pytest.fixture
+def farm(tmp_path):
+    from conftest import service_missing
+
+    reason = redis_up()
+    if reason:
+        service_missing(reason)
+    f = Farm(tmp_path, database_url=f"sqlite:///{tmp_path / 'farm.db'}", store_retries=1)
+    yield f
+    f.stop()
+
+
+def _one_line(res: subprocess.CompletedProcess, *needles: str) -> str:
+    assert res.returncode == 2, (res.returncode, res.stdout, res.stderr)
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1, res.stderr
+    for needle in needles:
+        assert needle in lines[0], (needle, lines[0])
+    return lines[0]
+
+
+def test_a_worker_refuses_to_start_on_a_read_only_blob_folder(farm, read_only):
+    farm.env["UNDREAM_BLOB_URL"] = str(read_only)
+    t0 = time.monotonic()
+    res = farm.cli("worker", timeout=60)
+    _one_line(res, f"blob folder {str(read_only)!r}", "cannot write", "Read-only file system")
+    assert time.monotonic() - t0 < 30
+    assert not list(read_only.iterdir())
+
+
+def test_a_worker_refuses_to_start_when_its_database_is_unreachable(farm):
+    farm.env["UNDREAM_DATABASE_URL"] = "postgresql://alice:s3cret@127.0.0.1:1/farm"
+    line = _one_line(farm.cli("worker", timeout=60), "cannot open the run database at",
+                     "postgresql://alice:***@127.0.0.1:1/farm")
+    assert "s3cret" not in line
+
+
+def test_a_run_whose_start_gives_up_is_failed_with_the_reason_in_status(farm, tiny):
+    run_yaml = write_yaml(farm.root / "run.yaml", run_config(tiny["scene"], tiny["victim"], name="lost"))
+    run_id = farm.submit(run_yaml)
+    (scene,) = (farm.blobs / "scenes").glob("*.tar")
+    scene.unlink()  # what the start task needs first: it can never succeed
+    farm.start_worker()
+    run = farm.wait_status(run_id, ("failed",), timeout=60)
+    assert run.error.startswith("start gave up after 1 retry: StoreError: blob 'scenes/"), run.error
+    assert "not found under" in run.error and "\n" not in run.error
+    table = farm.cli("status")
+    assert table.returncode == 0, table.stderr
+    (row,) = [line for line in table.stdout.splitlines() if line.startswith(run_id[:8])]
+    assert " failed " in row and "start gave up" in row
+    detail = farm.cli("status", run_id[:8])
+    assert f"error: {run.error}" in detail.stdout.splitlines()
+    from markupsafe import escape
+
+    from undream.dashboard import create_app
+
+    client = create_app(farm.settings()).test_client()
+    page = client.get(f"/runs/{run_id}").get_data(as_text=True)
+    assert escape(run.error) in page
+    assert "start gave up after 1 retry" in client.get("/").get_data(as_text=True)
+    assert client.get(f"/api/runs/{run_id}").get_json()["error"] == run.error

@@ -63,6 +63,7 @@ class Settings:
     farm_slots: int = 2  # worker processes the farm has in all (for the auto frames_per_task)
     max_attempts: int = 3  # attempts per frame job (retries included), then the job fails
     failure_budget: int = 2  # failed frame jobs a run survives (each re-queued), then it fails
+    store_retries: int = 10  # retries of a task whose database or blob folder failed, then its run fails
     visibility_timeout: int = 3600  # s; a job unacknowledged this long is delivered again
     restore_interval: int = 10  # s between sweeps that re-deliver jobs of lost workers
     scene_cache: int = 2  # scene directories whose Mitsuba scenes a worker process keeps loaded
@@ -85,7 +86,8 @@ class Settings:
         if not self.cache_dir:
             object.__setattr__(self, "cache_dir", str(_cache_home() / "undream"))
         for name, least in (("concurrency", 1), ("torch_threads", 1), ("farm_slots", 1),
-                            ("max_attempts", 1), ("failure_budget", 0), ("visibility_timeout", 1),
+                            ("max_attempts", 1), ("failure_budget", 0), ("store_retries", 0),
+                            ("visibility_timeout", 1),
                             ("restore_interval", 1), ("scene_cache", 1)):
             _check_int(name, getattr(self, name), least)
         for name in ("drjit_threads", "frames_per_task"):
@@ -118,7 +120,8 @@ def _check_int(name: str, value: Any, least: int) -> None:
 
 _FIELDS = {f.name: f for f in fields(Settings)}
 _INTS = {"concurrency", "drjit_threads", "torch_threads", "frames_per_task", "farm_slots",
-         "max_attempts", "failure_budget", "visibility_timeout", "restore_interval", "scene_cache"}
+         "max_attempts", "failure_budget", "store_retries", "visibility_timeout", "restore_interval",
+         "scene_cache"}
 
 
 def _coerce(source: str, name: str, value: Any) -> Any:

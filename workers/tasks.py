@@ -5,9 +5,10 @@ batch of frame positions) and ``undream.collect`` (run_id, phase, k: the
 chord's callback). Arrays never travel: jobs read and write the blob store.
 A batch whose jobs failed with attempts left is retried by Celery (the
 attempts are counted in the store, which caps them); a store that cannot be
-reached is retried with back-off; any other error of a stage fails the run
-with that error, so a run never stays running for ever (``undream resume``
-starts it again).
+reached is retried with back-off (``store_retries`` times); any other error
+of a stage fails the run with that error, and so does a task that gives up
+(its retries used up, or an error outside a stage), so a run never stays
+queued or running for ever (``undream resume`` starts it again).
 """
 from __future__ import annotations
 
@@ -40,14 +41,52 @@ def _guard(app: "Celery", run_id: str, fn: Callable[[], Any]) -> Any:
         return "failed"
 
 
+def _what(task_name: str, args: tuple, kwargs: dict) -> str:
+    """The stage a task ran, in words (``start``, ``attack k=3 frames 0, 1``, ``pre k=5 callback``)."""
+    names = {"undream.start": ("run_id",), "undream.frames": ("run_id", "phase", "k", "frames"),
+             "undream.collect": ("run_id", "phase", "k")}.get(task_name, ("run_id",))
+    call = {**dict(zip(names, args)), **kwargs}
+    if task_name == "undream.frames":
+        return f"{call.get('phase')} k={call.get('k')} frames {', '.join(map(str, call.get('frames') or []))}"
+    if task_name == "undream.collect":
+        return f"{call.get('phase')} k={call.get('k')} callback"
+    return "start"
+
+
+def give_up(app: "Celery", task: "Task", exc: BaseException, args: tuple, kwargs: dict) -> None:
+    """A task failed for good (its store retries used up, or an error no stage caught): its run
+    fails with why, in one line, so it never stays queued or running for ever."""
+    from workers.runtime import runtime
+
+    run_id = args[0] if args else kwargs.get("run_id")
+    retries = task.request.retries
+    how = f"gave up after {retries} {'retry' if retries == 1 else 'retries'}" if retries else "failed"
+    error = f"{_what(task.name, args, kwargs)} {how}: {type(exc).__name__}: {' '.join(str(exc).split())}"
+    log.error("run %s failed: %s", run_id, error)
+    try:
+        runtime(app).store.transition(run_id, ("queued", "running", "evaluating"), "failed", error=error)
+    except Exception as err:  # the database itself is away: the log line is all there can be
+        log.error("run %s: cannot record its failure: %s", run_id, " ".join(str(err).split()))
+
+
 def register_tasks(app: "Celery") -> None:
     """Declare the tasks on ``app`` (called by :func:`workers.app.create_celery_app`)."""
+    from celery import Task
+
     from scheduler import stages
     from workers.runtime import runtime
 
-    common: dict[str, Any] = {"bind": True, "shared": False, "acks_late": True, "reject_on_worker_lost": True,
-                              "autoretry_for": (StoreError,), "retry_backoff": 1,
-                              "retry_backoff_max": 30, "max_retries": 10}
+    class RunTask(Task):
+        """A task of one run (its first argument): when it fails for good, so does the run."""
+
+        def on_failure(self, exc: BaseException, task_id: str, args: tuple, kwargs: dict,
+                       einfo: Any) -> None:
+            give_up(app, self, exc, tuple(args), dict(kwargs))
+
+    retries = app.undream_settings.store_retries  # type: ignore[attr-defined]
+    common: dict[str, Any] = {"base": RunTask, "bind": True, "shared": False, "acks_late": True,
+                              "reject_on_worker_lost": True, "autoretry_for": (StoreError,),
+                              "retry_backoff": 1, "retry_backoff_max": 30, "max_retries": retries}
 
     @app.task(name="undream.start", **common)
     def start(self: "Task", run_id: str) -> dict[str, Any]:

@@ -148,7 +148,8 @@ def worker_cmd(concurrency: int | None, threads: int | None, loglevel: str,
 
     cfg = settings(concurrency=concurrency, drjit_threads=threads)
     _app(cfg)
-    _store(cfg).close()  # reachable; each worker process opens its own connections
+    with _store(cfg) as store:  # reachable; each worker process opens its own connections
+        store.blobs.check_writable()  # else its runs' start would retry, give up and stay queued
     run_worker(cfg, loglevel)
 
 

@@ -190,6 +190,24 @@ class BlobStore:
         self.bytes_read += path.stat().st_size
         return path
 
+    def check_writable(self) -> None:
+        """Create and delete a probe file in the root; StoreError naming the folder and why when it
+        cannot (a read-only mount, no permission, a full disk): a worker writes every texture and
+        gradient there."""
+        tmp: str | None = None
+        try:
+            fd, tmp = tempfile.mkstemp(prefix=".probe.", suffix=_TEMP_SUFFIX, dir=self.root)
+            os.close(fd)
+            os.unlink(tmp)
+            tmp = None
+        except OSError as exc:
+            raise StoreError(f"blob folder {str(self.root)!r}: cannot write a file there "
+                             f"({exc.strerror or exc}); the farm's processes write textures and "
+                             "gradients there") from None
+        finally:
+            if tmp is not None:
+                Path(tmp).unlink(missing_ok=True)
+
     def delete_prefix(self, prefix: str) -> int:
         """Delete the blob ``prefix`` or every blob under the folder ``prefix``; returns the count."""
         target = self.path(prefix)
