@@ -186,13 +186,15 @@ def test_cancel_with_the_token_and_what_does_not_apply(tmp_path):
 
 
 def test_an_unreachable_database_is_a_503_with_one_line(tmp_path):
-    app = create_app(_settings(tmp_path / "blobs", UNDREAM_DATABASE_URL="sqlite:////proc/undream/no/runs.db"))
+    (tmp_path / "runs.db").write_text("not a database")  # a missing one is "no farm database" (test_farm_trust)
+    database = f"sqlite:///{tmp_path / 'runs.db'}"
+    app = create_app(_settings(tmp_path / "blobs", UNDREAM_DATABASE_URL=database))
     client = app.test_client()
     for url in ("/", f"/runs/{MISSING}", "/workers", f"/sweeps/{MISSING}"):
         res = client.get(url)
         assert res.status_code == 503, url
         line = _one_line(res.get_data(as_text=True))
-        assert "cannot open the run database at 'sqlite:////proc/undream/no/runs.db'" in line
+        assert f"cannot open the run database at {database!r}" in line
     for url in ("/api/health", "/api/runs", f"/api/runs/{MISSING}"):
         res = client.get(url)
         assert res.status_code == 503 and "\n" not in res.get_json()["error"], url

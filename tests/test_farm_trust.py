@@ -12,12 +12,13 @@ from __future__ import annotations
 
 import subprocess
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from farm_support import Farm, make_scene, make_victim, redis_up, run_config, write_yaml
+from farm_support import Farm, fresh_postgres, make_scene, make_victim, redis_up, run_config, write_yaml
 from undream.spec.run import RunConfig
 
 
@@ -166,3 +167,66 @@ def test_a_run_whose_start_gives_up_is_failed_with_the_reason_in_status(farm, ti
     assert escape(run.error) in page
     assert "start gave up after 1 retry" in client.get("/").get_data(as_text=True)
     assert client.get(f"/api/runs/{run_id}").get_json()["error"] == run.error
+
+
+# --- read-only commands and no farm database ----------------------------------------------------
+
+def _tree(root: Path) -> list[str]:
+    return sorted(str(p.relative_to(root)) for p in root.rglob("*"))
+
+
+READERS = (("status",), ("status", "abcd1234"), ("results", "sweep1"), ("cancel", "abcd1234"),
+           ("resume", "abcd1234"))
+
+
+def test_read_only_commands_create_no_farm_database(tmp_path):
+    from conftest import service_missing
+
+    reason = redis_up()
+    if reason:
+        service_missing(reason)  # resume reaches the broker first
+    farm = Farm(tmp_path / "farm")
+    farm.root.mkdir()
+    where = f"no farm database at {str(farm.blobs / 'undream.db')!r}"
+    before = _tree(tmp_path)
+    for args in (*READERS, ("report", "abcd1234", "--out", str(tmp_path / "report"))):
+        _one_line(farm.cli(*args), where)
+        assert _tree(tmp_path) == before, args
+    _one_line(farm.cli("status", "--database", f"sqlite:///{tmp_path / 'other.db'}"),
+              f"no farm database at 'sqlite:///{tmp_path / 'other.db'}'")
+    assert _tree(tmp_path) == before
+
+
+def test_the_dashboard_creates_no_farm_database(tmp_path):
+    from markupsafe import escape
+
+    from undream.dashboard import create_app
+    from undream.settings import load_settings
+
+    settings = load_settings(env={"UNDREAM_BLOB_URL": str(tmp_path / "blobs")})
+    client = create_app(settings).test_client()
+    res = client.get("/")
+    where = escape(f"no farm database at {str(tmp_path / 'blobs' / 'undream.db')!r}")
+    assert res.status_code == 503 and where in res.get_data(as_text=True)
+    assert client.get("/api/runs").status_code == 503
+    health = client.get("/api/health")  # healthy, no runs yet: a fresh deployment's dashboard may start first
+    assert health.status_code == 200 and health.get_json()["runs"] == 0
+    assert health.get_json()["note"].startswith("no farm database at ")
+    assert _tree(tmp_path) == []
+
+
+def test_read_only_commands_leave_an_empty_postgresql_database_empty(tmp_path):
+    from sqlalchemy import create_engine, inspect
+
+    url, drop = fresh_postgres()
+    try:
+        farm = Farm(tmp_path / "farm", database_url=url.replace("postgresql+psycopg://", "postgresql://"))
+        for args in (("status",), ("results", "sweep1"), ("cancel", "abcd1234")):
+            line = _one_line(farm.cli(*args), "no farm database at 'postgresql://", "(no undream tables")
+            assert url.rsplit("/", 1)[1] in line
+        engine = create_engine(url)
+        assert inspect(engine).get_table_names() == []
+        engine.dispose()
+        assert not farm.blobs.exists()
+    finally:
+        drop()

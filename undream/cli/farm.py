@@ -48,10 +48,12 @@ def settings_options(fn: Callable[..., Any]) -> Callable[..., Any]:
     return wrapper
 
 
-def _store(settings: "Settings") -> "Store":
+def _store(settings: "Settings", create: bool = True) -> "Store":
+    """The farm's store; ``create`` False (commands that read, or change a recorded run): no
+    database, folder or table is created, and none there is one line (exit 2)."""
     from undream.store import open_store
 
-    return open_store(settings.database_url, settings.blob_url)
+    return open_store(settings.database_url, settings.blob_url, create=create)
 
 
 def _app(settings: "Settings") -> "Celery":
@@ -167,7 +169,7 @@ def status_cmd(run: str | None, out: Path | None, settings: Callable[..., "Setti
     from scheduler.lease import expire_stale
     from scheduler.query import job_rows, run_rows
 
-    store = _run_store(out) if out is not None else _store(settings())
+    store = _run_store(out) if out is not None else _store(settings(), create=False)
     expire_stale(store)
     if run is None:
         click.echo(_table(run_rows(store, store.runs())))
@@ -192,7 +194,7 @@ def _run_store(out: Path) -> "Store":
     if not is_run_output(out) or not (out / "store").is_dir():
         raise SpecError(f"--out {out}: not an output folder of `undream run` (no {METADATA} and store/)")
     config = json.loads((out / METADATA).read_text()).get("config") or {}
-    return open_store(config.get("store"), out / "store")
+    return open_store(config.get("store"), out / "store", create=False)
 
 
 @click.command("cancel")
@@ -203,7 +205,7 @@ def cancel_cmd(run: str, settings: Callable[..., "Settings"]) -> None:
     """Cancel RUN: its queued jobs and callbacks find it cancelled and do nothing."""
     from scheduler.stages import cancel
 
-    store = _store(settings())
+    store = _store(settings(), create=False)
     snap = store.find_run(run)
     if cancel(store, snap.id):
         click.echo(f"cancelled {snap.id}")
@@ -223,7 +225,7 @@ def resume_cmd(run: str, settings: Callable[..., "Settings"]) -> None:
 
     cfg = settings()
     app = _app(cfg)
-    store = _store(cfg)
+    store = _store(cfg, create=False)
     snap = store.find_run(run)
     expire_stale(store, [snap])
     owner = store.get_run(snap.id).owner
@@ -290,7 +292,7 @@ def results_cmd(sweep: str, as_csv: bool, settings: Callable[..., "Settings"]) -
     """The runs of SWEEP (an id or a name) with their grid values and results."""
     from scheduler.query import result_rows
 
-    store = _store(settings())
+    store = _store(settings(), create=False)
     snap = store.find_sweep(sweep)
     rows = result_rows(store, snap.id, snap.spec)
     if not as_csv:

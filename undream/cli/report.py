@@ -94,7 +94,7 @@ def report_cmd(target: str, out: Path, force: bool, settings: Callable[..., "Set
     else:
         cfg = settings()
         where = mask_url(cfg.database_url) if cfg.database_url else f"the SQLite store in {cfg.blob_url}"
-        found = _store_target(_store(cfg), target, where)
+        found = _store_target(_store(cfg, create=False), target, where)
     page = build_report(found, out, force, command)
     what: Any = found.run or found.sweep
     click.echo(f"wrote {page} ({'run' if found.run else 'sweep'} {what.name})")

@@ -34,10 +34,21 @@ def _links(detail: dict[str, Any]) -> dict[str, Any]:
 
 @api.get("/health")
 def health() -> Any:
-    """200 with the number of runs when the database answers; 503 with one line when not."""
-    from undream.store import mask_url
+    """200 with the number of runs when the database answers; 503 with one line when not.
 
-    store = farm().store()
+    A farm with no database yet (nothing submitted, no worker started) is healthy with no runs
+    and a ``note`` saying so: the dashboard creates none, and shows it as soon as there is one.
+    """
+    from undream.dashboard.errors import Unavailable
+    from undream.store import NoDatabase, mask_url
+
+    try:
+        store = farm().store()
+    except Unavailable as err:
+        if not isinstance(err.__cause__, NoDatabase):
+            raise
+        return jsonify({"status": "ok", "api_version": API_VERSION, "database": None, "runs": 0,
+                        "note": str(err), "actions_enabled": farm().settings.dashboard_token is not None})
     n = len(store.runs())
     url = store.engine.url.render_as_string(hide_password=True)
     return jsonify({"status": "ok", "api_version": API_VERSION, "database": mask_url(url), "runs": n,

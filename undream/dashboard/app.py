@@ -9,6 +9,7 @@ HTML page, ``/api/`` a JSON ``{"error": ...}``; never a stack trace.
 """
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
 
@@ -78,10 +79,13 @@ def create_app(settings: "Settings", opener: Callable[[str | None, str], "Store"
     """The dashboard for the farm of ``settings`` (database, blobs, broker, ``dashboard_token``).
 
     ``opener(database_url, blob_url)`` opens the store (default
-    :func:`undream.store.open_store`).
+    :func:`undream.store.open_store`, creating nothing: without a farm database every page
+    is a 503 saying so until one appears).
     """
     if opener is None:
-        from undream.store import open_store as opener
+        from undream.store import open_store
+
+        opener = functools.partial(open_store, create=False)
     app = Flask("undream.dashboard", template_folder=str(HERE / "templates"),
                 static_folder=str(HERE / "static"))
     app.url_map.converters["id"] = IdConverter

@@ -56,8 +56,8 @@ class Farm:
             if self._store is None:
                 try:
                     self._store = self._opener(self.settings.database_url, self.settings.blob_url)
-                except StoreError as err:
-                    raise Unavailable(" ".join(str(err).split())) from None
+                except StoreError as err:  # the cause tells /api/health "no farm database yet" apart
+                    raise Unavailable(" ".join(str(err).split())) from err
             return self._store
 
     def attack_jobs(self, run_id: str) -> list["JobLine"]:

@@ -11,7 +11,7 @@ from undream.store.blobs import (
     scene_key, texture_blob_key,
 )
 from undream.store.checks import RECORD_FIELDS
-from undream.store.db import make_engine, mask_url, open_store
+from undream.store.db import NoDatabase, make_engine, mask_url, open_store
 from undream.store.jobs import UNFINISHED
 from undream.store.models import JOB_PHASES, JOB_STATUSES, RUN_STATUSES, SCHEMA_VERSION
 from undream.store.snapshots import (
@@ -21,7 +21,7 @@ from undream.store.store import ACTIVE, TRANSITIONS, Store
 
 __all__ = [
     "ACTIVE", "BlobStore", "FrameGrad", "IterationSnapshot", "JOB_PHASES", "JOB_STATUSES",
-    "JobLine", "JobSnapshot", "RECORD_FIELDS", "RUN_STATUSES", "RunSnapshot", "SCHEMA_VERSION", "Store",
+    "JobLine", "JobSnapshot", "NoDatabase", "RECORD_FIELDS", "RUN_STATUSES", "RunSnapshot", "SCHEMA_VERSION", "Store",
     "SweepSnapshot", "TRANSITIONS", "UNFINISHED", "attack_state_key", "blob_root", "check_key",
     "eval_image_key", "grad_key", "make_engine", "mask_url", "open_store", "run_prefix",
     "scene_key", "texture_blob_key",

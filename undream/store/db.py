@@ -127,19 +127,33 @@ def _migrate(conn: Any, found: int, url: str) -> None:
         conn.execute(insert(SchemaVersion).values(version=version + 1))
 
 
-def create_tables(engine: Engine, url: str) -> None:
+class NoDatabase(StoreError):
+    """There is no farm database where the settings point (a command that only reads or changes
+    existing runs creates none)."""
+
+    def __init__(self, where: str, why: str = "") -> None:
+        super().__init__(f"no farm database at {where!r}{f' ({why})' if why else ''}: nothing was "
+                         "submitted to this farm yet, or give its --database and --blobs "
+                         "(UNDREAM_DATABASE_URL, UNDREAM_BLOB_URL)")
+
+
+def create_tables(engine: Engine, url: str, create: bool = True) -> None:
     """Create the store's tables if missing, upgrade older ones, and check their schema version.
 
     Tables of an older schema are upgraded in place, in one transaction
     (``MIGRATIONS``: 2 → 3 adds the run lease columns). StoreError naming the
     URL (password hidden) when the database is unreachable, or when its
     tables were made by a newer undream or by one too old to upgrade.
+    ``create`` False: a database without undream's tables is :class:`NoDatabase`
+    and stays as it is.
     """
     try:
         with engine.execution_options(**{WRITE_OPTION: "BEGIN IMMEDIATE"}).begin() as conn:
             if engine.dialect.name == "postgresql":
                 conn.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": _CREATE_LOCK})
             found = _schema_version(conn)
+            if found is None and not create:
+                raise NoDatabase(mask_url(url), "no undream tables there")
             if found is not None and found > SCHEMA_VERSION:
                 raise StoreError(
                     f"the run database at {mask_url(url)!r} has schema version {found}, newer than "
@@ -157,23 +171,40 @@ def create_tables(engine: Engine, url: str) -> None:
         raise StoreError(f"cannot open the run database at {mask_url(url)!r}: {reason}") from None
 
 
-def open_store(url: str | None, blob_dir: Path | str) -> Store:
+def _sqlite_file(url: str) -> Path | None:
+    """The file of a SQLite URL; None for another backend or an in-memory database."""
+    parsed = _parse(url)
+    if parsed.get_backend_name() != "sqlite" or parsed.database in (None, "", ":memory:"):
+        return None
+    return Path(parsed.database)
+
+
+def open_store(url: str | None, blob_dir: Path | str, create: bool = True) -> Store:
     """Open (creating tables and folders as needed) the run store.
 
     ``url``: database URL, or None for SQLite at ``<blob_dir>/undream.db``.
     ``blob_dir``: folder (or ``file:///`` URL) of texture, gradient and
-    attack-state blobs, shared by every process of the farm.
+    attack-state blobs, shared by every process of the farm. ``create``
+    False (the commands that read the farm, or change a run it holds):
+    nothing is created, neither folder, file nor table; :class:`NoDatabase`
+    (one line, the URL's password hidden) when there is no farm database.
     """
     blob_root = _blob_root(blob_dir)
-    try:
-        blob_root.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise StoreError(f"blob folder {str(blob_root)!r}: cannot create it: {exc}") from exc
+    if create:
+        try:
+            blob_root.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise StoreError(f"blob folder {str(blob_root)!r}: cannot create it: {exc}") from exc
+    where = None
     if url is None:
         url = f"sqlite:///{(blob_root / SQLITE_FILENAME).resolve()}"
+        where = str((blob_root / SQLITE_FILENAME).resolve())
+    sqlite_file = _sqlite_file(url)
+    if not create and sqlite_file is not None and not sqlite_file.is_file():
+        raise NoDatabase(where or mask_url(url))  # SQLite would create the file on connecting
     engine = make_engine(url)
     try:
-        create_tables(engine, url)
+        create_tables(engine, url, create)
     except StoreError:
         engine.dispose()
         raise
