@@ -64,6 +64,7 @@ def test_an_unreachable_database_is_one_line_naming_it(farm, tiny):
 
 
 def test_an_unknown_run_is_one_line(farm):
+    farm.store.close()  # a farm database with no runs (without one: "no farm database", test_farm_trust)
     for args in (("status", "nope"), ("cancel", "nope"), ("resume", "nope")):
         _one_line(farm.cli(*args), "run 'nope': not found")
     _one_line(farm.cli("results", "nosuchsweep"), "sweep 'nosuchsweep': not found")
