@@ -172,9 +172,11 @@ def create_tables(engine: Engine, url: str, create: bool = True) -> None:
 
 
 def _sqlite_file(url: str) -> Path | None:
-    """The file of a SQLite URL; None for another backend or an in-memory database."""
+    """The file of a SQLite URL; None for another backend, an in-memory database or a SQLite URI
+    filename (``?uri=true``: its own ``mode`` says whether it may create the file)."""
     parsed = _parse(url)
-    if parsed.get_backend_name() != "sqlite" or parsed.database in (None, "", ":memory:"):
+    if parsed.get_backend_name() != "sqlite" or parsed.database in (None, "", ":memory:") \
+            or parsed.query.get("uri"):
         return None
     return Path(parsed.database)
 
