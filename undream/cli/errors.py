@@ -13,13 +13,20 @@ EXIT_BAD_INPUT = 2
 
 
 def one_line_errors(fn: Callable[..., Any]) -> Callable[..., Any]:
-    """Turn an :class:`UndreamError` raised by a command into one stderr line and exit 2."""
+    """Turn an :class:`UndreamError` raised by a command, or an ``OSError`` naming a file (a name
+    too long, a full disk, no permission), into one stderr line and exit 2."""
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         try:
             return fn(*args, **kwargs)
         except UndreamError as err:
             click.echo(f"undream: error: {' '.join(str(err).split())}", err=True)
+            sys.exit(EXIT_BAD_INPUT)
+        except OSError as err:  # the file system said no (a name too long, no space, no permission)
+            if err.filename is None:
+                raise
+            where = err.filename if err.filename2 is None else f"{err.filename} → {err.filename2}"
+            click.echo(f"undream: error: {where}: {err.strerror or err}", err=True)
             sys.exit(EXIT_BAD_INPUT)
     return wrapper
 
