@@ -1,14 +1,19 @@
 #!/usr/bin/env python
-"""Fuzz ``undream init --check`` and ``undream run --check`` with many generated inputs; print a table.
+"""Fuzz every command with many generated inputs and command lines; print a table of outcomes.
 
-    .venv/bin/python scripts/fuzz_inputs.py --count 5000 [--seed 1] [--show 5]
+    .venv/bin/python scripts/fuzz_inputs.py --count 20000 [--seed 1] [--show 5]
 
-Draws ``--count`` inputs (specs, run configs on a scene folder and on a spec file; see tests/fuzz_support.py
-for how they are broken and judged), runs each through the command line
-in-process, and prints how many of each kind were accepted, refused with one
-line naming the file, or failed (a traceback, several lines, a message that
-names no file, files left behind), with the first ``--show`` failures in
-full. Exit status 1 when any input failed.
+Draws ``--count`` cases, each one of: a broken spec for ``undream init``, a
+broken run config for ``undream run`` (on a scene folder and on a spec
+file), a broken sweep file for ``undream sweep``, each meeting an absent
+``--out``, a user's folder or an earlier run's output (``--check`` first,
+then the real command when ``--check`` refuses); or a generated command line
+of any command (tests/fuzz_support.py and tests/fuzz_cli.py say how cases are
+made and judged). Prints how many of each kind were accepted, refused with
+one line, or failed (a traceback, several lines, a message that names
+neither the input nor ``--out``, a byte changed on disk by a refused
+command, a user's file changed by any command), with the first ``--show``
+failures in full. Exit status 1 when any case failed.
 """
 from __future__ import annotations
 
@@ -26,7 +31,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--count", type=int, default=5000, help="inputs to try (default 5000)")
+    parser.add_argument("--count", type=int, default=20000, help="cases to try (default 20000)")
     parser.add_argument("--seed", type=int, default=None, help="seed of the draws (default: random)")
     parser.add_argument("--show", type=int, default=5, help="failures to print in full")
     args = parser.parse_args(argv)
@@ -38,20 +43,26 @@ def main(argv: list[str] | None = None) -> int:
     from hypothesis import strategies as st
 
     from farm_support import make_scene, write_yaml
-    from fuzz_support import SPEC, SPEC_ACTORS, SPEC_KEYS, Input, inputs, json_bases, outcome, run_doc
+    from fuzz_cli import command_lines, judge, make_sandbox, sandbox_env
+    from fuzz_support import SPEC, SPEC_ACTORS, SPEC_KEYS, inputs, json_bases, outcome, run_doc, sweep_doc
+    from undream.cli import main as undream
 
     seed = args.seed if args.seed is not None else random.randrange(2**31)
     with tempfile.TemporaryDirectory(prefix="undream-fuzz-") as tmp:
         root = Path(tmp)
-        scene = str(make_scene(root / "scene", n_frames=2, size=16))
+        scene = make_scene(root / "scene", n_frames=2, size=16)
         spec = str(write_yaml(root / "spec.yaml", SPEC))
         work = root / "work"
         work.mkdir()
+        box = make_sandbox(root / "box", SPEC, run_doc(str(scene)), scene)
         kinds = [("spec", inputs("spec", SPEC)), ("spec with actors", inputs("spec", SPEC_ACTORS)),
                  ("spec with keyframes", inputs("spec", SPEC_KEYS)),
-                 *((name, inputs("spec", base, ".json")) for name, base in json_bases().items()), ("run on a scene folder", inputs("run", run_doc(scene))),
-                 ("run on a spec file", inputs("run", run_doc(spec)))]
-        runner, table, failures = CliRunner(), Counter(), []
+                 *((name, inputs("spec", base, ".json")) for name, base in json_bases().items()),
+                 ("run on a scene folder", inputs("run", run_doc(str(scene)))),
+                 ("run on a spec file", inputs("run", run_doc(spec))),
+                 ("sweep", inputs("sweep", sweep_doc(str(scene)))), ("command line", command_lines(box, undream))]
+        runner, cli_runner = CliRunner(), CliRunner(env=sandbox_env(box))
+        table, failures = Counter(), []
         start = time.monotonic()
 
         @hypothesis.seed(seed)
@@ -59,21 +70,25 @@ def main(argv: list[str] | None = None) -> int:
         @given(st.data())
         def explore(data: st.DataObject) -> None:
             label, strategy = kinds[data.draw(st.integers(0, len(kinds) - 1))]
-            item: Input = data.draw(strategy)
-            result = outcome(item, work, runner)
+            case = data.draw(strategy)
+            if label == "command line":
+                result, how = judge(case, box, cli_runner), case[0]
+            else:
+                result, how = outcome(case, work, runner), case.how
             verdict = "FAIL" if result.startswith("FAIL") else result
-            table[(label, item.how, verdict)] += 1
+            table[(label, how, verdict)] += 1
             if verdict == "FAIL":
-                failures.append((label, item, result))
+                failures.append((label, case, result))
 
         explore()
         seconds = time.monotonic() - start
-    print(f"{sum(table.values())} inputs, seed {seed}, {seconds:.0f} s; failures: {len(failures)}\n")
-    print("| input | broken by | result | count |\n|---|---|---|---|")
+    print(f"{sum(table.values())} cases, seed {seed}, {seconds:.0f} s; failures: {len(failures)}\n")
+    print("| case | broken by / command | result | count |\n|---|---|---|---|")
     for (label, how, verdict), n in sorted(table.items()):
         print(f"| {label} | {how} | {verdict} | {n} |")
-    for label, item, result in failures[: args.show]:
-        print(f"\n--- {label} ({item.how}): {item.data[:400]!r}\n{result}")
+    for label, case, result in failures[: args.show]:
+        shown = case if label == "command line" else f"({case.how}, --out {case.out}): {case.data[:400]!r}"
+        print(f"\n--- {label} {shown}\n{result}")
     return 1 if failures else 0
 
 

@@ -20,7 +20,6 @@ from __future__ import annotations
 import copy
 import json
 import math
-import os
 import traceback
 from dataclasses import dataclass
 from pathlib import Path
@@ -79,6 +78,11 @@ def run_doc(scene: str) -> dict[str, Any]:
             "eval_spp": 2, "seed": 0, "gradient": "auto", "transport_refresh": 5}
 
 
+def sweep_doc(scene: str) -> dict[str, Any]:
+    """A valid sweep file on ``scene``: two budgets × two seeds of :func:`run_doc`'s run."""
+    return {"name": "fuzz", "base": run_doc(scene), "grid": {"attack.eps": [4, 8], "seed": [0, 1]}}
+
+
 # -- generation ------------------------------------------------------------------------------------
 
 EXTREMES = [0, -1, 1, 2**31, 2**63, -(2**63), 10**30, 1e308, -1e308, 1e-308, math.nan, math.inf,
@@ -133,12 +137,14 @@ def mutated(draw: Any, base: dict[str, Any]) -> dict[str, Any] | list | Any:
 
 @dataclass(frozen=True)
 class Input:
-    """One generated input file: what it is (for the table) and its bytes."""
+    """One generated input file: what it is (for the table), its bytes, and the ``--out`` it meets."""
 
-    kind: str  # "spec" or "run"
-    how: str  # "edited", "truncated", "binary", "not a mapping"
+    kind: str  # "spec", "run" or "sweep"
+    how: str  # "edited", "truncated", "binary", "not a mapping", or a text-level break (TEXT_BREAKS)
     data: bytes
     suffix: str = ".yaml"  # ".json": a canonical sequence or an Unreal export
+    out: str = "absent"  # the --out folder beforehand: "absent", "user" (a user's files), "earlier" (a run's)
+    force: bool = False  # --force given
 
 
 def dump(doc: Any, suffix: str = ".yaml") -> bytes:
@@ -147,58 +153,120 @@ def dump(doc: Any, suffix: str = ".yaml") -> bytes:
     return yaml.safe_dump(doc, allow_unicode=True, sort_keys=False).encode("utf-8")
 
 
+# Breaks no mapping can express: written into the text of a valid file.
+TEXT_BREAKS = ("duplicate key", "alias bomb", "deep nesting", "huge number")
+
+
+def text_break(how: str, text: str, line: int, suffix: str) -> str:
+    """``text`` broken ``how`` (see :data:`TEXT_BREAKS`) at (or after) its ``line``-th line."""
+    lines = text.splitlines()
+    line = line % len(lines)
+    if how == "duplicate key":  # the line again (a key given twice; in a JSON object too)
+        if suffix == ".json":
+            return text.replace('{"', '{"name": 1, "name": 2, "', 1)
+        return "\n".join(lines[:line + 1] + [lines[line]] + lines[line + 1:]) + "\n"
+    if how == "alias bomb":  # a billion laughs: nine levels of nine aliases each
+        bomb = ["lol0: &l0 [lol]"] + [f"lol{i}: &l{i} [{', '.join([f'*l{i - 1}'] * 9)}]" for i in range(1, 10)]
+        return "\n".join(bomb) + "\n" + text
+    if how == "deep nesting":
+        depth = 5000 + 1000 * line
+        return text.replace("0", "[" * depth + "0" + "]" * depth, 1) if suffix == ".json" else \
+            text + f"zzz: {'[' * depth}1{']' * depth}\n"
+    return text.replace("0", "7" * (4400 + line), 1)  # a number of thousands of digits
+
+
 @st.composite
 def inputs(draw: Any, kind: str, base: dict[str, Any], suffix: str = ".yaml") -> Input:
-    """An input file of ``kind`` broken one of the ways in the module docstring."""
-    how = draw(st.sampled_from(["edited"] * 6 + ["truncated", "binary", "not a mapping"]))
+    """An input file of ``kind`` broken one of the ways in the module docstring, and the ``--out``
+    folder it meets (absent, a user's folder, an earlier run's output; ``--force`` or not)."""
+    how = draw(st.sampled_from(["edited"] * 6 + ["truncated", "binary", "not a mapping", *TEXT_BREAKS]))
+    out, force = draw(st.sampled_from(["absent", "user", "earlier"])), draw(st.booleans())
     if how == "edited":
-        return Input(kind, how, dump(draw(mutated(base)), suffix), suffix)
-    if how == "truncated":
+        data = dump(draw(mutated(base)), suffix)
+    elif how == "truncated":
         text = dump(base, suffix)
-        return Input(kind, how, text[:draw(st.integers(0, len(text) - 1))], suffix)
-    if how == "binary":
-        return Input(kind, how, draw(st.binary(min_size=1, max_size=200)), suffix)
-    return Input(kind, how, dump(draw(st.one_of(st.lists(scalars, max_size=3), scalars)), suffix), suffix)
+        data = text[:draw(st.integers(0, len(text) - 1))]
+    elif how == "binary":
+        data = draw(st.binary(min_size=1, max_size=200))
+    elif how == "not a mapping":
+        data = dump(draw(st.one_of(st.lists(scalars, max_size=3), scalars)), suffix)
+    else:
+        data = text_break(how, dump(base, suffix).decode(), draw(st.integers(0, 50)), suffix).encode()
+    return Input(kind, how, data, suffix, out, force)
 
 
 # -- running one --------------------------------------------------------------------------------------
 
 
-def snapshot(folder: Path) -> dict[str, tuple[int, int]]:
-    """Every file and folder under ``folder`` with its size and modification time."""
-    out = {}
-    for root, dirs, files in os.walk(folder):
-        for name in dirs + files:
-            p = Path(root) / name
-            st_ = p.lstat()
-            out[str(p.relative_to(folder))] = (st_.st_size, st_.st_mtime_ns)
-    return out
+USER_FILES = {"thesis.tex": "years of work\n", "results.json": '{"mine": true}\n'}
+
+
+def _prepare_out(out: Path, state: str) -> None:
+    """Make ``out`` as ``state`` says: absent, a user's folder, or an earlier run's output folder."""
+    if state == "absent":
+        return
+    out.mkdir()
+    if state == "user":
+        for name, text in USER_FILES.items():
+            (out / name).write_text(text)
+    else:
+        (out / "metadata.json").write_text(json.dumps({"undream_output": "run", "status": "started"}))
+        (out / "results.json").write_text('{"earlier": true}\n')
 
 
 def outcome(item: Input, work: Path, runner: Any) -> str:
-    """Run ``item`` through the command line in ``work``; ``ok`` / ``refused`` or ``FAIL: why``."""
+    """Run ``item`` through the command line in ``work``; ``ok`` / ``refused`` or ``FAIL: why``.
+
+    First with ``--check``; an input that ``--check`` refuses is then given to the real command
+    too, which must refuse it the same way. ``--out`` is prepared as ``item.out`` says, and
+    every byte under ``work`` (the input file and ``--out`` included) must be as it was.
+    """
+    import shutil
+
+    from fuzz_cli import fingerprint
     from undream.cli import main
 
-    path = work / (f"spec{item.suffix}" if item.kind == "spec" else "run.yaml")
+    name = {"spec": f"spec{item.suffix}", "run": "run.yaml", "sweep": "sweep.yaml"}[item.kind]
+    path, out = work / name, work / "out"
     path.write_bytes(item.data)
-    out = work / "out"
-    before = snapshot(work)
-    command = "init" if item.kind == "spec" else "run"
+    _prepare_out(out, item.out)
+    command = {"spec": "init", "run": "run", "sweep": "sweep"}[item.kind]
+    argv = [command, str(path), "--out", str(out)] + (["--force"] if item.force and item.kind != "sweep" else [])
+    if item.kind == "sweep":
+        argv += ["--broker", "redis://127.0.0.1:1/0", "--database", f"sqlite:///{work}/farm.db",
+                 "--blobs", str(work / "blobs")]
+    before = fingerprint(work)
     try:
-        result = runner.invoke(main, [command, str(path), "--out", str(out), "--check"], catch_exceptions=True)
+        verdict = _one(runner.invoke(main, argv + ["--check"], catch_exceptions=True), (path, out), before, work)
+        if verdict == "refused":
+            real = _one(runner.invoke(main, argv + ["--no-progress"] * (item.kind != "sweep"),
+                                      catch_exceptions=True), (path, out), before, work)
+            if real != "refused":
+                verdict = f"FAIL: --check refused it, the command itself: {real}"
     finally:
-        after = snapshot(work)
-        path.unlink()
+        path.unlink(missing_ok=True)
+        shutil.rmtree(out, ignore_errors=True)
+    return verdict
+
+
+def _one(result: Any, names: tuple[Path, Path], before: dict[str, str], work: Path) -> str:
+    """What one invocation did: ``ok``, ``refused`` (one line naming the input file or ``--out``,
+    nothing changed) or FAIL."""
+    from fuzz_cli import changed, fingerprint
+
+    left = changed(before, fingerprint(work))
     if result.exception is not None and not isinstance(result.exception, SystemExit):
-        tb = "".join(traceback.format_exception(result.exception))
-        return f"FAIL: traceback {type(result.exception).__name__}: {result.exception}\n{tb}"
-    if after != before:
-        return f"FAIL: left files behind: {sorted(set(after) ^ set(before))}"
+        tb = "".join(traceback.format_exception(result.exception)[-4:])
+        return f"FAIL: traceback {type(result.exception).__name__}: {str(result.exception)[:300]}\n{tb[-3000:]}"
+    if left and result.exit_code != 0:
+        return f"FAIL: refused but changed the disk: {left[:5]}"
+    if left:
+        return f"FAIL: --check wrote or changed files: {left[:5]}"
     if result.exit_code == 0:
         return "ok"
     lines = result.stderr.strip().splitlines()
     if result.exit_code != 2 or len(lines) != 1:
-        return f"FAIL: exit {result.exit_code}, {len(lines)} line(s): {result.stderr!r}"
-    if not lines[0].startswith("undream: error: ") or str(path) not in lines[0]:
-        return f"FAIL: the error does not name the file {path}: {lines[0]!r}"
+        return f"FAIL: exit {result.exit_code}, {len(lines)} line(s): {result.stderr[-2000:]!r}"
+    if not lines[0].startswith("undream: error: ") or not any(str(p) in lines[0] for p in names):
+        return f"FAIL: the error does not name the file {names[0]} (or --out): {lines[0][:500]!r}"
     return "refused"

@@ -1,19 +1,26 @@
-"""Fuzzed specs and run configs: each one works or is one line naming its file, and leaves nothing behind.
+"""Fuzzed specs, run configs, sweep files and command lines: each one works or is one line naming
+its file, and a refused one leaves every byte on disk as it was.
 
-700 generated inputs here (500 specs for ``undream init`` from five bases:
-three trajectory YAMLs, a canonical sequence.json and an Unreal export; 200
-run configs for ``undream run`` from two), derandomised so CI sees the same ones;
-``scripts/fuzz_inputs.py --count 5000`` draws fresh ones and prints a table.
-See tests/fuzz_support.py for how inputs are broken and judged.
+1,100 generated cases here, derandomised so CI sees the same ones: 500 specs for
+``undream init`` from five bases (three trajectory YAMLs, a canonical
+sequence.json and an Unreal export), 200 run configs for ``undream run`` from
+two, 100 sweep files for ``undream sweep``, each meeting an absent ``--out``, a
+user's folder or an earlier run's output, with or without ``--force`` (through
+``--check``, then the real command when ``--check`` refuses); and 300 command
+lines over every command (tests/fuzz_cli.py). ``scripts/fuzz_inputs.py --count
+20000`` draws fresh ones and prints a table. See tests/fuzz_support.py and
+tests/fuzz_cli.py for how inputs are broken and judged.
 """
 from __future__ import annotations
 
 import pytest
 from click.testing import CliRunner
 from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from farm_support import make_scene, write_yaml
-from fuzz_support import SPEC, SPEC_ACTORS, SPEC_KEYS, inputs, json_bases, outcome, run_doc
+from fuzz_cli import command_lines, judge, make_sandbox, sandbox_env
+from fuzz_support import SPEC, SPEC_ACTORS, SPEC_KEYS, inputs, json_bases, outcome, run_doc, sweep_doc
 
 EXAMPLES = 100  # per base: 5 spec bases (2 of them JSON) + 2 run bases = 700 inputs
 FUZZ = settings(max_examples=EXAMPLES, deadline=None, derandomize=True, database=None,
@@ -85,12 +92,37 @@ def test_fuzzed_run_configs_on_a_spec_file(data, bases, runner):
     _judge(_on(data, bases["spec"]), bases, runner)
 
 
+@FUZZ
+@given(data=inputs("sweep", sweep_doc("SCENE")))
+def test_fuzzed_sweep_files(data, bases, runner):
+    _judge(_on(data, bases["scene"]), bases, runner)
+
+
 def _on(item, scene: str):
-    """The placeholder scene of a generated run config pointed at the real one."""
-    from fuzz_support import Input
+    """The placeholder scene of a generated run config or sweep pointed at the real one."""
+    from dataclasses import replace
 
     placeholder = b"SCENE" if b"SCENE" in item.data else b"SPEC"
-    return Input(item.kind, item.how, item.data.replace(placeholder, scene.encode()))
+    return replace(item, data=item.data.replace(placeholder, scene.encode()))
+
+
+@pytest.fixture(scope="module")
+def sandbox(tmp_path_factory, bases):
+    from undream.cli import main
+
+    box = make_sandbox(tmp_path_factory.mktemp("fuzz-cli"), SPEC, run_doc("SCENE"), bases["scene"])
+    return box, CliRunner(env=sandbox_env(box)), main
+
+
+@settings(FUZZ, max_examples=300)
+@given(data=st.data())
+def test_fuzzed_command_lines(data, sandbox):
+    """Any command line: it works, or it is one line and exit 2 and changes nothing on disk; and
+    no command, working or not, changes the user's own files."""
+    box, runner, main = sandbox
+    argv = data.draw(command_lines(box, main))
+    result = judge(argv, box, runner)
+    assert not result.startswith("FAIL"), f"{argv}: {result}"
 
 
 def test_the_judge_catches_a_traceback_and_a_message_without_the_file(bases, runner, monkeypatch):
