@@ -96,10 +96,13 @@ def check_frames(config: RunConfig, n_frames: int) -> None:
 
 def _sequence(src: Path) -> "Sequence":
     from undream.scenedir.init import check_source
+    from undream.scenedir.verify import check_visible
     from undream.spec import load_sequence
 
     if (src / "sequence.json").is_file():
-        return load_sequence(src / "sequence.json")
+        seq = load_sequence(src / "sequence.json")
+        check_visible(src, [f.index for f in seq.frames])  # a spec file: `undream init` checks it
+        return seq
     if not src.is_file():
         raise SpecError(f"scene: {src} is neither a scene directory nor a spec file")
     return check_source(src).sequence  # what `undream init` checks before writing OUT/scene

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import copy
 import itertools
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
@@ -23,6 +24,7 @@ from typing import Any, Mapping
 from undream.errors import SpecError
 from undream.spec import _check as c
 from undream.spec.io import read_yaml
+from undream.spec.limits import MAX_SWEEP_RUNS
 from undream.spec.run import RunConfig
 
 
@@ -56,8 +58,9 @@ def set_dotted(data: dict[str, Any], dotted: str, value: Any, where: str) -> Non
     node[leaf] = value
 
 
-def load_sweep(path: str | Path) -> Sweep:
-    """Parse and expand a sweep file; errors name the file, the field and the run."""
+def load_sweep(path: str | Path, max_runs: int = MAX_SWEEP_RUNS) -> Sweep:
+    """Parse and expand a sweep file; errors name the file, the field and the run. A grid of more
+    than ``max_runs`` runs is refused before it is expanded."""
     path = Path(path)
     data = read_yaml(path)
     try:
@@ -82,6 +85,10 @@ def load_sweep(path: str | Path) -> Sweep:
                             f"{', '.join(sorted(fields - {'name'}))})")
         if not isinstance(values, list) or not values:
             raise SpecError(f"{path}: grid.{key}: must be a non-empty list of values, got {values!r}")
+    size = math.prod(len(v) for v in grid.values())
+    if size > max_runs:
+        raise SpecError(f"{path}: the grid makes {size} runs, more than the cap of {max_runs} "
+                        "(`undream sweep --max-runs N` raises it); nothing recorded")
     runs = []
     for i, combo in enumerate(itertools.product(*grid.values())):
         values = dict(zip(map(str, grid), combo))

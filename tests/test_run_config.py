@@ -16,7 +16,7 @@ def test_round_trip():
 
 @pytest.mark.parametrize("field, value, message", [
     ("loss", "hinge", "loss: must be one of"),
-    ("sim_spp", 0, "sim_spp: must be an integer in [1, 65536]"),
+    ("sim_spp", 0, "sim_spp: 0 is out of range (valid: 1 ≤ sim_spp ≤ 65536)"),
     ("torch_threads", 0, "torch_threads"),
     ("attack", {"eps": 3}, "attack.name: "),
     ("seed", -1, "seed"),

@@ -72,7 +72,7 @@ def test_bad_fields_are_named(mutate, field):
 def test_load_sequence_names_the_file(tmp_path):
     p = tmp_path / "sequence.json"
     p.write_text("{ not json")
-    with pytest.raises(SpecError, match="sequence.json: not valid JSON"):
+    with pytest.raises(SpecError, match=r"sequence.json: line 1 column 3: not valid JSON"):
         load_sequence(p)
     with pytest.raises(SpecError, match="missing.json: file not found"):
         load_sequence(tmp_path / "missing.json")

@@ -12,29 +12,15 @@ texture** (``eps=8`` is the usual 8/255). ``eps >= 255`` leaves only the
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 from typing import Any, Mapping
 
 from undream.errors import AttackError, SpecError
+from undream.spec.limits import bounded
 
 
 def _fail(field: str, value: Any, expected: str) -> SpecError:
     return SpecError(f"attack.{field}: {expected}, got {value!r}")
-
-
-def _number(field: str, value: Any, minimum: float, inclusive: bool) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise _fail(field, value, "must be a finite number")
-    if value < minimum or (value == minimum and not inclusive):
-        raise _fail(field, value, f"must be {'>=' if inclusive else '>'} {minimum:g}")
-    return float(value)
-
-
-def _integer(field: str, value: Any, minimum: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
-        raise _fail(field, value, f"must be an integer >= {minimum}")
-    return value
 
 
 @dataclass(frozen=True)
@@ -73,22 +59,12 @@ class AttackConfig:
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name.strip():
             raise _fail("name", self.name, "must be a non-empty attack name")
-        checked = {
-            "eps": _number("eps", self.eps, 0.0, inclusive=False),
-            "steps": _integer("steps", self.steps, 1),
-            "step_size": None if self.step_size is None
-            else _number("step_size", self.step_size, 0.0, inclusive=False),
-            "momentum": _number("momentum", self.momentum, 0.0, inclusive=True),
-            "lr": _number("lr", self.lr, 0.0, inclusive=False),
-            "rho": _number("rho", self.rho, 0.0, inclusive=False),
-            "seed": _integer("seed", self.seed, 0),
-            "frames_per_step": None if self.frames_per_step is None
-            else _integer("frames_per_step", self.frames_per_step, 1),
-        }
+        optional = ("step_size", "frames_per_step")  # None: derived (see above)
+        checked = {key: None if key in optional and getattr(self, key) is None
+                   else bounded(f"attack.{key}", getattr(self, key))
+                   for key in ("eps", "steps", "step_size", "momentum", "lr", "rho", "seed", "frames_per_step")}
         if not isinstance(self.random_start, bool):
             raise _fail("random_start", self.random_start, "must be true or false")
-        if checked["rho"] > 1.0:
-            raise _fail("rho", self.rho, "must be in (0, 1]")
         for key, value in checked.items():
             object.__setattr__(self, key, value)
 

@@ -95,17 +95,13 @@ def sequence_from_unreal(path: str | Path) -> Sequence:
 
 
 def _read_json(path: Path) -> Any:
+    """The export's JSON, read under undream's input limits (:func:`undream.spec.io.read_json`)."""
+    from undream.spec.io import read_json
+
     try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise BridgeError(f"{path}: file not found") from None
-    except (OSError, UnicodeDecodeError) as err:
-        raise BridgeError(_one_line(f"{path}: cannot read the export ({err})")) from None
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError as err:
-        raise BridgeError(f"{path}: line {err.lineno} column {err.colno}: "
-                          f"not valid JSON ({err.msg})") from None
+        return read_json(path)
+    except SpecError as err:
+        raise BridgeError(_one_line(str(err))) from None
 
 
 def _one_line(msg: str) -> str:

@@ -240,17 +240,20 @@ def resume_cmd(run: str, settings: Callable[..., "Settings"]) -> None:
 @click.argument("sweep_yaml", type=click.Path(path_type=Path))
 @click.option("--out", "out", type=click.Path(path_type=Path), default=None,
               help="Output folder; each run writes OUT/<run name> (default: under the blob folder).")
+@click.option("--max-runs", type=click.IntRange(1, 10**7), default=None,
+              help="Refuse a grid of more runs than this (default 10000).")
 @check_option
 @settings_options
 @one_line_errors
-def sweep_cmd(sweep_yaml: Path, out: Path | None, check: bool, settings: Callable[..., "Settings"]) -> None:
+def sweep_cmd(sweep_yaml: Path, out: Path | None, max_runs: int | None, check: bool,
+              settings: Callable[..., "Settings"]) -> None:
     """Expand SWEEP_YAML's grid into runs, validate them all, then queue them; prints the sweep id
     (--check: validate only)."""
     from scheduler.submit import dispatch_starts, record
     from scheduler.sweep import load_sweep
 
     cfg = settings()
-    sweep = load_sweep(sweep_yaml)
+    sweep = load_sweep(sweep_yaml) if max_runs is None else load_sweep(sweep_yaml, max_runs)
     with tempfile.TemporaryDirectory(prefix="undream-sweep-") as tmp:
         prepared = _validate_sweep(sweep, sweep_yaml, Path(tmp))  # before the services are needed
         if check:

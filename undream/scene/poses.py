@@ -12,11 +12,12 @@ from undream.errors import SpecError
 WORLD_UP = np.array([0.0, 1.0, 0.0])
 
 
-def look_at(origin, target, up=WORLD_UP, field: str = "camera") -> np.ndarray:
+def look_at(origin, target, up=WORLD_UP, field: str = "camera", strict: bool = False) -> np.ndarray:
     """Mitsuba camera-to-world: local +Z towards ``target``, +Y up, +X to the image's left.
 
     When the view direction is parallel to ``up`` (looking straight down or
-    up), -Z then +X are tried as the up hint, so the result is always rigid.
+    up), -Z then +X are tried as the up hint, so the result is always rigid;
+    ``strict`` (an ``up`` the user gave): SpecError instead.
     """
     o, t = np.asarray(origin, float), np.asarray(target, float)
     d = t - o
@@ -24,6 +25,9 @@ def look_at(origin, target, up=WORLD_UP, field: str = "camera") -> np.ndarray:
     if not np.isfinite(n) or n < 1e-9:
         raise SpecError(f"{field}: camera position {o.tolist()} and look-at target {t.tolist()} coincide")
     d = d / n
+    if strict and np.linalg.norm(np.cross(np.asarray(up, float), d)) <= 1e-6:
+        raise SpecError(f"{field}: camera.up {np.asarray(up).tolist()} is parallel to the view direction "
+                        f"{d.round(6).tolist()}; give an up that is not along the line of sight")
     for hint in (np.asarray(up, float), np.array([0.0, 0.0, -1.0]), np.array([1.0, 0.0, 0.0])):
         left = np.cross(hint, d)
         if np.linalg.norm(left) > 1e-6:

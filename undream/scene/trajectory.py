@@ -30,6 +30,7 @@ from undream.errors import SpecError
 from undream.scene import poses
 from undream.spec import ActorPose, Asset, Camera, Environment, Frame, Sequence, TextureParam, Transform
 from undream.spec import _check as c
+from undream.spec.limits import bounded
 
 PATH_TYPES = ("static", "orbit", "dolly", "drive_by", "flyover", "keyframes")
 TOP_FIELDS = {"name", "seed", "frames", "fps", "camera", "object", "actors", "environment"}
@@ -39,7 +40,7 @@ def sequence_from_trajectory(spec: Mapping[str, Any], base_dir: Path | None = No
     """Build a sequence from a parsed trajectory spec (see the module docstring)."""
     spec = c.mapping("spec", spec)
     c.no_extra(spec, TOP_FIELDS)
-    n = c.integer("frames", c.require(spec, "frames"), 1, 100000)
+    n = bounded("frames", c.require(spec, "frames"))
     fps = c.positive("fps", spec.get("fps", 10.0))
     obj = c.mapping("object", c.require(spec, "object"))
     with c.at("object"):
@@ -88,11 +89,23 @@ def _cameras(d: Mapping[str, Any], n: int, obj_poses: np.ndarray) -> list[Camera
     with c.at("path"):
         positions = _positions(path, n)
     targets = _targets(d, path, n, obj_poses)
+    up = _up(d.get("up"))
     cams = []
     for i in range(n):
-        m = poses.look_at(positions[i], targets[i], field=f"look_at (frame {i})")
+        m = poses.look_at(positions[i], targets[i], field=f"look_at (frame {i})", **up)
         cams.append(Camera(Transform.from_rows(m), fov, res, film))
     return cams
+
+
+def _up(value: Any) -> dict[str, Any]:
+    """``look_at``'s keywords for the camera's ``up`` (default: world +Y, with a fallback where the
+    camera looks straight along it); a given ``up`` must be non-zero and is never replaced."""
+    if value is None:
+        return {}
+    up = np.array(c.vector("up", value, 3))
+    if not np.linalg.norm(up) > 1e-9:
+        raise c.fail("up", value, "must be a non-zero vector (the camera's up direction)")
+    return {"up": up / np.linalg.norm(up), "strict": True}
 
 
 def _targets(d: Mapping[str, Any], path: Mapping[str, Any], n: int, obj_poses: np.ndarray) -> np.ndarray:

@@ -37,6 +37,7 @@ from undream.scene.mesh import Mesh
 from undream.scene.mitsuba_scene import OBJECT_ID, ScenePaths, scene_dict
 from undream.scene.xml import to_xml
 from undream.scenedir.envmaps import Envmap, envmap_sources, load_envmaps, write_envmaps
+from undream.scenedir.verify import check_visible
 from undream.spec import Sequence, TextureParam, save_sequence
 from undream.spec.io import check_writable_target, resolve_against
 
@@ -108,6 +109,10 @@ def init_scene(source: Source, out: str | Path, options: InitOptions = InitOptio
     out.parent.mkdir(parents=True, exist_ok=True)
     try:
         _write(checked, tmp, options)
+        try:
+            check_visible(tmp, [f.index for f in checked.sequence.frames])
+        except SpecError as err:
+            raise SpecError(f"{source}: {err}" if not isinstance(source, Sequence) else str(err)) from None
         _check_target(out, options.force)
         _swap_into_place(tmp, out)
     except BaseException:

@@ -14,6 +14,7 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 from undream.color import linear_to_srgb, to_uint8
+from undream.errors import SpecError
 from undream.render.loading import load_scene, texture_param_key
 from undream.scene.layout import mask_png
 from undream.scene.mitsuba_scene import ScenePaths, scene_dict
@@ -50,6 +51,15 @@ def save_mask(mask: np.ndarray, path: Path) -> None:
 def read_mask(scene_dir: str | Path, index: int) -> np.ndarray:
     """Frame ``index``'s mask (H×W bool) from ``scene_dir/verify/mask_NNNN.png``."""
     return np.asarray(Image.open(mask_png(scene_dir, index))) > 127
+
+
+def check_visible(scene_dir: str | Path, indices: list[int]) -> None:
+    """SpecError unless the object shows in at least one frame's mask (``verify/mask_NNNN.png``):
+    a run on a scene that never shows it would judge nothing and report 0 → 0."""
+    if not any(read_mask(scene_dir, i).any() for i in indices):
+        raise SpecError(f"the object is visible in 0 of {len(indices)} frames (its masks verify/mask_*.png are "
+                        "empty: the camera is inside it, looks away from it, or something hides it); "
+                        "move the camera or the object; nothing written")
 
 
 def mask_box(mask: np.ndarray) -> tuple[float, float, float, float] | None:

@@ -11,12 +11,20 @@ from pathlib import Path
 from typing import Any
 
 from undream.errors import SpecError
+from undream.spec.limits import FILE_LIMITS
 from undream.spec.model import Sequence
 
 
-def _text(path: Path) -> str:
-    if not path.is_file():
-        raise SpecError(f"{path}: file not found")
+def _text(path: Path, most: int) -> str:
+    """The UTF-8 text of ``path``, refused unread when it is larger than ``most`` bytes."""
+    try:
+        if not path.is_file():
+            raise SpecError(f"{path}: file not found")
+        size = path.stat().st_size
+    except OSError as err:
+        raise SpecError(f"{path}: cannot read ({err.strerror})") from None
+    if size > most:
+        raise SpecError(f"{path}: {size} bytes; an input file may hold at most {most} bytes")
     try:
         return path.read_text(encoding="utf-8")
     except UnicodeDecodeError as err:
@@ -26,22 +34,83 @@ def _text(path: Path) -> str:
         raise SpecError(f"{path}: cannot read ({err.strerror})") from None
 
 
+def _line_of(text: str, needle: str, nth: int = 0) -> int:
+    """The 1-based line of the ``nth`` occurrence of ``needle`` in ``text`` (0 if absent)."""
+    at = -1
+    for _ in range(nth + 1):
+        at = text.find(needle, at + 1)
+        if at < 0:
+            return 0
+    return text.count("\n", 0, at) + 1
+
+
+def _json_depth(text: str) -> int:
+    """How deeply the arrays and objects of JSON ``text`` nest (strings skipped), without recursion."""
+    import re
+
+    import numpy as np
+
+    bare = re.sub(r'"(?:[^"\\]|\\.)*"', '""', text).encode("utf-8", "replace")
+    codes = np.frombuffer(bare, np.uint8)
+    steps = (codes == ord("[")).astype(np.int32) + (codes == ord("{")) - (codes == ord("]")) - (codes == ord("}"))
+    return int(np.cumsum(steps).max(initial=0))
+
+
+class _DuplicateKey(ValueError):
+    pass
+
+
+def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in out:
+            raise _DuplicateKey(key)
+        out[key] = value
+    return out
+
+
 def read_json(path: str | Path) -> Any:
-    """The parsed content of a JSON file."""
+    """The parsed content of a JSON file, under :data:`undream.spec.limits.FILE_LIMITS`: size, depth,
+    digits of a number; a key given twice in one object is refused (naming it and its line)."""
     path = Path(path)
+    text = _text(path, FILE_LIMITS["json_bytes"])
+    if _json_depth(text) > FILE_LIMITS["depth"]:
+        raise SpecError(f"{path}: nested deeper than {FILE_LIMITS['depth']} levels of arrays and objects")
+
+    def number(kind: type) -> Any:
+        def parse(s: str) -> Any:
+            if sum(ch.isdigit() for ch in s) > FILE_LIMITS["digits"]:
+                raise SpecError(f"{path}: line {_line_of(text, s)}: a number of {len(s)} digits is not a number "
+                                f"in range (at most {FILE_LIMITS['digits']} digits)")
+            return kind(s)
+        return parse
+
     try:
-        return json.loads(_text(path))
+        return json.loads(text, object_pairs_hook=_no_duplicates, parse_int=number(int), parse_float=number(float))
+    except _DuplicateKey as err:
+        key = err.args[0]
+        raise SpecError(f"{path}: duplicate key {key!r} at line {_line_of(text, json.dumps(key), 1)} "
+                        f"(first at line {_line_of(text, json.dumps(key))})") from None
     except json.JSONDecodeError as err:
-        raise SpecError(f"{path}: not valid JSON ({err.msg} at line {err.lineno})") from None
+        raise SpecError(f"{path}: line {err.lineno} column {err.colno}: not valid JSON ({err.msg})") from None
+    except RecursionError:
+        raise SpecError(f"{path}: nested deeper than {FILE_LIMITS['depth']} levels of arrays and objects") from None
 
 
 def read_yaml(path: str | Path) -> Any:
-    """The parsed content of a YAML file (``yaml.safe_load``)."""
+    """The parsed content of a YAML file (safe types only), under :data:`undream.spec.limits.FILE_LIMITS`:
+    size, nesting depth, values after alias expansion, digits of a number; a key given twice in one
+    mapping is refused, naming it and both lines. Each refusal is one :class:`SpecError` line."""
     import yaml
 
+    from undream.spec.yaml_strict import load
+
     path = Path(path)
+    text = _text(path, FILE_LIMITS["yaml_bytes"])
     try:
-        return yaml.safe_load(_text(path))
+        return load(text)
+    except SpecError as err:
+        raise SpecError(f"{path}: {err}") from None
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None)
         line = f" at line {mark.line + 1}" if mark is not None else ""

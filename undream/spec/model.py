@@ -15,6 +15,7 @@ from typing import Any, Mapping
 
 from undream.errors import SpecError
 from undream.spec import _check as c
+from undream.spec.limits import MAX_FRAMES
 
 Row = tuple[float, float, float, float]
 Matrix = tuple[Row, Row, Row, Row]
@@ -432,6 +433,8 @@ class Sequence:
         frames = tuple(self.frames)
         if not frames:
             raise c.fail("frames", [], "must hold at least one frame")
+        if len(frames) > MAX_FRAMES:
+            raise SpecError(f"frames: {len(frames)} frames is out of range (valid: 1 ≤ frames ≤ {MAX_FRAMES})")
         idx = [f.index for f in frames]
         if idx != sorted(set(idx)):
             raise c.fail("frames", idx, "must have strictly increasing indices")

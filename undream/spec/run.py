@@ -12,6 +12,7 @@ from typing import Any, Mapping
 from undream.errors import SpecError
 from undream.spec import _check as c
 from undream.spec.io import read_yaml
+from undream.spec.limits import bounded
 
 TASK_LOSSES = {"classification": ("ce", "targeted_ce", "dlr"), "detection": ("vanish", "mislabel", "box")}
 ALL_LOSSES = tuple(k for kinds in TASK_LOSSES.values() for k in kinds)
@@ -81,9 +82,8 @@ class RunConfig:
         if "name" not in attack:
             raise c.fail("attack.name", None, "is required")
         object.__setattr__(self, "attack", dict(attack))
-        for f in ("sim_spp", "grad_spp", "eval_spp"):
-            c.integer(f, getattr(self, f), 1, 65536)
-        c.integer("seed", self.seed, 0, 2**31 - 1)
+        for f in ("sim_spp", "grad_spp", "eval_spp", "seed"):
+            bounded(f, getattr(self, f))
         c.integer("torch_threads", self.torch_threads, 1, 1024)
         c.choice("gradient", self.gradient, ("auto", "transport", "prb"))
         c.integer("transport_refresh", self.transport_refresh, 1, 10**6)
