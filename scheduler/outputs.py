@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from undream.color import to_uint8
+from undream.redact import redact
 from undream.versions import versions
 
 if TYPE_CHECKING:
@@ -132,7 +133,7 @@ def write_outputs(out: Path, store: "Store", ctx: "RunContext", run: "RunSnapsho
         Image.fromarray(state0["visible"].astype(np.uint8) * 255).save(out / "texture_visibility.png")
     _atomic_text(out / "results.json", json.dumps(res, indent=1) + "\n")
     _loss_plot(res["loss_per_iteration"], out / "loss.png", ctx)
-    meta = {"run_id": run.id, "config": ctx.config.to_json(), "seed": ctx.config.seed,
+    meta = {"run_id": run.id, "config": redact(ctx.config.to_json()), "seed": ctx.config.seed,
             "scene_dir": str(ctx.scene_dir), "scene_blob": run.scene_ref,
             "texture_final": "8-bit quantised sRGB (texture_final.png); the same values as float in [0, 1] "
                              "(texture_final.npy) — what the adversarial evaluation rendered",

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from undream.errors import SpecError, StoreError, UndreamError, already_exists
+from undream.redact import redact
 from undream.spec.io import check_writable_target
 from undream.spec.run import RunConfig
 
@@ -139,4 +140,4 @@ def check_output_folder(out: Path, scene_src: Path, force: bool, command: str = 
 def mark_output(out: Path, config: RunConfig) -> None:
     """Write the starting ``metadata.json`` that makes ``out`` a run's output folder."""
     (Path(out) / METADATA).write_text(json.dumps({MARKER: "run", "status": "started",
-                                                  "config": config.to_json()}, indent=1) + "\n")
+                                                  "config": redact(config.to_json())}, indent=1) + "\n")

@@ -31,9 +31,13 @@ def _loopback(host: str) -> bool:
 @click.option("--port", default=8150, show_default=True, type=click.IntRange(1, 65535), help="TCP port.")
 @click.option("--threads", default=8, show_default=True, type=click.IntRange(1, 64),
               help="Request threads of the server.")
+@click.option("--allowed-host", "allowed_hosts", multiple=True, metavar="NAME",
+              help="A host name the dashboard answers to besides localhost and IP addresses (repeatable; "
+                   "requests naming any other host are refused, against DNS rebinding).")
 @settings_options
 @one_line_errors
-def dashboard_cmd(host: str, port: int, threads: int, settings: Callable[..., "Settings"]) -> None:
+def dashboard_cmd(host: str, port: int, threads: int, allowed_hosts: tuple[str, ...],
+                  settings: Callable[..., "Settings"]) -> None:
     """Serve the dashboard: runs, frame jobs, sweeps and workers, read from the store (read-only
     except cancel and resume, which need dashboard_token)."""
     from undream.dashboard.app import serve
@@ -46,7 +50,7 @@ def dashboard_cmd(host: str, port: int, threads: int, settings: Callable[..., "S
     if not _loopback(host):
         click.echo(f"undream dashboard: warning: bound to {host}, not loopback: anyone who reaches it "
                    "reads the farm", err=True)
-    serve(cfg, host, port, threads)
+    serve(cfg, host, port, threads, allowed_hosts)
 
 
 COMMANDS: tuple[Any, ...] = (dashboard_cmd,)

@@ -8,6 +8,7 @@ from typing import Any, Callable
 import click
 
 from undream.errors import UndreamError
+from undream.redact import install_log_redaction, redact_text
 
 EXIT_BAD_INPUT = 2
 
@@ -20,13 +21,13 @@ def one_line_errors(fn: Callable[..., Any]) -> Callable[..., Any]:
         try:
             return fn(*args, **kwargs)
         except UndreamError as err:
-            click.echo(f"undream: error: {' '.join(str(err).split())}", err=True)
+            click.echo(f"undream: error: {redact_text(' '.join(str(err).split()))}", err=True)
             sys.exit(EXIT_BAD_INPUT)
         except OSError as err:  # the file system said no (a name too long, no space, no permission)
             if err.filename is None:
                 raise
             where = err.filename if err.filename2 is None else f"{err.filename} → {err.filename2}"
-            click.echo(f"undream: error: {where}: {err.strerror or err}", err=True)
+            click.echo(redact_text(f"undream: error: {where}: {err.strerror or err}"), err=True)
             sys.exit(EXIT_BAD_INPUT)
     return wrapper
 
@@ -36,6 +37,7 @@ class OneLineGroup(click.Group):
     range) are one stderr line and exit 2 too, instead of click's usage block."""
 
     def main(self, *args: Any, standalone_mode: bool = True, **kwargs: Any) -> Any:
+        install_log_redaction()
         if not standalone_mode:
             return super().main(*args, standalone_mode=False, **kwargs)
         try:
@@ -47,7 +49,7 @@ class OneLineGroup(click.Group):
             click.echo(err.ctx.get_help(), err=True)
             sys.exit(err.exit_code)
         except click.ClickException as err:
-            click.echo(f"undream: error: {_usage_line(err)}", err=True)
+            click.echo(f"undream: error: {redact_text(_usage_line(err))}", err=True)
             sys.exit(err.exit_code)
         sys.exit(rv if isinstance(rv, int) and not isinstance(rv, bool) else 0)
 

@@ -169,7 +169,7 @@ def status_cmd(run: str | None, out: Path | None, settings: Callable[..., "Setti
     from scheduler.lease import expire_stale
     from scheduler.query import job_rows, run_rows
 
-    store = _run_store(out) if out is not None else _store(settings(), create=False)
+    store = _run_store(out, settings().database_url) if out is not None else _store(settings(), create=False)
     expire_stale(store)
     if run is None:
         click.echo(_table(run_rows(store, store.runs())))
@@ -183,8 +183,9 @@ def status_cmd(run: str | None, out: Path | None, settings: Callable[..., "Setti
     click.echo(_table(rows))
 
 
-def _run_store(out: Path) -> "Store":
-    """The store of an `undream run` output folder (its database URL from the folder's metadata.json)."""
+def _run_store(out: Path, database: str | None = None) -> "Store":
+    """The store of an `undream run` output folder: its database URL from the folder's metadata.json,
+    or ``database`` (``--database``) where that URL's password was redacted there."""
     import json
 
     from scheduler.preflight import METADATA, is_run_output
@@ -193,8 +194,15 @@ def _run_store(out: Path) -> "Store":
 
     if not is_run_output(out) or not (out / "store").is_dir():
         raise SpecError(f"--out {out}: not an output folder of `undream run` (no {METADATA} and store/)")
-    config = json.loads((out / METADATA).read_text()).get("config") or {}
-    return open_store(config.get("store"), out / "store", create=False)
+    from undream.redact import MASK
+
+    url = (json.loads((out / METADATA).read_text()).get("config") or {}).get("store")
+    if url and MASK in url:
+        if not database:
+            raise SpecError(f"--out {out}: the run's store URL is kept without its password ({url}); "
+                            "give it with --database URL")
+        url = database
+    return open_store(url, out / "store", create=False)
 
 
 @click.command("cancel")

@@ -25,8 +25,9 @@ if TYPE_CHECKING:
 SETTINGS_FLAGS = (("settings_file", "--settings"), ("database", "--database"), ("blobs", "--blobs"))
 
 
-def _folder_target(folder: Path) -> "Target":
-    """The run an `undream run` output folder records, with its store."""
+def _folder_target(folder: Path, database: str | None = None) -> "Target":
+    """The run an `undream run` output folder records, with its store (``database``: its URL where
+    the folder keeps it without its password)."""
     from undream.errors import SpecError
     from undream.report import Target
 
@@ -39,7 +40,7 @@ def _folder_target(folder: Path) -> "Target":
         hint = f"; give its run id {run_id} and the farm's settings" if run_id else ""
         raise SpecError(f"TARGET {folder}: not an output folder of `undream run` (no metadata.json and "
                         f"store/ in it){hint}")
-    store = _run_store(folder)
+    store = _run_store(folder, database)
     if run_id:
         return Target(store, run=store.get_run(str(run_id)), folder=folder)
     runs = store.runs()
@@ -66,10 +67,12 @@ def _store_target(store: "Store", ref: str, where: str) -> "Target":
 
 
 def _command(target: str, out: Path) -> str:
-    """The command line as given (settings flags included), for the captions."""
+    """The command line as given (settings flags included, their secrets redacted), for the captions."""
+    from undream.redact import redact_text
+
     params = click.get_current_context().params
     flags = [part for name, flag in SETTINGS_FLAGS if params.get(name) is not None
-             for part in (flag, str(params[name]))]
+             for part in (flag, redact_text(str(params[name])))]
     return shlex.join(["undream", "report", target, "--out", str(out), *flags])
 
 
@@ -88,7 +91,7 @@ def report_cmd(target: str, out: Path, force: bool, settings: Callable[..., "Set
     command = _command(target, out)
     folder = Path(target)
     if folder.is_dir():
-        found = _folder_target(folder)
+        found = _folder_target(folder, settings().database_url)
     elif folder.exists() or target.endswith(("/", ".json", ".yaml")):
         raise SpecError(f"TARGET {target}: not an output folder of `undream run`, a run id or a sweep")
     else:

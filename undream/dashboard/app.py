@@ -25,6 +25,7 @@ from undream.dashboard.markup import job_grid_html
 from undream.dashboard.pages import pages
 from undream.dashboard.state import EXTENSION, Farm
 from undream.errors import StoreError
+from undream.redact import redact_text
 
 if TYPE_CHECKING:
     from flask import Response
@@ -65,7 +66,52 @@ def _register_errors(app: Flask) -> None:
         return _error_response(err.code or 500, f"{err.code} {err.name}: {request.path}")
 
 
+def _redacted(response: "Response") -> "Response":
+    """Every page and API answer with its URL passwords and tokens redacted (:mod:`undream.redact`):
+    the store keeps the run configs as submitted, secrets included, and none of it leaves here."""
+    kind = response.mimetype or ""
+    if not response.direct_passthrough and (kind.startswith("text/") or kind == "application/json"):
+        text = response.get_data(as_text=True)
+        clean = redact_text(text)
+        if clean != text:
+            response.set_data(clean)
+    return response
+
+
+# Names a browser may use to reach the dashboard, whatever it is bound to; an IP literal is
+# accepted too (DNS rebinding needs a name). Any other name must be given with --allowed-host.
+LOCAL_NAMES = ("localhost", "localhost.localdomain", "127.0.0.1", "::1")
+
+
+def host_allowed(host_header: str, allowed: tuple[str, ...]) -> bool:
+    """Whether a request's ``Host`` header names this dashboard (see :data:`LOCAL_NAMES`)."""
+    import ipaddress
+
+    host = host_header.strip().lower()
+    if host.startswith("["):
+        host = host[1:].split("]", 1)[0]
+    elif host.count(":") == 1:
+        host = host.split(":", 1)[0]
+    if host in LOCAL_NAMES or host in allowed:
+        return True
+    try:
+        ipaddress.ip_address(host)
+        return True
+    except ValueError:
+        return False
+
+
+def _check_host(allowed: tuple[str, ...]) -> Callable[[], Any]:
+    def check() -> Any:
+        if not host_allowed(request.host or "", allowed):
+            return ("this dashboard does not serve the host named in the request "
+                    "(start it with --allowed-host NAME to serve a name)\n", 421, {"Content-Type": "text/plain"})
+        return None
+    return check
+
+
 def _headers(response: "Response") -> "Response":
+    response = _redacted(response)
     response.headers.setdefault("Cache-Control", "no-store")
     response.headers["X-Content-Type-Options"] = "nosniff"
     response.headers["Referrer-Policy"] = "no-referrer"
@@ -75,8 +121,12 @@ def _headers(response: "Response") -> "Response":
     return response
 
 
-def create_app(settings: "Settings", opener: Callable[[str | None, str], "Store"] | None = None) -> Flask:
+def create_app(settings: "Settings", opener: Callable[[str | None, str], "Store"] | None = None,
+               allowed_hosts: tuple[str, ...] = ()) -> Flask:
     """The dashboard for the farm of ``settings`` (database, blobs, broker, ``dashboard_token``).
+
+    Requests whose ``Host`` is neither local, an IP address nor one of ``allowed_hosts`` are
+    refused (421), so a web page cannot reach it through DNS rebinding; every answer is redacted.
 
     ``opener(database_url, blob_url)`` opens the store (default
     :func:`undream.store.open_store`, creating nothing: without a farm database every page
@@ -97,6 +147,7 @@ def create_app(settings: "Settings", opener: Callable[[str | None, str], "Store"
     app.register_blueprint(pages)
     app.register_blueprint(api, url_prefix="/api")
     app.register_blueprint(artifacts, url_prefix="/artifacts")
+    app.before_request(_check_host(tuple(h.lower() for h in allowed_hosts)))
     app.after_request(_headers)
     _register_errors(app)
     return app
@@ -110,11 +161,12 @@ def warm_up(app: Flask) -> None:
         app.jinja_env.get_template(name)
 
 
-def serve(settings: "Settings", host: str, port: int, threads: int = 8) -> None:
+def serve(settings: "Settings", host: str, port: int, threads: int = 8,
+          allowed_hosts: tuple[str, ...] = ()) -> None:
     """Serve the dashboard with waitress (a production WSGI server) until interrupted."""
     from waitress import serve as waitress_serve
 
-    app = create_app(settings)
+    app = create_app(settings, allowed_hosts=allowed_hosts + (host,))
     warm_up(app)
     try:
         waitress_serve(app, host=host, port=port, threads=threads, ident="undream-dashboard")

@@ -9,6 +9,7 @@ import json
 from html import escape
 from typing import Any, Collection, Mapping
 
+from undream.redact import redact
 from undream.report.data import RunData
 from undream.report.sheet import ATTACKED_RGB, HELD_OUT_RGB
 from undream.report.tables import metric_name
@@ -128,7 +129,7 @@ def run_body(data: RunData, headline: list[dict[str, Any]], unseen: str, command
                f"The benign texture T0, the adversarial texture that was evaluated (both 8-bit sRGB) and "
                f"their largest per-channel difference (white: ε). Unseen texels (hatched in magenta): "
                f"{escape(unseen)}", command),
-        "<h2>Config</h2>", f"<pre>{escape(json.dumps(data.run.config, indent=1, sort_keys=True))}</pre>",
+        "<h2>Config</h2>", f"<pre>{escape(json.dumps(redact(data.run.config), indent=1, sort_keys=True))}</pre>",
     ])
 
 
