@@ -37,7 +37,8 @@ def run_patch_baseline(config: RunConfig, out: Path, base_dir: Path, force: bool
     from undream.progress import progress as progress_bar
 
     out = Path(out).resolve()
-    check_output_folder(out, scene_source(config, base_dir), force, command="undream baseline", marker=MARK)
+    check_output_folder(out, scene_source(config, base_dir), force, command="undream baseline", marker=MARK,
+                        inputs=(source,) if source is not None else ())
     victim = preflight(config, base_dir, source).victim
     try:
         check_attack(attack_of(config))

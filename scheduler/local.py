@@ -109,18 +109,23 @@ def run_local(config: RunConfig, out: str | Path, base_dir: Path | None = None, 
         if force:
             raise SpecError("--resume continues the run in --out and --force replaces it: give one of them")
         return resume_local(config, out, base_dir, progress, source)
-    check_output_folder(out, scene_source(config, base_dir), force)  # cheap refusals first
+    inputs = (source,) if source is not None else ()
+    check_output_folder(out, scene_source(config, base_dir), force, inputs=inputs)  # cheap refusals first
     victim = preflight(config, base_dir, source).victim  # nothing written or deleted before this passes
     if out.exists() and any(out.iterdir()):
         shutil.rmtree(out)  # check_output_folder: --force and a folder `undream run` wrote
     out.mkdir(parents=True, exist_ok=True)
-    mark_output(out, config)
-    scene_dir = resolve_scene(config, out, base_dir)
-    ctx: RunContext = build_context(config, scene_dir, victim=victim)
-    store = open_store(config.store, out / "store")
-    n = len(ctx.sequence.frames)
-    run_id = stages.create(store, config, n, stages.FarmOptions(frames_per_task=n, **LOCAL_OPTIONS),
-                           out_dir=str(out))
+    try:  # until the run is recorded, a failure (a scene whose init fails, a signal) removes what it wrote
+        mark_output(out, config)
+        scene_dir = resolve_scene(config, out, base_dir)
+        ctx: RunContext = build_context(config, scene_dir, victim=victim)
+        store = open_store(config.store, out / "store")
+        n = len(ctx.sequence.frames)
+        run_id = stages.create(store, config, n, stages.FarmOptions(frames_per_task=n, **LOCAL_OPTIONS),
+                               out_dir=str(out))
+    except BaseException:
+        shutil.rmtree(out, ignore_errors=True)
+        raise
     return _drive(store, ctx, run_id, progress, lambda dispatch: dispatch.start(run_id))
 
 
@@ -131,7 +136,7 @@ def check_run(config: RunConfig, out: str | Path, base_dir: Path | None = None,
     from scheduler.preflight import check_output_folder, preflight, scene_source
 
     out, base_dir = Path(out).resolve(), base_dir or Path.cwd()
-    check_output_folder(out, scene_source(config, base_dir), force)
+    check_output_folder(out, scene_source(config, base_dir), force, inputs=(source,) if source is not None else ())
     return preflight(config, base_dir, source).estimate
 
 

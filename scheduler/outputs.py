@@ -112,10 +112,11 @@ def write_outputs(out: Path, store: "Store", ctx: "RunContext", run: "RunSnapsho
     """Write the run's output folder (see the module docstring) from the store."""
     from PIL import Image
 
+    from undream.errors import StoreError
     from undream.scene.layout import frame_name
 
+    _check_own(out, run.id)
     out.mkdir(parents=True, exist_ok=True)
-    from undream.errors import StoreError
 
     T_q = store.final_texture(run.id)
     if T_q is None:
@@ -139,6 +140,25 @@ def write_outputs(out: Path, store: "Store", ctx: "RunContext", run: "RunSnapsho
                              "(texture_final.npy) — what the adversarial evaluation rendered",
             "versions": {**versions(), "simulator": ctx.sim.name, **ctx.sim.versions()}}
     _atomic_text(out / "metadata.json", json.dumps(meta, indent=1) + "\n")
+
+
+def _check_own(out: Path, run_id: str) -> None:
+    """StoreError unless ``out`` is absent, empty, or this run's own output folder: a worker never
+    writes into a scene, a user's folder or another run's outputs (the run keeps its results in the
+    store, and `undream report` can write them elsewhere)."""
+    from scheduler.preflight import METADATA, is_run_output, is_scene
+    from undream.errors import StoreError
+
+    if not out.is_dir() or not any(out.iterdir()):
+        return
+    try:
+        owner = json.loads((out / METADATA).read_text()).get("run_id")
+    except (OSError, ValueError, AttributeError):
+        owner = None
+    if is_scene(out) or not is_run_output(out) or owner not in (None, run_id):
+        raise StoreError(f"output folder {out}: holds files that are not this run's outputs (a scene, a "
+                         f"user's files or run {owner}'s outputs); nothing written there; the results are in "
+                         f"the store: `undream report {run_id} --out FOLDER` writes them")
 
 
 def _loss_plot(values: list[float | None], path: Path, ctx: "RunContext") -> None:

@@ -73,9 +73,9 @@ def _preflight(config: RunConfig, base_dir: Path) -> Checked:
     attack_of(config)
     check_simulator(config.sim)
     if config.store:
-        from undream.store.db import make_engine
+        from undream.store.db import check_database
 
-        make_engine(config.store).dispose()
+        check_database(config.store)  # reachable, and a database: before anything is written
     seq = _sequence(scene_source(config, base_dir))
     check_frames(config, len(seq.frames))
     estimate = run_estimate(seq, config)
@@ -118,23 +118,80 @@ def is_run_output(folder: Path) -> bool:
     return isinstance(meta, dict) and (MARKER in meta or "run_id" in meta)
 
 
-def check_output_folder(out: Path, scene_src: Path, force: bool, command: str = "undream run",
-                        marker: str = METADATA) -> None:
-    """Refuse an ``--out`` the run must not use (see the module docstring); nothing is touched.
+def is_scene(folder: Path) -> bool:
+    """Whether ``folder`` is a scene directory (``undream init`` wrote its ``sequence.json``)."""
+    return (Path(folder) / "sequence.json").is_file()
 
-    ``command`` and ``marker``: the command whose folders ``--force`` may replace, and the file
-    that marks them (``undream run``'s run metadata, unless another command names its own).
+
+def check_output_folder(out: Path, scene_src: Path | None, force: bool, command: str = "undream run",
+                        marker: str = METADATA, inputs: tuple[Path, ...] = ()) -> None:
+    """The one output-folder rule of every command that writes: refuse an ``--out`` that must not be
+    used, in one line; nothing is touched.
+
+    ``out`` may be written when it is absent or empty. It is replaced (``force``) only when
+    ``command`` wrote it (``marker``: ``undream run``'s run metadata unless another command names
+    its own file; ``undream init``'s scenes are recognised by their ``sequence.json``), when no
+    live process holds the lease of a run recorded in it (:func:`live_owner`), and when it holds
+    none of the command's inputs (``scene_src`` and ``inputs``: a spec, a run config, a scene) —
+    so neither a project folder holding them nor the folder of an earlier output is lost.
     """
     out = Path(out).resolve()
     check_writable_target(out)
-    if out == scene_src or out in scene_src.parents:
-        raise SpecError(f"--out {out}: holds the run's scene {scene_src}; choose another output folder")
-    if out.exists() and any(out.iterdir()):
-        if not force:
-            raise already_exists(out)
-        if not (is_run_output(out) if marker == METADATA else (out / marker).is_file()):
-            raise SpecError(f"--out {out}: --force only replaces a folder that `{command}` wrote "
-                            f"(one with its {marker}); this one has none, so it is left as it is")
+    named = [(scene_src, "the run's scene")] + [(p, "this command's input") for p in inputs]
+    for path, what in ((Path(p).resolve(), what) for p, what in named if p is not None):
+        if out == path or out in path.parents:
+            raise SpecError(f"--out {out}: holds {what} {path}; choose another output folder")
+    if not (out.exists() and any(out.iterdir())):
+        return
+    if not force:
+        raise already_exists(out)
+    if command == "undream init":
+        written = is_scene(out)
+    else:
+        if is_scene(out):
+            raise SpecError(f"--out {out}: is a scene directory (it holds sequence.json); `{command}` never "
+                            "replaces a scene; choose another output folder")
+        written = is_run_output(out) if marker == METADATA else (out / marker).is_file()
+    if not written:
+        raise SpecError(f"--out {out}: --force only replaces a folder that `{command}` wrote "
+                        f"(one with its {'sequence.json' if command == 'undream init' else marker}); "
+                        "this one has none, so it is left as it is")
+    owner = live_owner(out)
+    if owner is not None:
+        raise SpecError(f"--out {out}: {owner} is writing it now; wait for it to end (or stop it) "
+                        "before replacing the folder")
+
+
+def live_owner(out: Path) -> str | None:
+    """``run ID (host:pid)`` when a run recorded in the store under ``out`` is held by a live process
+    (its lease: :func:`scheduler.lease.stale_reason`), else None. A store that cannot be read for
+    want of its password counts as live: nothing is replaced that cannot be checked."""
+    from scheduler.lease import stale_reason
+    from undream.redact import MASK
+    from undream.store import open_store
+    from undream.store.leases import LIVE
+    from undream.store.models import utcnow
+
+    if not (out / "store").is_dir():
+        return None
+    try:
+        url = (json.loads((out / METADATA).read_text()).get("config") or {}).get("store")
+    except (OSError, ValueError, AttributeError):
+        url = None
+    if url and MASK in url:
+        return "a run whose store needs a password this folder does not keep (cannot check its lease)"
+    try:
+        store = open_store(url, out / "store", create=False)
+    except StoreError:
+        return None
+    try:
+        now = utcnow()
+        for run in store.runs():
+            if run.status in LIVE and run.owner is not None and stale_reason(run, now) is None:
+                return f"run {run.id} ({run.owner}, alive)"
+    finally:
+        store.close()
+    return None
 
 
 def mark_output(out: Path, config: RunConfig) -> None:

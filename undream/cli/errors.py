@@ -1,9 +1,12 @@
 """Errors mapped at the command-line edge: one line on stderr, exit status 2."""
 from __future__ import annotations
 
+import contextlib
 import functools
+import signal
 import sys
-from typing import Any, Callable
+import threading
+from typing import Any, Callable, Iterator
 
 import click
 
@@ -41,7 +44,8 @@ class OneLineGroup(click.Group):
         if not standalone_mode:
             return super().main(*args, standalone_mode=False, **kwargs)
         try:
-            rv = super().main(*args, standalone_mode=False, **kwargs)
+            with signals_end_commands():
+                rv = super().main(*args, standalone_mode=False, **kwargs)
         except click.exceptions.Abort:
             click.echo("undream: aborted", err=True)
             sys.exit(1)
@@ -52,6 +56,26 @@ class OneLineGroup(click.Group):
             click.echo(f"undream: error: {redact_text(_usage_line(err))}", err=True)
             sys.exit(err.exit_code)
         sys.exit(rv if isinstance(rv, int) and not isinstance(rv, bool) else 0)
+
+
+@contextlib.contextmanager
+def signals_end_commands() -> Iterator[None]:
+    """While a command runs, SIGTERM and SIGHUP end it as Ctrl-C does: as an exception, so every
+    ``finally`` and ``except BaseException`` on the way out runs (temporary folders removed, a run's
+    lease given up and the run marked failed). Handlers set by others (Celery's) are left alone."""
+    def stop(signum: int, _frame: Any) -> None:
+        raise SystemExit(128 + signum)
+
+    previous = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGTERM, signal.SIGHUP):
+            if signal.getsignal(sig) in (signal.SIG_DFL, None):
+                previous[sig] = signal.signal(sig, stop)
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 def _usage_line(err: click.ClickException) -> str:

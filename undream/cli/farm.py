@@ -112,12 +112,15 @@ def _cell(value: Any) -> str:
 @one_line_errors
 def submit_cmd(run_yaml: Path, out: Path | None, check: bool, settings: Callable[..., "Settings"]) -> None:
     """Validate RUN_YAML, then queue it on the farm; prints the run id (--check: validate only)."""
+    from scheduler.preflight import scene_source
     from scheduler.submit import Validator, dispatch_starts, record
     from undream.errors import SpecError, StoreError, UndreamError
     from undream.spec.run import load_run_config
 
     cfg = settings()
     config = load_run_config(run_yaml)
+    if out is not None:
+        _check_farm_out(out, [scene_source(config, run_yaml.parent)], run_yaml, "undream submit")
     with tempfile.TemporaryDirectory(prefix="undream-submit-") as tmp:
         try:  # the run's own checks first: bad input is refused before the services are needed
             prepared = Validator(Path(tmp))(config, run_yaml.parent)
@@ -262,6 +265,11 @@ def sweep_cmd(sweep_yaml: Path, out: Path | None, max_runs: int | None, check: b
 
     cfg = settings()
     sweep = load_sweep(sweep_yaml) if max_runs is None else load_sweep(sweep_yaml, max_runs)
+    if out is not None:
+        from scheduler.preflight import scene_source
+
+        scenes = sorted({scene_source(r.config, r.base_dir) for r in sweep.runs})
+        _check_farm_out(out, scenes, sweep_yaml, "undream sweep")
     with tempfile.TemporaryDirectory(prefix="undream-sweep-") as tmp:
         prepared = _validate_sweep(sweep, sweep_yaml, Path(tmp))  # before the services are needed
         if check:
@@ -275,6 +283,15 @@ def sweep_cmd(sweep_yaml: Path, out: Path | None, max_runs: int | None, check: b
     click.echo(sweep_id)
     click.echo(_table([{"run": r, "name": p.config.name, **s.values}
                        for r, p, s in zip(run_ids, prepared, sweep.runs)]))
+
+
+def _check_farm_out(out: Path, scenes: list[Path], source: Path, command: str) -> None:
+    """``--out`` of a run or sweep for the farm, checked when it is submitted (the output-folder rule
+    of :func:`scheduler.preflight.check_output_folder`, without --force: absent or empty)."""
+    from scheduler.preflight import check_output_folder
+
+    for scene in scenes:
+        check_output_folder(out, scene, force=False, command=command, inputs=(source,))
 
 
 def _validate_sweep(sweep: Any, sweep_yaml: Path, tmp: Path) -> list[Any]:

@@ -102,9 +102,14 @@ def choice(field: str, value: Any, options: tuple[str, ...]) -> str:
     return value
 
 
+NAME_MAX = 100  # characters of a name (a run's, a sequence's): it names folders and store rows
+
+
 def name(field: str, value: Any) -> str:
-    if not isinstance(value, str) or not value or not value.replace("_", "a").replace("-", "a").isalnum():
-        raise fail(field, value, "must be a non-empty name of letters, digits, '_' or '-'")
+    if not isinstance(value, str) or not value or not value.replace("_", "a").replace("-", "a").isalnum() \
+            or len(value) > NAME_MAX:
+        raise fail(field, value if not isinstance(value, str) or len(value) <= NAME_MAX else f"{value[:20]}…",
+                   f"must be a non-empty name of at most {NAME_MAX} letters, digits, '_' or '-'")
     return value
 
 

@@ -138,6 +138,29 @@ def resolve_against(path: str | Path, base_dir: Path | None) -> str:
     return str((p if p.is_absolute() or base_dir is None else Path(base_dir) / p).resolve())
 
 
+# Kernel file systems that show the machine's state: nothing undream writes can live there.
+PSEUDO_FILESYSTEMS = {"proc", "sysfs", "devtmpfs", "devpts", "cgroup", "cgroup2", "securityfs", "debugfs",
+                      "tracefs", "configfs", "pstore", "bpf", "mqueue", "hugetlbfs", "fusectl", "binfmt_misc"}
+
+
+def _filesystem(folder: Path) -> str | None:
+    """The type of the file system ``folder`` is on (Linux's /proc/self/mounts), None if unknown."""
+    try:
+        mounts = Path("/proc/self/mounts").read_text().splitlines()
+    except OSError:
+        return None
+    best, kind = "", None
+    folder_s = str(folder.resolve())
+    for line in mounts:
+        parts = line.split()
+        if len(parts) < 3:
+            continue
+        point = parts[1].replace("\\040", " ")
+        if (folder_s == point or folder_s.startswith(point.rstrip("/") + "/")) and len(point) >= len(best):
+            best, kind = point, parts[2]
+    return kind
+
+
 def check_writable_target(out: str | Path, option: str = "--out") -> None:
     """Refuse an output folder that cannot be created or written, before anything is written.
 
@@ -156,5 +179,9 @@ def check_writable_target(out: str | Path, option: str = "--out") -> None:
         read_only = False
     if read_only:
         raise SpecError(f"{option} {out}: {existing} is on a read-only file system")
+    kind = _filesystem(existing)
+    if kind in PSEUDO_FILESYSTEMS:
+        raise SpecError(f"{option} {out}: {existing} is on the kernel's {kind} file system, where no folder "
+                        "can be written; choose a folder on a disk")
     if not os.access(existing, os.W_OK | os.X_OK):
         raise SpecError(f"{option} {out}: no permission to write in {existing}")

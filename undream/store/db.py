@@ -96,6 +96,34 @@ def make_engine(url: str) -> Engine:
                          "install undream[postgres] for PostgreSQL") from None
 
 
+SQLITE_HEADER = b"SQLite format 3\x00"
+
+
+def check_database(url: str) -> None:
+    """StoreError (one line, password hidden) unless the database of ``url`` can be used: a SQLite
+    file's folder exists and the file, if any, is a SQLite database; a server answers. Nothing is
+    created: a command checks this before it writes anything."""
+    parsed = _parse(url)
+    if parsed.get_backend_name() == "sqlite" and parsed.database not in (None, "", ":memory:"):
+        path = Path(parsed.database)
+        if not path.parent.is_dir():
+            raise StoreError(f"database URL {mask_url(url)!r}: the folder {path.parent} does not exist")
+        if path.exists():
+            with open(path, "rb") as f:
+                if f.read(len(SQLITE_HEADER)) not in (SQLITE_HEADER, b""):
+                    raise StoreError(f"database URL {mask_url(url)!r}: {path} is not a SQLite database")
+        return
+    engine = make_engine(url)
+    try:
+        with engine.connect() as conn:
+            conn.execute(text("SELECT 1"))
+    except SQLAlchemyError as exc:
+        reason = str(getattr(exc, "orig", None) or exc).strip().splitlines()[0]
+        raise StoreError(f"cannot reach the run database at {mask_url(url)!r}: {reason}") from None
+    finally:
+        engine.dispose()
+
+
 def _schema_version(conn: Any) -> int | None:
     """The schema version of the tables there, None for an empty database (1: before versions)."""
     names = set(inspect(conn).get_table_names())
