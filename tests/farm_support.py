@@ -181,6 +181,9 @@ class Farm:
         if self._store is not None:
             self._store.close()
             self._store = None
+        if self.db in _used_dbs:  # its workers are gone: the number is free for the next farm
+            redis_client(self.db).flushdb()
+            _used_dbs.discard(self.db)
 
     def logs(self) -> str:
         return "\n".join(p.read_text()[-4000:] for p in sorted(self.root.glob("worker*.log")))

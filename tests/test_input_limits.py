@@ -285,3 +285,15 @@ def test_an_out_under_proc_is_one_line(tmp_path):
     spec = _write(tmp_path / "spec.yaml", SPEC)
     _refused(["init", str(spec), "--out", "/proc/undream-limits", "--verify-spp", "1", "--no-progress"], [spec],
              Path("/proc/undream-limits"), "/proc")
+
+
+def test_the_limits_page_lists_every_bound_as_the_schema_states_it():
+    """docs/safety.md's table is the schema's BOUNDS, row for row: a bound changed in one place only
+    fails here."""
+    import re
+    from undream.spec.limits import BOUNDS
+
+    page = (Path(__file__).resolve().parents[1] / "docs" / "safety.md").read_text(encoding="utf-8")
+    table = page.split("<!-- bounds:", 1)[1].split("<!-- /bounds -->", 1)[0]
+    rows = dict(re.findall(r"^\| `([^`]+)` \| (.+?) \|$", table, re.MULTILINE))
+    assert rows == {field: bound.describe(field.rsplit(".", 1)[-1]) for field, bound in BOUNDS.items()}

@@ -214,3 +214,36 @@ def test_a_worker_never_writes_outputs_into_a_folder_that_is_not_its_runs(tmp_pa
     (scene / "metadata.json").write_text(json.dumps({"undream_output": "run"}))
     with pytest.raises(StoreError, match="a scene"):
         _check_own(scene, "r1")
+
+
+def test_victims_commands_never_write_into_a_users_folder(tmp_path):
+    """make-dataset wrote its images over a folder's own files; train wrote config.json, the weights and
+    README.md (the model card) over whatever --out held. Both now need a new or empty folder, checked
+    before any rendering or training (so the data sets need not even exist for the refusal)."""
+    user = _user_folder(tmp_path / "thesis")
+    (user / "images").mkdir()
+    (user / "images" / "000000.png").write_bytes(b"my figure")
+    before = _tree(user)
+    _refused(_cli("victims", "make-dataset", "--out", str(user), "--n", "2"), "already holds files")
+    _refused(_cli("victims", "train", "--task", "classification", "--data", str(tmp_path / "data"),
+                  "--test", str(tmp_path / "test"), "--out", str(user)), "already holds files")
+    _refused(_cli("victims", "train", "--task", "classification", "--data", str(user / "images"),
+                  "--test", str(tmp_path / "test"), "--out", str(user)), "holds this command's input")
+    assert _tree(user) == before
+
+
+def test_sigterm_during_make_dataset_leaves_the_folder_as_it_was(tmp_path):
+    out = tmp_path / "ds"
+    proc = subprocess.Popen([sys.executable, "-m", "undream.cli", "victims", "make-dataset", "--out", str(out),
+                             "--n", "5000", "--spp", "1", "--no-progress"], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        wait_for(lambda: proc.poll() is not None or ((out / "images").is_dir() and any((out / "images").iterdir())),
+                 120, "the first image")
+        assert proc.poll() is None, proc.communicate()
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode != 0
+    assert not out.exists(), sorted(p.name for p in out.rglob("*"))[:10]

@@ -125,13 +125,17 @@ def test_indirect_light_is_refused(day, tmp_path):
 def test_object_out_of_sight_gives_an_empty_transport_and_a_zero_gradient(tmp_path_factory, mi):
     # A frame without one sample on the object (hidden by an actor, or out of view) used to crash the
     # capture inside Dr.Jit (an empty compress meeting a scalar: "operands have incompatible sizes").
+    # (init refuses a scene whose object no frame sees, so frame 0 sees it and frame 1 looks away)
     away = Camera(Transform.from_rows(look_at([0.3, 1.0, 2.2], [0.3, 1.0, 6.0])), 35.0, (32, 24))
-    scenes = _scene(tmp_path_factory, "away", Environment("clear", 13.0), camera=away)
-    tr = capture_transport(scenes, 0, SPP, SEED_GRAD)
+    env = Environment("clear", 13.0)
+    seq = Sequence("away", Asset("ball", "builtin:sphere", texture=TEX),
+                   (Frame(0, _camera(), Transform.identity(), env), Frame(1, away, Transform.identity(), env)))
+    scenes = SceneCache(init_scene(seq, tmp_path_factory.mktemp("away") / "scene", InitOptions(verify_spp=1)))
+    tr = capture_transport(scenes, 1, SPP, SEED_GRAD)
     assert tr.nnz == 0
-    assert check_linear(scenes, 0) is None
+    assert check_linear(scenes, 1) is None
     tex = np.full((8, 16, 3), 0.5, np.float32)
     g = np.random.default_rng(0).normal(size=(24, 32, 3)).astype(np.float32)
     got = texture_gradient_cached(tr, tex, g)
     assert got.shape == tex.shape and not got.any()
-    assert not texture_gradient(scenes, 0, tex, g, SPP, SEED_GRAD + 1, SEED_GRAD).any()
+    assert not texture_gradient(scenes, 1, tex, g, SPP, SEED_GRAD + 1, SEED_GRAD).any()

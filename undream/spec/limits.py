@@ -3,7 +3,7 @@
 The spec, the run config, the attack block and sweep files check their
 numbers against :data:`BOUNDS` (through :func:`bounded`), and every input file
 is read under :data:`FILE_LIMITS` (:mod:`undream.spec.io`), so a refusal names
-the field, the value and the valid range in one place. ``docs/limits.md``
+the field, the value and the valid range in one place. ``docs/safety.md``
 lists the same table.
 """
 from __future__ import annotations
@@ -26,8 +26,13 @@ class Bound:
     unit: str = ""
 
     def describe(self, name: str) -> str:
-        lo = f"{self.lo:g} {'<' if self.lo_open else '≤'} "
-        return f"{lo}{name} ≤ {self.hi:g}" + (f" ({self.unit})" if self.unit else "")
+        lo = f"{_number(self.lo)} {'<' if self.lo_open else '≤'} "
+        return f"{lo}{name} ≤ {_number(self.hi)}" + (f" ({self.unit})" if self.unit else "")
+
+
+def _number(x: float) -> str:
+    """A bound as a user types it: whole numbers in full (2147483647, not 2.14748e+09)."""
+    return str(int(x)) if float(x).is_integer() else f"{x:g}"
 
 
 MAX_FRAMES = 10_000  # frames of one sequence

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -40,6 +41,7 @@ import numpy as np
 import torch
 
 from undream.errors import VictimError
+from undream.spec.io import check_new_folder
 from undream.versions import versions
 from undream.training.dataset import CLASSES, Dataset, load_dataset
 from undream.victims.preprocess import PreprocessConfig, preprocess_images
@@ -320,9 +322,10 @@ def _mean(aps: dict[int, float | None]) -> float:
 def train(data: str | Path, test: str | Path, out: str | Path, cfg: TrainConfig,
           command: str = "", log: Callable[[str], None] = print) -> dict[str, Any]:
     """Train on ``data``, save to ``out`` (``save_pretrained`` + preprocessor +
-    ``training.json``), reload from disk as a victim and evaluate on ``test``."""
-    from undream.victims.hf import load_hf_victim
-
+    ``training.json``), reload from disk as a victim and evaluate on ``test``. ``out`` must be new
+    or empty (checked before training and again before saving); a failure leaves it as it was."""
+    inputs = tuple(p for p in (data, test, cfg.backbone) if p is not None)
+    check_new_folder(out, inputs=inputs)  # before minutes of training, not after
     if cfg.threads is not None:
         torch.set_num_threads(cfg.threads)
     train_ds, test_ds = load_dataset(data), load_dataset(test)
@@ -331,6 +334,21 @@ def train(data: str | Path, test: str | Path, out: str | Path, cfg: TrainConfig,
     model = build_classifier() if cfg.task == "classification" else build_detector(cfg.backbone)
     seconds = fit(model, train_ds, cfg, log)
     out = Path(out)
+    check_new_folder(out, inputs=inputs)  # still new after training (another command may have written it)
+    existed = out.is_dir()
+    try:
+        return _save_and_evaluate(model, out, cfg, seconds, train_ds, test_ds, data, test, command)
+    except BaseException:  # the folder goes back to how it was found
+        shutil.rmtree(out, ignore_errors=True)
+        if existed:
+            out.mkdir(exist_ok=True)
+        raise
+
+
+def _save_and_evaluate(model: Any, out: Path, cfg: TrainConfig, seconds: float, train_ds: Dataset,
+                       test_ds: Dataset, data: str | Path, test: str | Path, command: str) -> dict[str, Any]:
+    from undream.victims.hf import load_hf_victim
+
     out.mkdir(parents=True, exist_ok=True)
     model.save_pretrained(str(out))
     processor = processor_json(cfg.task, cfg.input_size)
