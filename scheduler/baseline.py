@@ -17,14 +17,18 @@ from typing import Any
 import numpy as np
 
 from undream.errors import SpecError
+from undream.settings import LocalSettings
 from undream.spec.run import RunConfig, split_frames
 
 MARK = "baseline.json"
 
 
 def run_patch_baseline(config: RunConfig, out: Path, base_dir: Path, force: bool = False,
-                       progress: bool = True, source: Path | None = None) -> dict[str, Any]:
-    """Optimise the pasted patch on the run's attacked frames, judge it in the simulator; the results."""
+                       progress: bool = True, source: Path | None = None,
+                       local: LocalSettings = LocalSettings()) -> dict[str, Any]:
+    """Optimise the pasted patch on the run's attacked frames, judge it in the simulator; the results.
+
+    ``local``: this process's settings, read at the edge (:func:`undream.settings.load_local`)."""
     from PIL import Image
 
     from scheduler.local import resolve_scene
@@ -39,7 +43,7 @@ def run_patch_baseline(config: RunConfig, out: Path, base_dir: Path, force: bool
     out = Path(out).resolve()
     check_output_folder(out, scene_source(config, base_dir), force, command="undream baseline", marker=MARK,
                         inputs=(source,) if source is not None else ())
-    victim = preflight(config, base_dir, source).victim
+    victim = preflight(config, base_dir, source, local).victim
     try:
         check_attack(attack_of(config))
     except SpecError as err:
@@ -47,7 +51,7 @@ def run_patch_baseline(config: RunConfig, out: Path, base_dir: Path, force: bool
     if out.exists():
         shutil.rmtree(out)
     out.mkdir(parents=True)
-    ctx = build_context(config, resolve_scene(config, out, base_dir), victim=victim)
+    ctx = build_context(config, resolve_scene(config, out, base_dir, local=local), victim=victim, local=local)
     attacked, held = split_frames(config.holdout, len(ctx.sequence.frames))
     T0 = starting_texture(ctx)
     frames = benign_frames(ctx, attacked, T0)

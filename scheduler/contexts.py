@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from undream.errors import StoreError
+from undream.settings import LocalSettings
 from undream.spec.run import RunConfig
 
 if TYPE_CHECKING:
@@ -45,8 +46,9 @@ class ContextCache:
     """Contexts of the runs this process serves, by run id (see the module docstring)."""
 
     def __init__(self, store: "Store", cache_dir: Path | str, scenes: int = 2, victims: int = 4,
-                 runs: int = 32) -> None:
+                 runs: int = 32, local: LocalSettings = LocalSettings()) -> None:
         self.store = store
+        self.local = local  # this process's settings, read at the edge (the worker's start)
         self.cache_dir = Path(cache_dir)
         self.sizes = {"scenes": scenes, "victims": victims, "runs": runs}
         self._scenes: _LRU = _LRU()
@@ -68,7 +70,7 @@ class ContextCache:
         config = run_config(run)
         scene_dir = unpack_scene(self.store.blobs, run.scene_ref, self.cache_dir)
         ctx = build_context(config, scene_dir, victim=self._victim(config, task_of(config)),
-                            scenes=self._scene_cache(scene_dir))
+                            scenes=self._scene_cache(scene_dir), local=self.local)
         from scheduler.transports import BlobTransportShelf
 
         ctx.gradients.shelf = BlobTransportShelf(self.store.blobs, run.scene_ref)
@@ -83,7 +85,7 @@ class ContextCache:
 
         if scene_dir in self._scenes:
             return self._scenes.touch(scene_dir)
-        self._scenes[scene_dir] = scenes = SceneCache(scene_dir)
+        self._scenes[scene_dir] = scenes = SceneCache(scene_dir, frozen=self.local.frozen)
         self.built["scenes"] += 1
         while len(self._scenes) > self.sizes["scenes"]:
             old_dir, old = self._scenes.popitem(last=False)
@@ -98,7 +100,8 @@ class ContextCache:
         key = (config.victim, config.device, task)
         if key in self._victims:
             return self._victims.touch(key)
-        self._victims[key] = victim = load_victim(config.victim, device=config.device, task=task)
+        self._victims[key] = victim = load_victim(config.victim, device=config.device, task=task,
+                                                  offline=self.local.hf_offline)
         self.built["victims"] += 1
         while len(self._victims) > self.sizes["victims"]:
             self._victims.popitem(last=False)

@@ -16,6 +16,7 @@ from typing import Any
 from scheduler import stages
 from scheduler.texture0 import starting_texture, visibility
 from undream.engine.context import RunContext, build_context
+from undream.settings import LocalSettings
 from undream.errors import SpecError, UndreamError
 from undream.progress import progress as progress_bar
 from undream.spec.run import RunConfig
@@ -33,9 +34,11 @@ class RunFailed(UndreamError):
     """A run ended failed (the message is the run's error)."""
 
 
-def resolve_scene(config: RunConfig, out: Path, base_dir: Path, reuse: bool = False) -> Path:
+def resolve_scene(config: RunConfig, out: Path, base_dir: Path, reuse: bool = False,
+                  local: LocalSettings = LocalSettings()) -> Path:
     """The run's scene directory: given, or initialised from a spec file into ``out/scene``
-    (``reuse``: the one an earlier start of the run already initialised there, if any)."""
+    (``reuse``: the one an earlier start of the run already initialised there, if any;
+    ``local``: this process's settings, read at the edge: the memory limit)."""
     from undream.scenedir.init import InitOptions, init_scene
 
     src = Path(config.scene)
@@ -47,7 +50,7 @@ def resolve_scene(config: RunConfig, out: Path, base_dir: Path, reuse: bool = Fa
         raise SpecError(f"scene: {src} is neither a scene directory nor a spec file")
     if reuse and (out / "scene" / "sequence.json").is_file():
         return out / "scene"
-    return init_scene(src, out / "scene", InitOptions(force=True))
+    return init_scene(src, out / "scene", InitOptions(force=True, memory_limit=local.memory_limit))
 
 
 class LocalDispatch:
@@ -86,14 +89,16 @@ def drain(store: Any, contexts: stages.Contexts, dispatch: LocalDispatch,
 
 
 def run_local(config: RunConfig, out: str | Path, base_dir: Path | None = None, progress: bool = True,
-              force: bool = False, resume: bool = False, source: Path | None = None) -> dict[str, Any]:
+              force: bool = False, resume: bool = False, source: Path | None = None,
+              local: LocalSettings = LocalSettings()) -> dict[str, Any]:
     """Run an attack end to end in this process and write its outputs to ``out``; returns results.
 
     Everything is validated before ``out`` is created or replaced
     (:mod:`scheduler.preflight`): ``force`` only replaces a folder an earlier
     run wrote, never one holding the run's scene or spec. ``resume``
     continues the run recorded in ``out`` instead (see :func:`resume_local`).
-    ``source``: the run config's file, named in validation errors.
+    ``source``: the run config's file, named in validation errors. ``local``:
+    this process's settings, read at the edge (:func:`undream.settings.load_local`).
 
     The process holds the run's lease while it runs (:class:`scheduler.lease.Lease`),
     so a run whose process is killed is found stale, marked failed and can be resumed.
@@ -108,17 +113,17 @@ def run_local(config: RunConfig, out: str | Path, base_dir: Path | None = None, 
     if resume:
         if force:
             raise SpecError("--resume continues the run in --out and --force replaces it: give one of them")
-        return resume_local(config, out, base_dir, progress, source)
+        return resume_local(config, out, base_dir, progress, source, local)
     inputs = (source,) if source is not None else ()
     check_output_folder(out, scene_source(config, base_dir), force, inputs=inputs)  # cheap refusals first
-    victim = preflight(config, base_dir, source).victim  # nothing written or deleted before this passes
+    victim = preflight(config, base_dir, source, local).victim  # nothing written or deleted before this passes
     if out.exists() and any(out.iterdir()):
         shutil.rmtree(out)  # check_output_folder: --force and a folder `undream run` wrote
     out.mkdir(parents=True, exist_ok=True)
     try:  # until the run is recorded, a failure (a scene whose init fails, a signal) removes what it wrote
         mark_output(out, config)
-        scene_dir = resolve_scene(config, out, base_dir)
-        ctx: RunContext = build_context(config, scene_dir, victim=victim)
+        scene_dir = resolve_scene(config, out, base_dir, local=local)
+        ctx: RunContext = build_context(config, scene_dir, victim=victim, local=local)
         store = open_store(config.store, out / "store")
         n = len(ctx.sequence.frames)
         run_id = stages.create(store, config, n, stages.FarmOptions(frames_per_task=n, **LOCAL_OPTIONS),
@@ -130,18 +135,18 @@ def run_local(config: RunConfig, out: str | Path, base_dir: Path | None = None, 
 
 
 def check_run(config: RunConfig, out: str | Path, base_dir: Path | None = None,
-              force: bool = False, source: Path | None = None) -> Any:
+              force: bool = False, source: Path | None = None, local: LocalSettings = LocalSettings()) -> Any:
     """``undream run --check``: every check :func:`run_local` makes before it writes, nothing
     written; the run's estimate (:class:`undream.render.budget.Estimate`)."""
     from scheduler.preflight import check_output_folder, preflight, scene_source
 
     out, base_dir = Path(out).resolve(), base_dir or Path.cwd()
     check_output_folder(out, scene_source(config, base_dir), force, inputs=(source,) if source is not None else ())
-    return preflight(config, base_dir, source).estimate
+    return preflight(config, base_dir, source, local).estimate
 
 
 def resume_local(config: RunConfig, out: Path, base_dir: Path, progress: bool = True,
-                 source: Path | None = None) -> dict[str, Any]:
+                 source: Path | None = None, local: LocalSettings = LocalSettings()) -> dict[str, Any]:
     """Continue the run that ``undream run`` recorded in ``out`` (after a crash, a kill or Ctrl-C).
 
     The run config must be the one the run was started with. A run whose
@@ -157,14 +162,15 @@ def resume_local(config: RunConfig, out: Path, base_dir: Path, progress: bool = 
     if not is_run_output(out):
         raise SpecError(f"--out {out}: --resume continues a run that `undream run` started there, "
                         "and this folder has none (no metadata.json of a run)")
-    victim = preflight(config, base_dir, source).victim
+    victim = preflight(config, base_dir, source, local).victim
     store = open_store(config.store, out / "store")
     run = _recorded_run(store, config, out)
     expire_stale(store, [run])
     run = store.get_run(run.id)
     if run.status == "done":
         return run.results or {}
-    ctx = build_context(config, resolve_scene(config, out, base_dir, reuse=True), victim=victim)
+    ctx = build_context(config, resolve_scene(config, out, base_dir, reuse=True, local=local), victim=victim,
+                        local=local)
     return _drive(store, ctx, run.id, progress, lambda dispatch: stages.resume(store, run.id, dispatch),
                   done=run.iteration)
 

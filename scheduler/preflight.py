@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 
 from undream.errors import SpecError, StoreError, UndreamError, already_exists
 from undream.redact import redact
+from undream.settings import LocalSettings
 from undream.spec.io import check_writable_target
 from undream.spec.run import RunConfig
 
@@ -45,41 +46,43 @@ class Checked:
     estimate: "Estimate"
 
 
-def preflight(config: RunConfig, base_dir: Path, source: str | Path | None = None) -> Checked:
+def preflight(config: RunConfig, base_dir: Path, source: str | Path | None = None,
+              local: LocalSettings = LocalSettings()) -> Checked:
     """Validate everything a run needs that rendering does not, cheapest first.
 
     The attack, the store URL, the scene (a spec file gets every check of
     ``undream init``: meshes with UVs, the texture, its verification renders'
     memory), the frames per step, the renders' memory (:mod:`undream.render.budget`),
     then the victim (loaded) and its labels. ``source``: the run config's
-    file, named at the start of every error.
+    file, named at the start of every error. ``local``: this process's settings,
+    read at the edge (Blender's interpreter, Unreal's spool, the memory limit, the hub).
     """
     if source is None:
-        return _preflight(config, base_dir)
+        return _preflight(config, base_dir, local)
     try:
-        return _preflight(config, base_dir)
+        return _preflight(config, base_dir, local)
     except StoreError:
         raise
     except UndreamError as err:
         raise type(err)(f"{source}: {err}") from None
 
 
-def _preflight(config: RunConfig, base_dir: Path) -> Checked:
+def _preflight(config: RunConfig, base_dir: Path, local: LocalSettings) -> Checked:
     from undream.engine.context import attack_of, class_ids, task_of
     from undream.render.budget import run_estimate
     from undream.sim import check_simulator
     from undream.victims import load_victim
 
     attack_of(config)
-    check_simulator(config.sim)
+    check_simulator(config.sim, local)
     if config.store:
         from undream.store.db import check_database
 
         check_database(config.store)  # reachable, and a database: before anything is written
-    seq = _sequence(scene_source(config, base_dir))
+    seq = _sequence(scene_source(config, base_dir), local.memory_limit)
     check_frames(config, len(seq.frames))
-    estimate = run_estimate(seq, config)
-    victim = load_victim(config.victim, device=config.device, task=task_of(config))
+    estimate = run_estimate(seq, config, limit=local.memory_limit)
+    victim = load_victim(config.victim, device=config.device, task=task_of(config), offline=local.hf_offline)
     class_ids(config, seq, victim)
     return Checked(victim, seq, estimate)
 
@@ -95,8 +98,8 @@ def check_frames(config: RunConfig, n_frames: int) -> None:
                         f"to attack (the sequence's {n_frames} frames, {len(held)} held out)")
 
 
-def _sequence(src: Path) -> "Sequence":
-    from undream.scenedir.init import check_source
+def _sequence(src: Path, memory_limit: int | None = None) -> "Sequence":
+    from undream.scenedir.init import InitOptions, check_source
     from undream.scenedir.verify import check_visible
     from undream.spec import load_sequence
 
@@ -106,7 +109,7 @@ def _sequence(src: Path) -> "Sequence":
         return seq
     if not src.is_file():
         raise SpecError(f"scene: {src} is neither a scene directory nor a spec file")
-    return check_source(src).sequence  # what `undream init` checks before writing OUT/scene
+    return check_source(src, InitOptions(memory_limit=memory_limit)).sequence  # what `undream init` checks before writing OUT/scene
 
 
 def is_run_output(folder: Path) -> bool:

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any, Sequence
 from scheduler import stages
 from scheduler.local import resolve_scene
 from scheduler.preflight import check_frames
+from undream.settings import LocalSettings
 from undream.spec.run import RunConfig
 
 if TYPE_CHECKING:
@@ -44,8 +45,9 @@ def _signature(config: RunConfig, scene_dir: Path) -> str:
 class Validator:
     """Validates run configs, building each distinct (scene, victim, labels) context once."""
 
-    def __init__(self, work_dir: Path) -> None:
+    def __init__(self, work_dir: Path, local: LocalSettings = LocalSettings()) -> None:
         self.work_dir = Path(work_dir)
+        self.local = local  # this process's settings, read at the edge
         self._scenes: dict[Path, Path] = {}
         self._sequences: dict[str, Any] = {}
 
@@ -53,7 +55,8 @@ class Validator:
         src = Path(config.scene) if Path(config.scene).is_absolute() else Path(base_dir) / config.scene
         src = src.resolve()
         if src not in self._scenes:
-            self._scenes[src] = resolve_scene(config, self.work_dir / str(len(self._scenes)), base_dir)
+            self._scenes[src] = resolve_scene(config, self.work_dir / str(len(self._scenes)), base_dir,
+                                              local=self.local)
         return self._scenes[src]
 
     def __call__(self, config: RunConfig, base_dir: Path) -> Prepared:
@@ -63,14 +66,14 @@ class Validator:
         scene_dir = self.scene(config, base_dir)
         key = _signature(config, scene_dir)
         if key not in self._sequences:
-            ctx = build_context(config, scene_dir)
+            ctx = build_context(config, scene_dir, local=self.local)
             ctx.scenes.close()
             self._sequences[key] = ctx.sequence
         else:  # same scene and victim: only the attack can differ
             attack_of(config)
         sequence = self._sequences[key]
         check_frames(config, len(sequence.frames))
-        run_estimate(sequence, config)  # the renders fit in memory; one line naming the field if not
+        run_estimate(sequence, config, limit=self.local.memory_limit)  # the renders fit in memory; one line naming the field if not
         return Prepared(config, scene_dir, len(sequence.frames))
 
 

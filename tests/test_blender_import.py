@@ -108,13 +108,12 @@ def test_export_actors_convert_like_the_object():
 
 # --- without Blender ---------------------------------------------------------------------------------
 
-def test_missing_interpreter_is_one_line_and_writes_nothing(tmp_path, monkeypatch):
+def test_missing_interpreter_is_one_line_and_writes_nothing(tmp_path):
     blend = tmp_path / "scene.blend"
     blend.write_bytes(b"BLENDER-v500 not really")
     missing = tmp_path / "nowhere" / "python"
-    monkeypatch.setenv("UNDREAM_BLENDER_PYTHON", str(missing))
     with pytest.raises(BridgeError) as err:
-        sequence_from_blend(BlendSource(blend, "Crate"), cache_dir=tmp_path / "cache")
+        sequence_from_blend(BlendSource(blend, "Crate", python=str(missing)), cache_dir=tmp_path / "cache")
     msg = str(err.value)
     assert "\n" not in msg and str(blend) in msg and str(missing) in msg and "UNDREAM_BLENDER_PYTHON" in msg
     assert not (tmp_path / "cache").exists()

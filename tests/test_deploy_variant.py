@@ -21,8 +21,10 @@ ROOT = Path(__file__).resolve().parents[1]
 PROBE = """
 import logging, sys
 logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s")
+from undream.settings import load_local
 from undream.variant import mitsuba
-print(mitsuba().variant())
+local = load_local()  # what a worker process and a command do at their start
+print(mitsuba(local.mi_variant, libcuda=local.libcuda_path, visible_devices=local.cuda_visible_devices).variant())
 """
 
 
@@ -102,10 +104,19 @@ DRJIT_ERR = ImportError("jit_init_thread_state(): the CUDA backend hasn't been i
                            "NVIDIA_DRIVER_CAPABILITIES=compute,utility,graphics"),
     (_FakeDriver(), True, "jit_init_thread_state(): the CUDA backend hasn't been initialized."),
 ])
-def test_the_reason_names_what_is_missing(monkeypatch, driver, optix, expected):
-    monkeypatch.delenv("DRJIT_LIBCUDA_PATH", raising=False)
-    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "")
-    reason = cuda_unusable_reason(DRJIT_ERR, load=_loader(driver, optix))
+def test_the_reason_names_what_is_missing(driver, optix, expected):
+    reason = cuda_unusable_reason(DRJIT_ERR, load=_loader(driver, optix), visible_devices="")
     assert reason.startswith(expected), reason
     if driver is not None and driver.devices == 0:
         assert reason == "no CUDA device visible (CUDA_VISIBLE_DEVICES='')"
+
+
+def test_the_edge_reads_the_driver_path_and_the_visible_devices():
+    """DRJIT_LIBCUDA_PATH and CUDA_VISIBLE_DEVICES are read by undream.settings, then passed down."""
+    from undream.settings import load_local
+
+    local = load_local({"DRJIT_LIBCUDA_PATH": "/opt/libcuda.so", "CUDA_VISIBLE_DEVICES": "3"})
+    assert (local.libcuda_path, local.cuda_visible_devices) == ("/opt/libcuda.so", "3")
+    assert load_local({}).libcuda_path == "libcuda.so.1" and load_local({}).cuda_visible_devices is None
+    reason = cuda_unusable_reason(DRJIT_ERR, load=_loader(None, True), libcuda=local.libcuda_path)
+    assert reason.startswith("no NVIDIA driver (/opt/libcuda.so cannot be loaded")

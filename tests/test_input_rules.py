@@ -16,7 +16,8 @@ import pytest
 import yaml
 
 from undream.errors import SpecError
-from undream.render.budget import RenderJob, check_renders, parse_bytes
+from undream.render.budget import RenderJob, check_renders
+from undream.settings import parse_bytes
 
 ROOT = Path(__file__).resolve().parents[1]
 

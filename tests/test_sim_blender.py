@@ -62,11 +62,10 @@ def test_run_config_sim_field():
         RunConfig(scene="s", sim="cycles")
 
 
-def test_missing_interpreter_is_one_line(tmp_path, monkeypatch):
+def test_missing_interpreter_is_one_line(tmp_path):
     missing = tmp_path / "no-blender" / "python"
-    monkeypatch.setenv("UNDREAM_BLENDER_PYTHON", str(missing))
     with pytest.raises(RenderError) as err:
-        make_backend("blender", tmp_path)
+        make_backend("blender", tmp_path, python=missing)
     msg = str(err.value)
     assert "\n" not in msg and str(missing) in msg and "setup.sh" in msg and "UNDREAM_BLENDER_PYTHON" in msg
 
@@ -91,8 +90,9 @@ def test_a_worker_gives_cycles_its_drjit_share(tmp_path):
     """A farm worker process with ``drjit_threads: 1`` renders Cycles on 1 thread too, unless
     ``UNDREAM_BLENDER_THREADS`` says otherwise (no Blender needed: the count the backend would pass)."""
     code = ("from undream.settings import Settings; from workers.runtime import init_process; "
-            f"init_process(Settings(drjit_threads=1, cache_dir={str(tmp_path)!r})); "
-            "from undream.sim.blender import cycles_threads; print(cycles_threads())")
+            f"local = init_process(Settings(drjit_threads=1, cache_dir={str(tmp_path)!r})); "
+            "from undream.sim import backend_options; from undream.sim.blender import cycles_threads; "
+            "print(cycles_threads(backend_options('blender', local)['threads']))")
     env = {k: v for k, v in __import__("os").environ.items() if k != "UNDREAM_BLENDER_THREADS"}
     for extra, expect in (({}, "1"), ({"UNDREAM_BLENDER_THREADS": "3"}, "3")):
         res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT,
@@ -288,9 +288,9 @@ def test_every_preset_agrees_with_mitsuba(cycles, tmp_path, mi):
         sim.close()
 
 
-def test_cycles_threads_follow_the_setting(cycles, tmp_path, mi, monkeypatch):
+def test_cycles_threads_follow_the_setting(cycles, tmp_path, mi):
     """The server renders with the thread count it was given (``threads``, else
-    ``$UNDREAM_BLENDER_THREADS``, else this process's Dr.Jit thread count, which a farm worker sets from
+    ``$UNDREAM_BLENDER_THREADS`` read at the edge, else this process's Dr.Jit thread count; a farm worker passes
     ``drjit_threads``), and reports what Cycles uses."""
     import drjit as dr
 
@@ -303,14 +303,16 @@ def test_cycles_threads_follow_the_setting(cycles, tmp_path, mi, monkeypatch):
     seq = Sequence("t", Asset("ball", "builtin:sphere", texture=TextureParam(resolution=(4, 4))),
                    (Frame(0, cam, Transform.identity()),))
     scene = init_scene(seq, tmp_path / "scene", InitOptions(verify_spp=1))
-    monkeypatch.delenv("UNDREAM_BLENDER_THREADS", raising=False)
+    from undream.settings import load_local
+    from undream.sim import backend_options
+
     before = dr.thread_count()
     try:
         dr.set_thread_count(3)
         assert cycles_threads() == 3 and cycles_threads(5) == 5
-        monkeypatch.setenv("UNDREAM_BLENDER_THREADS", "2")
-        assert cycles_threads() == 2
-        for given, expect in ((None, 2), (1, 1)):
+        set_by_user = backend_options("blender", load_local({"UNDREAM_BLENDER_THREADS": "2"}))["threads"]
+        assert cycles_threads(set_by_user) == 2
+        for given, expect in ((set_by_user, 2), (1, 1)):
             sim = make_backend("blender", scene, threads=given)
             try:
                 assert sim.started().server_threads == expect

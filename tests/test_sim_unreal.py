@@ -260,19 +260,18 @@ def test_editor_script_arguments():
     assert rt._object_path("/Game/Seq/DriveBy") == "/Game/Seq/DriveBy.DriveBy"
 
 
-def test_spool_setting_and_run_config(tmp_path, monkeypatch):
+def test_spool_setting_and_run_config(tmp_path):
+    from undream.settings import load_local
+
     cfg = RunConfig(scene="s", sim="unreal")
     assert RunConfig.from_json(json.loads(json.dumps(cfg.to_json()))) == cfg
     with pytest.raises(SpecError, match="eot.*needs sim: mitsuba"):
         RunConfig(scene="s", sim="unreal", eot={"camera_shift_m": 0.1})
-    monkeypatch.delenv("UNDREAM_UNREAL_SPOOL", raising=False)
     with pytest.raises(RenderError, match="set UNDREAM_UNREAL_SPOOL"):
-        check_simulator("unreal")
-    monkeypatch.setenv("UNDREAM_UNREAL_SPOOL", str(tmp_path / "missing"))
+        check_simulator("unreal", load_local({}))
     with pytest.raises(RenderError, match="spool folder .*missing not found"):
-        check_simulator("unreal")
-    monkeypatch.setenv("UNDREAM_UNREAL_SPOOL", str(tmp_path))
-    check_simulator("unreal")
+        check_simulator("unreal", load_local({"UNDREAM_UNREAL_SPOOL": str(tmp_path / "missing")}))
+    check_simulator("unreal", load_local({"UNDREAM_UNREAL_SPOOL": str(tmp_path)}))
 
 
 def test_cli_run_without_spool_writes_nothing(tmp_path):
@@ -305,10 +304,12 @@ def test_attack_run_with_unreal_frames(tmp_path, spool, monkeypatch, mi):
     cfg = RunConfig(scene=str(scene), name="ue", victim=make_victim(tmp_path / "victim"), loss="ce", sim="unreal",
                     attack={"name": "pgd", "eps": 32.0, "steps": 2}, sim_spp=2, grad_spp=2, eval_spp=2, seed=1,
                     holdout="none")
-    monkeypatch.setenv("UNDREAM_UNREAL_SPOOL", str(spool))
+    from undream.settings import load_local
+
     renderer = RecordedFrames()
     with Editor(spool, renderer):
-        res = run_local(cfg, tmp_path / "out", progress=False)
+        res = run_local(cfg, tmp_path / "out", progress=False,
+                        local=load_local({"UNDREAM_UNREAL_SPOOL": str(spool)}))
     meta = json.loads((tmp_path / "out" / "metadata.json").read_text())
     assert meta["versions"]["simulator"] == "unreal" and meta["versions"]["unreal"] == "5.4.4-fake"
     assert len(res["loss_per_iteration"]) == 2 and all(np.isfinite(res["loss_per_iteration"]))
@@ -316,10 +317,14 @@ def test_attack_run_with_unreal_frames(tmp_path, spool, monkeypatch, mi):
     assert len(list((tmp_path / "out" / "frames_adversarial").glob("*.png"))) == 3
 
 
-def test_bad_timeout_is_one_line(scene, spool, monkeypatch):
-    monkeypatch.setenv("UNDREAM_UNREAL_TIMEOUT", "soon")
-    with pytest.raises(RenderError, match="UNDREAM_UNREAL_TIMEOUT.*must be a number of seconds > 0, got 'soon'"):
-        make_backend("unreal", scene, spool=spool)
+def test_bad_timeout_is_one_line(scene, spool):
+    from undream.settings import SettingsError, load_local
+
+    with pytest.raises(SettingsError, match="UNDREAM_UNREAL_TIMEOUT.*must be a number of seconds > 0, got 'soon'"):
+        load_local({"UNDREAM_UNREAL_TIMEOUT": "soon"})
+    assert load_local({"UNDREAM_UNREAL_TIMEOUT": "7.5"}).unreal_timeout_s == 7.5
+    with pytest.raises(RenderError, match="timeout_s.*got 'soon'"):
+        make_backend("unreal", scene, spool=spool, timeout_s="soon")
     with pytest.raises(RenderError, match="got -1"):
         make_backend("unreal", scene, spool=spool, timeout_s=-1)
 

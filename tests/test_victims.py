@@ -363,10 +363,14 @@ def test_bad_target():
 
 
 def test_unknown_model_id_offline(monkeypatch):
-    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    from undream.settings import load_local
+
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")  # for huggingface_hub itself, which reads it too
+    offline = load_local({"HF_HUB_OFFLINE": "1"}).hf_offline
+    assert offline and load_local({"TRANSFORMERS_OFFLINE": "yes"}).hf_offline and not load_local({}).hf_offline
     with pytest.raises(VictimError, match=r"cannot load victim 'undream-tests/no-such-model'.*"
-                                          r"not in the Hugging Face cache.*save_pretrained"):
-        load_victim("undream-tests/no-such-model")
+                                          r"not in the Hugging Face cache \(no network allowed here\).*save_pretrained"):
+        load_victim("undream-tests/no-such-model", offline=offline)
 
 
 def test_missing_folder(tmp_path):

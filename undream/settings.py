@@ -14,6 +14,25 @@ Environment: ``UNDREAM_`` + the field name in capitals (``UNDREAM_BROKER_URL``,
 ``UNDREAM_RESULT_BACKEND``, ``UNDREAM_DATABASE_URL``, ``UNDREAM_BLOB_URL``,
 ``UNDREAM_CACHE_DIR``, ``UNDREAM_DRJIT_THREADS``, ``UNDREAM_DASHBOARD_TOKEN``, ...).
 Errors name the source (file and field, or variable) and the value (never a token's).
+
+Every command (``init``, ``run``, ``baseline``, ...) and every worker process
+also builds one :class:`LocalSettings` with :func:`load_local`: how this
+process renders and loads, from these variables (read here and nowhere else
+in the library)::
+
+    UNDREAM_MI_VARIANT       the Mitsuba variant (default: cuda_ad_rgb if it works, else llvm_ad_rgb)
+    UNDREAM_FROZEN           0: no Dr.Jit frozen functions for the simulator's renders (default 1)
+    UNDREAM_MEMORY_LIMIT     bytes a render may use (K/M/G/T suffix; default: MemAvailable)
+    UNDREAM_BLENDER_PYTHON   the interpreter that has bpy (default <repo>/.venv-blender/bin/python)
+    UNDREAM_BLENDER_THREADS  Cycles' CPU threads (default: the process's Dr.Jit threads)
+    UNDREAM_UNREAL_SPOOL     the spool folder shared with the Unreal editor's worker
+    UNDREAM_UNREAL_TIMEOUT   seconds to wait for one Unreal frame (default 600)
+    HF_HUB_OFFLINE, TRANSFORMERS_OFFLINE   1/true/yes/on: never ask the Hugging Face hub
+
+Other tools' variables, read to find things: ``XDG_DATA_HOME`` and
+``XDG_CACHE_HOME`` (default folders), ``DRJIT_LIBCUDA_PATH`` (the CUDA driver
+Dr.Jit loads), ``CUDA_VISIBLE_DEVICES`` (named when no GPU is visible). The
+environment handed to Blender's interpreter is :attr:`LocalSettings.child_env`.
 """
 from __future__ import annotations
 
@@ -32,12 +51,16 @@ class SettingsError(SpecError):
     """A setting is missing or invalid (the message names where it came from)."""
 
 
-def _data_home() -> Path:
-    return Path(os.environ.get("XDG_DATA_HOME") or Path.home() / ".local" / "share")
+def data_home(env: Mapping[str, str] | None = None) -> Path:
+    """``$XDG_DATA_HOME`` of ``env`` (default ``os.environ``), else ``~/.local/share``."""
+    env = os.environ if env is None else env
+    return Path(env.get("XDG_DATA_HOME") or Path.home() / ".local" / "share")
 
 
-def _cache_home() -> Path:
-    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+def cache_home(env: Mapping[str, str] | None = None) -> Path:
+    """``$XDG_CACHE_HOME`` of ``env`` (default ``os.environ``), else ``~/.cache``."""
+    env = os.environ if env is None else env
+    return Path(env.get("XDG_CACHE_HOME") or Path.home() / ".cache")
 
 
 @dataclass(frozen=True)
@@ -82,9 +105,9 @@ class Settings:
             raise SettingsError(f"result_backend: {self.backend_url.split('://')[0]}:// cannot hold the "
                                 "chords' results; give a Redis URL (redis://host:6379/0)")
         if not self.blob_url:
-            object.__setattr__(self, "blob_url", str(_data_home() / "undream" / "farm"))
+            object.__setattr__(self, "blob_url", str(data_home() / "undream" / "farm"))
         if not self.cache_dir:
-            object.__setattr__(self, "cache_dir", str(_cache_home() / "undream"))
+            object.__setattr__(self, "cache_dir", str(cache_home() / "undream"))
         for name, least in (("concurrency", 1), ("torch_threads", 1), ("farm_slots", 1),
                             ("max_attempts", 1), ("failure_budget", 0), ("store_retries", 0),
                             ("visibility_timeout", 1),
@@ -197,3 +220,89 @@ def load_settings(file: str | Path | None = None, env: Mapping[str, str] | None 
 def with_overrides(settings: Settings, **overrides: Any) -> Settings:
     """``settings`` with the ``overrides`` that are not None."""
     return replace(settings, **{k: v for k, v in overrides.items() if v is not None})
+
+
+# --- per-process settings of every command and worker process --------------------------------------
+
+MI_VARIANT_ENV = "UNDREAM_MI_VARIANT"
+FROZEN_ENV = "UNDREAM_FROZEN"
+MEMORY_LIMIT_ENV = "UNDREAM_MEMORY_LIMIT"  # bytes, or with a K/M/G/T suffix
+BLENDER_PYTHON_ENV = "UNDREAM_BLENDER_PYTHON"
+BLENDER_THREADS_ENV = "UNDREAM_BLENDER_THREADS"
+UNREAL_SPOOL_ENV = "UNDREAM_UNREAL_SPOOL"
+UNREAL_TIMEOUT_ENV = "UNDREAM_UNREAL_TIMEOUT"
+HF_OFFLINE_ENVS = ("HF_HUB_OFFLINE", "TRANSFORMERS_OFFLINE")
+DEFAULT_LIBCUDA = "libcuda.so.1"
+_TRUE = ("1", "true", "yes", "on")
+
+
+@dataclass(frozen=True)
+class LocalSettings:
+    """How this process renders and loads (see the module docstring for the variables).
+
+    Built at the edge by :func:`load_local`; the library gets it (or single
+    fields of it) as parameters. The defaults are the library's own defaults.
+    """
+
+    mi_variant: str | None = None  # None: the first of cuda_ad_rgb, llvm_ad_rgb that works
+    frozen: bool = True  # the simulator's renders as Dr.Jit frozen functions
+    memory_limit: int | None = None  # bytes a render may use; None: the system's MemAvailable
+    blender_python: str | None = None  # None: <repo>/.venv-blender/bin/python
+    blender_threads: int | None = None  # Cycles' threads; None: the process's Dr.Jit threads
+    unreal_spool: str | None = None  # the Unreal spool folder; None: none (sim: unreal refuses)
+    unreal_timeout_s: float | None = None  # None: undream.sim.unreal.DEFAULT_TIMEOUT_S
+    hf_offline: bool = False  # never ask the Hugging Face hub
+    cache_home: str = ""  # "" → ~/.cache
+    libcuda_path: str = DEFAULT_LIBCUDA  # the CUDA driver library Dr.Jit loads
+    cuda_visible_devices: str | None = None  # as set, for messages
+    # What child processes (Blender's interpreter) get as their environment; None: only what
+    # undream sets for them. Not compared or shown: it may hold secrets.
+    child_env: Mapping[str, str] | None = field(default=None, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        if not self.cache_home:
+            object.__setattr__(self, "cache_home", str(Path.home() / ".cache"))
+        if self.blender_threads is not None:
+            _check_int("blender_threads", self.blender_threads, 0)
+
+
+def parse_bytes(text: str, source: str = MEMORY_LIMIT_ENV) -> int:
+    """``"8G"``, ``"512M"`` or ``"1000000"`` as bytes (powers of 1024); SpecError naming ``source``."""
+    import re
+
+    match = re.fullmatch(r"\s*(\d+(?:\.\d+)?)\s*([KMGT]?)i?B?\s*", str(text), re.IGNORECASE)
+    if not match:
+        raise SettingsError(f"{source}: {text!r} is not a size; give bytes, or a number with K, M, G or T")
+    power = " KMGT".index(match.group(2).upper() or " ")
+    return int(float(match.group(1)) * 1024**power)
+
+
+def load_local(env: Mapping[str, str] | None = None) -> LocalSettings:
+    """The :class:`LocalSettings` of ``env`` (default ``os.environ``); SettingsError naming the variable."""
+    env = os.environ if env is None else env
+    threads = env.get(BLENDER_THREADS_ENV, "").strip()
+    if threads and not (threads.isdigit()):
+        raise SettingsError(f"{BLENDER_THREADS_ENV}: must be a whole number of threads (0: all cores), "
+                            f"got {threads!r}")
+    timeout = env.get(UNREAL_TIMEOUT_ENV, "").strip()
+    try:
+        timeout_s = float(timeout) if timeout else None
+    except ValueError:
+        raise SettingsError(f"{UNREAL_TIMEOUT_ENV}: must be a number of seconds > 0, got {timeout!r}") from None
+    if timeout_s is not None and not timeout_s > 0:
+        raise SettingsError(f"{UNREAL_TIMEOUT_ENV}: must be a number of seconds > 0, got {timeout!r}")
+    limit = env.get(MEMORY_LIMIT_ENV, "")
+    return LocalSettings(
+        mi_variant=env.get(MI_VARIANT_ENV) or None,
+        frozen=env.get(FROZEN_ENV, "1") != "0",
+        memory_limit=parse_bytes(limit) if limit else None,
+        blender_python=env.get(BLENDER_PYTHON_ENV) or None,
+        blender_threads=int(threads) if threads else None,
+        unreal_spool=env.get(UNREAL_SPOOL_ENV) or None,
+        unreal_timeout_s=timeout_s,
+        hf_offline=any(env.get(v, "").strip().lower() in _TRUE for v in HF_OFFLINE_ENVS),
+        cache_home=str(cache_home(env)),
+        libcuda_path=env.get("DRJIT_LIBCUDA_PATH") or DEFAULT_LIBCUDA,
+        cuda_visible_devices=env.get("CUDA_VISIBLE_DEVICES"),
+        child_env=dict(env),
+    )

@@ -3,7 +3,8 @@
 Mitsuba's JIT is not fork-safe, so only call :func:`mitsuba` in the process
 that renders (a worker child, a CLI command, a test).
 
-Without ``$UNDREAM_MI_VARIANT`` the first working variant of
+Without a variant asked for (``$UNDREAM_MI_VARIANT``, read at the edge by
+:func:`undream.settings.load_local`) the first working variant of
 :data:`PREFERRED` is used: ``cuda_ad_rgb`` on a machine (or container) that
 has an NVIDIA GPU, its driver and OptiX, else ``llvm_ad_rgb`` on the CPU. A
 fall-back from CUDA is logged (logger ``undream.variant``, level INFO: worker
@@ -13,7 +14,6 @@ from __future__ import annotations
 
 import ctypes
 import logging
-import os
 from types import ModuleType
 from typing import Callable
 
@@ -23,17 +23,19 @@ PREFERRED = ("cuda_ad_rgb", "llvm_ad_rgb")
 log = logging.getLogger(__name__)
 
 
-def mitsuba(variant: str | None = None) -> ModuleType:
+def mitsuba(variant: str | None = None, *, libcuda: str = "libcuda.so.1",
+            visible_devices: str | None = None) -> ModuleType:
     """Import Mitsuba with a differentiable RGB variant set and return the module.
 
-    ``variant`` (or ``$UNDREAM_MI_VARIANT``) forces one; otherwise the first of
-    ``cuda_ad_rgb``, ``llvm_ad_rgb`` that works is used. A variant already set
-    is kept when none is asked for. RenderError naming every variant's reason
-    when none works.
+    ``variant`` forces one (the edge passes ``$UNDREAM_MI_VARIANT`` here once,
+    before anything renders); otherwise the first of ``cuda_ad_rgb``,
+    ``llvm_ad_rgb`` that works is used. A variant already set is kept when
+    none is asked for. RenderError naming every variant's reason when none
+    works. ``libcuda`` and ``visible_devices``: see :func:`cuda_unusable_reason`.
     """
     import mitsuba as mi
 
-    wanted = variant or os.environ.get("UNDREAM_MI_VARIANT")
+    wanted = variant
     if wanted is None and mi.variant() is not None:
         return mi
     candidates = (wanted,) if wanted else PREFERRED
@@ -48,7 +50,8 @@ def mitsuba(variant: str | None = None) -> ModuleType:
                 import drjit as dr
                 dr.zeros(mi.Float, 1)  # fails here when no GPU/driver is present
         except Exception as err:  # mitsuba raises plain ImportError/RuntimeError
-            failed.append((name, cuda_unusable_reason(err) if name.startswith("cuda") else _one_line(err)))
+            failed.append((name, cuda_unusable_reason(err, libcuda=libcuda, visible_devices=visible_devices)
+                           if name.startswith("cuda") else _one_line(err)))
             continue
         if failed:
             log.info("falling back to Mitsuba variant %s: %s", name,
@@ -62,16 +65,19 @@ def _one_line(err: BaseException) -> str:
     return " ".join(str(err).split()) or type(err).__name__
 
 
-def cuda_unusable_reason(err: BaseException, load: Callable[[str], ctypes.CDLL] = ctypes.CDLL) -> str:
+def cuda_unusable_reason(err: BaseException, load: Callable[[str], ctypes.CDLL] = ctypes.CDLL, *,
+                         libcuda: str = "libcuda.so.1", visible_devices: str | None = None) -> str:
     """Why Dr.Jit's CUDA backend failed, in words: no driver, no device, no OptiX, or Dr.Jit's ``err``.
 
     Dr.Jit only says that "the CUDA backend hasn't been initialized"; this asks
-    the driver library itself (``$DRJIT_LIBCUDA_PATH`` or ``libcuda.so.1``, as
-    Dr.Jit does) and OptiX's (``libnvoptix.so.1``, which the NVIDIA container
-    toolkit mounts only with the ``graphics`` driver capability). ``load`` opens
-    a shared library (injectable for tests).
+    the driver library itself (``libcuda``: ``$DRJIT_LIBCUDA_PATH`` or
+    ``libcuda.so.1``, as Dr.Jit does, passed from the edge) and OptiX's
+    (``libnvoptix.so.1``, which the NVIDIA container toolkit mounts only with
+    the ``graphics`` driver capability). ``visible_devices``: the
+    ``CUDA_VISIBLE_DEVICES`` in force, named when no device is visible.
+    ``load`` opens a shared library (injectable for tests).
     """
-    driver = os.environ.get("DRJIT_LIBCUDA_PATH") or "libcuda.so.1"
+    driver = libcuda
     try:
         cuda = load(driver)
     except OSError:
@@ -87,7 +93,7 @@ def cuda_unusable_reason(err: BaseException, load: Callable[[str], ctypes.CDLL] 
     if status != 0:
         return f"the NVIDIA driver failed to start (CUDA error {status}; {_one_line(err)})"
     if count.value == 0:
-        visible = os.environ.get("CUDA_VISIBLE_DEVICES")
+        visible = visible_devices
         return "no CUDA device visible" + (f" (CUDA_VISIBLE_DEVICES={visible!r})" if visible is not None else "")
     try:
         load("libnvoptix.so.1")
@@ -95,3 +101,4 @@ def cuda_unusable_reason(err: BaseException, load: Callable[[str], ctypes.CDLL] 
         return ("OptiX (libnvoptix.so.1) is missing; in a container set "
                 "NVIDIA_DRIVER_CAPABILITIES=compute,utility,graphics")
     return _one_line(err)
+

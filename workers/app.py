@@ -22,7 +22,7 @@ from workers.queues import CONTROL_QUEUE, FRAMES_QUEUE, QUEUES
 if TYPE_CHECKING:
     from celery import Celery
 
-    from undream.settings import Settings
+    from undream.settings import LocalSettings, Settings
 
 __all__ = ["BrokerError", "CONTROL_QUEUE", "FRAMES_QUEUE", "QUEUES", "check_reachable", "create_celery_app"]
 
@@ -31,9 +31,15 @@ class BrokerError(UndreamError):
     """The broker or the result backend cannot be reached."""
 
 
-def create_celery_app(settings: "Settings") -> "Celery":
-    """A Celery app on ``settings``' broker and result backend, with undream's tasks registered."""
+def create_celery_app(settings: "Settings", local: "LocalSettings | None" = None) -> "Celery":
+    """A Celery app on ``settings``' broker and result backend, with undream's tasks registered.
+
+    ``local``: the settings of the processes that run its tasks (None: read from the environment
+    now, :func:`undream.settings.load_local`), kept as ``app.undream_local`` for :mod:`workers.runtime`.
+    """
     from celery import Celery
+
+    from undream.settings import load_local
 
     from workers.tasks import register_tasks
 
@@ -62,6 +68,7 @@ def create_celery_app(settings: "Settings") -> "Celery":
         worker_send_task_events=True, task_send_sent_event=True,  # task events: Flower can watch the farm
     )
     app.undream_settings = settings  # type: ignore[attr-defined]  # read by workers.runtime
+    app.undream_local = load_local() if local is None else local  # type: ignore[attr-defined]
     register_tasks(app)
     return app
 

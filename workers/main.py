@@ -33,7 +33,7 @@ def run_worker(settings: "Settings", loglevel: str = "INFO", hostname: str | Non
     app = create_celery_app(settings)
 
     def _child_init(**_: Any) -> None:
-        init_process(settings)
+        app.undream_local = init_process(settings, app.undream_local)  # type: ignore[attr-defined]
 
     def _ready(**_: Any) -> None:
         heavy = [m for m in HEAVY if m in sys.modules]

@@ -3,7 +3,10 @@
 Built lazily in the process that runs tasks (a prefork child), never in the
 worker's parent: database engines and Mitsuba's JIT are not fork-safe.
 :func:`init_process` runs in each child as it starts (``worker_process_init``)
-and sets the thread counts there.
+and sets the thread counts there. The process's :class:`~undream.settings.LocalSettings`
+(``UNDREAM_MI_VARIANT``, ``UNDREAM_BLENDER_THREADS``, ...) are read once at
+the worker's start (:func:`workers.app.create_celery_app`) and passed down;
+nothing here writes the environment.
 """
 from __future__ import annotations
 
@@ -18,7 +21,7 @@ if TYPE_CHECKING:
     from celery import Celery
 
     from scheduler.contexts import ContextCache
-    from undream.settings import Settings
+    from undream.settings import LocalSettings, Settings
     from undream.store import Store
     from workers.dispatch import CeleryDispatch
 
@@ -40,9 +43,11 @@ class Runtime:
         from workers.dispatch import CeleryDispatch
 
         settings: Settings = app.undream_settings  # type: ignore[attr-defined]
+        local: LocalSettings = app.undream_local  # type: ignore[attr-defined]
         self.pid = os.getpid()
         self.store: Store = open_store(settings.database_url, settings.blob_url)
-        self.contexts: ContextCache = ContextCache(self.store, settings.cache_dir, scenes=settings.scene_cache)
+        self.contexts: ContextCache = ContextCache(self.store, settings.cache_dir, scenes=settings.scene_cache,
+                                                   local=local)
         self.dispatch: CeleryDispatch = CeleryDispatch(app)
         self.textures: OrderedDict[tuple, dict] = OrderedDict()  # texture versions read (run, phase, k)
 
@@ -93,24 +98,31 @@ def claim_cores(n: int, lock_dir: Path) -> list[int]:
     return [c for c, _ in got]
 
 
-def init_process(settings: "Settings") -> None:
+def init_process(settings: "Settings", local: "LocalSettings | None" = None) -> "LocalSettings":
     """In a worker child as it starts: its cores, Dr.Jit's, Cycles' and torch's thread counts, Mitsuba's variant.
 
-    Cycles (``sim: blender``) renders on the same share of cores as Dr.Jit
-    unless ``$UNDREAM_BLENDER_THREADS`` says otherwise (its render server
-    inherits the pinning too).
+    ``local``: the process's settings read at the worker's start (None: read
+    here, :func:`undream.settings.load_local`). Returns them with Cycles'
+    threads (``sim: blender``) set to the same share of cores as Dr.Jit unless
+    ``$UNDREAM_BLENDER_THREADS`` said otherwise (its render server inherits
+    the pinning too); the caller hands them to the process's :class:`Runtime`.
     """
+    from dataclasses import replace
+
     import drjit as dr
     import torch
 
-    from undream.sim.blender import THREADS_ENV
+    from undream.settings import load_local
     from undream.variant import mitsuba
 
+    local = load_local() if local is None else local
     threads = drjit_threads_for(settings)
     cores = claim_cores(threads, Path(settings.cache_dir) / "cores")
     dr.set_thread_count(max(threads, MIN_DRJIT_POOL))
-    os.environ.setdefault(THREADS_ENV, str(threads))
+    if local.blender_threads is None:
+        local = replace(local, blender_threads=threads)
     torch.set_num_threads(settings.torch_threads)
-    mitsuba()
+    mitsuba(local.mi_variant, libcuda=local.libcuda_path, visible_devices=local.cuda_visible_devices)
     log.info("worker process %d: cores %s, Dr.Jit pool %d, torch threads %d", os.getpid(), cores,
              dr.thread_count(), settings.torch_threads)
+    return local

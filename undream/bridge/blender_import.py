@@ -53,7 +53,7 @@ import re
 import shutil
 import subprocess
 import tempfile
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -83,6 +83,12 @@ class BlendSource:
     object: str
     camera: str | None = None
     actors: tuple[str, ...] = ()
+    # How to run Blender, from the edge (undream.settings.LocalSettings): its interpreter (None: the
+    # default), where the object's mesh is cached (None: ~/.cache/undream/blend) and the environment
+    # its process gets (None: only what undream sets). Not part of what the source is.
+    python: str | None = field(default=None, compare=False)
+    cache_dir: str | None = field(default=None, compare=False)
+    env: Mapping[str, str] | None = field(default=None, repr=False, compare=False)
 
     def __str__(self) -> str:
         return str(self.path)
@@ -106,32 +112,41 @@ class BlendMesh:
 
 def sequence_from_blend(source: BlendSource, texture: TextureParam | None = None,
                         environment: Environment | None = None, python: str | Path | None = None,
-                        cache_dir: str | Path | None = None) -> Sequence:
+                        cache_dir: str | Path | None = None, env: Mapping[str, str] | None = None) -> Sequence:
     """Read ``source`` with Blender's Python and return its canonical sequence (see the module docstring).
 
     Every error is one :class:`BridgeError` line naming the file: no Blender
     Python, no such object or camera, an object without UVs, a camera undream
     cannot reproduce. The object's mesh is written to ``cache_dir`` (default
+    ``source.cache_dir``, else ``~/.cache/undream/blend``; the edge passes
     ``$XDG_CACHE_HOME/undream/blend``) only once everything checked out.
+    ``python`` and ``env``: Blender's interpreter and its environment (default
+    ``source``'s, see :func:`run_export`).
     """
     path = Path(source.path)
     if not path.is_file():
         raise BridgeError(f"{path}: file not found")
-    data = run_export(source, python)
+    data = run_export(source, python, env)
     try:
         seq, meshes = sequence_from_export(data, texture, environment, name=path.stem)
     except (BridgeError, SpecError) as err:
         raise BridgeError(" ".join(f"{path}: {err}".split())) from None
-    cache = Path(cache_dir) if cache_dir else _cache_home() / "undream" / "blend"
+    cache_dir = cache_dir or source.cache_dir
+    cache = Path(cache_dir) if cache_dir else Path.home() / ".cache" / "undream" / "blend"
     files = {name: str(write_cached_ply(mesh, cache)) for name, mesh in meshes.items()}
     return replace(seq, asset=replace(seq.asset, mesh=files[seq.asset.name]),
                    actors=tuple(replace(a, mesh=files[a.name]) for a in seq.actors))
 
 
-def run_export(source: BlendSource, python: str | Path | None = None) -> Mapping[str, Any]:
-    """Run :mod:`undream.bridge.blender_export` on ``source`` in Blender's interpreter; its JSON."""
+def run_export(source: BlendSource, python: str | Path | None = None,
+               env: Mapping[str, str] | None = None) -> Mapping[str, Any]:
+    """Run :mod:`undream.bridge.blender_export` on ``source`` in Blender's interpreter; its JSON.
+
+    ``python``: the interpreter (default ``source.python``, else :func:`blender_python`'s default);
+    ``env``: its environment (default ``source.env``; see :func:`blender_env`)."""
     path = Path(source.path)
-    python = Path(python) if python else blender_python()
+    python = blender_python(python or source.python)
+    env = env if env is not None else source.env
     problem = bpy_problem(python)
     if problem is not None:
         kind, reason = problem
@@ -145,7 +160,7 @@ def run_export(source: BlendSource, python: str | Path | None = None) -> Mapping
         for actor in source.actors:
             cmd += ["--actor", actor]
         try:
-            proc = subprocess.run(cmd, capture_output=True, text=True, env=blender_env(root), cwd=str(root),
+            proc = subprocess.run(cmd, capture_output=True, text=True, env=blender_env(root, env), cwd=str(root),
                                   timeout=EXPORT_TIMEOUT_S)
         except subprocess.TimeoutExpired:
             raise BridgeError(f"{path}: Blender did not finish the export in {EXPORT_TIMEOUT_S} s") from None
@@ -328,6 +343,3 @@ def write_cached_ply(mesh: BlendMesh, cache: Path) -> Path:
         os.replace(tmp, path)
     return path
 
-
-def _cache_home() -> Path:
-    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")

@@ -4,27 +4,28 @@
 so everything that imports ``bpy`` runs in a separate interpreter
 (``.venv-blender``, made by ``deploy/setup.sh``) as a subprocess: the Cycles
 render server (:mod:`undream.sim.blender_server`) and the ``.blend`` exporter
-(:mod:`undream.bridge.blender_export`). The interpreter is
-``$UNDREAM_BLENDER_PYTHON`` or ``.venv-blender/bin/python`` next to the undream
-package. Standard library only.
+(:mod:`undream.bridge.blender_export`). The interpreter is the one the caller
+passes (the edge reads ``$UNDREAM_BLENDER_PYTHON``,
+:class:`undream.settings.LocalSettings`) or ``.venv-blender/bin/python`` next
+to the undream package. Standard library only.
 """
 from __future__ import annotations
 
-import os
 import subprocess
 import tempfile
 from functools import lru_cache
 from pathlib import Path
+from typing import Mapping
 
 PYTHON_ENV = "UNDREAM_BLENDER_PYTHON"
 PACKAGE_DIR = Path(__file__).resolve().parents[1]  # .../undream
 HINT = f"run ./deploy/setup.sh or set {PYTHON_ENV}"
 
 
-def blender_python() -> Path:
-    """The interpreter that has ``bpy``: ``$UNDREAM_BLENDER_PYTHON`` or ``<repo>/.venv-blender/bin/python``."""
-    env = os.environ.get(PYTHON_ENV)
-    return Path(env) if env else PACKAGE_DIR.parent / ".venv-blender" / "bin" / "python"
+def blender_python(python: str | Path | None = None) -> Path:
+    """The interpreter that has ``bpy``: ``python`` (``$UNDREAM_BLENDER_PYTHON`` at the edge) or
+    ``<repo>/.venv-blender/bin/python``."""
+    return Path(python) if python else PACKAGE_DIR.parent / ".venv-blender" / "bin" / "python"
 
 
 @lru_cache(maxsize=4)
@@ -54,6 +55,8 @@ def import_root() -> Path:
     return root
 
 
-def blender_env(root: Path) -> dict[str, str]:
-    """The environment for undream code in Blender's interpreter (``root`` from :func:`import_root`)."""
-    return {**os.environ, "PYTHONPATH": str(root), "PYTHONNOUSERSITE": "1"}
+def blender_env(root: Path, base: Mapping[str, str] | None = None) -> dict[str, str]:
+    """The environment for undream code in Blender's interpreter (``root`` from :func:`import_root`):
+    ``base`` (the edge passes its environment, :attr:`undream.settings.LocalSettings.child_env`;
+    None: nothing else) with undream's ``PYTHONPATH`` and no user site-packages."""
+    return {**(base or {}), "PYTHONPATH": str(root), "PYTHONNOUSERSITE": "1"}

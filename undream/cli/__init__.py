@@ -12,7 +12,7 @@ from pathlib import Path
 import click
 
 from undream.cli.errors import OneLineGroup, one_line_errors
-from undream.cli.options import check_option, force_option, out_option, progress_option, spp_option
+from undream.cli.options import check_option, force_option, local_settings, out_option, progress_option, spp_option
 
 
 @click.group(cls=OneLineGroup)
@@ -45,12 +45,15 @@ def init_cmd(spec: Path, out: Path, force: bool, verify_spp: int, scene_spp: int
     from undream.errors import SpecError
     from undream.scenedir.init import InitOptions, Source, check_init, init_scene
 
+    local = local_settings()
     source: Source = spec
     if spec.suffix.lower() == ".blend" and object_name:
-        source = BlendSource(spec, object_name, camera, actors)
+        source = BlendSource(spec, object_name, camera, actors, python=local.blender_python,
+                             cache_dir=str(Path(local.cache_home) / "undream" / "blend"), env=local.child_env)
     elif spec.suffix.lower() != ".blend" and (object_name or camera or actors):
         raise SpecError(f"{spec}: --object, --camera and --actor are for .blend files only")
-    options = InitOptions(force=force, verify_spp=verify_spp, scene_spp=scene_spp, progress=progress)
+    options = InitOptions(force=force, verify_spp=verify_spp, scene_spp=scene_spp, progress=progress,
+                          memory_limit=local.memory_limit)
     check_output_folder(out, None, force, command="undream init", inputs=(spec,))  # the one output-folder rule
     if check:
         click.echo(f"ok: {spec} can be written to {out}: {check_init(source, out, options).describe()}; "
@@ -75,12 +78,13 @@ def run_cmd(run_yaml: Path, out: Path, force: bool, resume: bool, check: bool, p
     from undream.spec.run import load_run_config
 
     config = load_run_config(run_yaml)
+    local = local_settings()
     if check:
-        estimate = check_run(config, out, base_dir=run_yaml.parent, force=force, source=run_yaml)
+        estimate = check_run(config, out, base_dir=run_yaml.parent, force=force, source=run_yaml, local=local)
         click.echo(f"ok: {run_yaml} is valid: {estimate.describe()}; nothing written")
         return
     res = run_local(config, out, base_dir=run_yaml.parent, progress=progress, force=force, resume=resume,
-                    source=run_yaml)
+                    source=run_yaml, local=local)
     for name, split in (("attacked frames", res.get("attacked")), ("held-out frames", res.get("held_out"))):
         if split:
             b, a = split["benign"], split["adversarial"]

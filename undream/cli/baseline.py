@@ -6,7 +6,7 @@ from pathlib import Path
 import click
 
 from undream.cli.errors import one_line_errors
-from undream.cli.options import force_option, out_option, progress_option
+from undream.cli.options import force_option, local_settings, out_option, progress_option
 
 
 @click.command("baseline")
@@ -21,8 +21,9 @@ def baseline_cmd(run_yaml: Path, out: Path, force: bool, progress: bool) -> None
     from scheduler.baseline import run_patch_baseline
     from undream.spec.run import load_run_config
 
-    res = run_patch_baseline(load_run_config(run_yaml), out, run_yaml.parent, force=force, progress=progress,
-                             source=run_yaml)
+    config = load_run_config(run_yaml)
+    res = run_patch_baseline(config, out, run_yaml.parent, force=force, progress=progress,
+                             source=run_yaml, local=local_settings())
     image = res["in_image_space"]
     click.echo(f"in image space ({len(image['frames'])} attacked frames): {image['metric']} {_fmt(image['value'])}")
     for split, judged in res["in_simulator"].items():

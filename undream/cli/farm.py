@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any, Callable
 import click
 
 from undream.cli.errors import one_line_errors
-from undream.cli.options import check_option
+from undream.cli.options import check_option, local_settings
 
 if TYPE_CHECKING:
     from celery import Celery
@@ -123,7 +123,7 @@ def submit_cmd(run_yaml: Path, out: Path | None, check: bool, settings: Callable
         _check_farm_out(out, [scene_source(config, run_yaml.parent)], run_yaml, "undream submit")
     with tempfile.TemporaryDirectory(prefix="undream-submit-") as tmp:
         try:  # the run's own checks first: bad input is refused before the services are needed
-            prepared = Validator(Path(tmp))(config, run_yaml.parent)
+            prepared = Validator(Path(tmp), local_settings())(config, run_yaml.parent)
         except StoreError:
             raise
         except UndreamError as err:
@@ -300,7 +300,7 @@ def _validate_sweep(sweep: Any, sweep_yaml: Path, tmp: Path) -> list[Any]:
     from scheduler.submit import Validator
     from undream.errors import SpecError, StoreError, UndreamError
 
-    validate, prepared = Validator(tmp), []
+    validate, prepared = Validator(tmp, local_settings()), []
     for i, run in enumerate(sweep.runs):
         try:
             prepared.append(validate(run.config, run.base_dir))

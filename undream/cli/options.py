@@ -2,9 +2,12 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import click
+
+if TYPE_CHECKING:
+    from undream.settings import LocalSettings
 
 Decorator = Callable[[Callable[..., Any]], Callable[..., Any]]
 
@@ -25,3 +28,20 @@ def out_option(help: str) -> Decorator:
 def spp_option(flag: str, default: int, help: str, most: int = 4096) -> Decorator:
     """A samples-per-pixel option ``flag`` in [1, most]."""
     return click.option(flag, default=default, show_default=True, type=click.IntRange(1, most), help=help)
+
+
+def local_settings(render: bool = True) -> "LocalSettings":
+    """This process's settings, read from the environment here at the edge
+    (:func:`undream.settings.load_local`: ``UNDREAM_MI_VARIANT``, ``UNDREAM_MEMORY_LIMIT``, ...).
+
+    ``render``: the command renders, so Mitsuba's variant is chosen now, before anything renders
+    (:func:`undream.variant.mitsuba`; later calls without a variant keep it).
+    """
+    from undream.settings import load_local
+
+    local = load_local()
+    if render:
+        from undream.variant import mitsuba
+
+        mitsuba(local.mi_variant, libcuda=local.libcuda_path, visible_devices=local.cuda_visible_devices)
+    return local

@@ -14,7 +14,7 @@ from typing import Any
 import click
 
 from undream.cli.errors import one_line_errors
-from undream.cli.options import out_option, progress_option, seed_option, spp_option
+from undream.cli.options import local_settings, out_option, progress_option, seed_option, spp_option
 
 
 def _command() -> str:
@@ -46,6 +46,7 @@ def make_dataset_cmd(out: Path, n: int, seed: int, split: str, size: int, spp: i
     """Render N images of the built-in assets with their classes and boxes."""
     from undream.training.dataset import DatasetConfig, make_dataset
 
+    local_settings()  # Mitsuba's variant, from UNDREAM_MI_VARIANT (the dataset's own is set around its renders)
     done = make_dataset(out, DatasetConfig(n=n, seed=seed, split=split, size=size, spp=spp),
                         progress=progress, command=_command())
     click.echo(f"wrote {n} images to {done}")
@@ -90,7 +91,7 @@ def evaluate_cmd(victim: str, data: Path, json_out: Path | None) -> None:
     from undream.training.train import evaluate
 
     ds = load_dataset(data)  # the cheaper check first
-    result = evaluate(load_victim(victim), ds)
+    result = evaluate(load_victim(victim, offline=local_settings(render=False).hf_offline), ds)
     text = json.dumps(result, indent=2)
     click.echo(text)
     if json_out is not None:

@@ -9,7 +9,8 @@ from undream.engine.gradient import GradientPath
 from undream.errors import SpecError, VictimError
 from undream.render.scene_cache import SceneCache
 from undream.scenedir.verify import mask_box, read_mask
-from undream.sim import SimulatorBackend, make_backend
+from undream.settings import LocalSettings
+from undream.sim import SimulatorBackend, backend_options, make_backend
 from undream.spec import Sequence, load_sequence
 from undream.spec.run import TASK_LOSSES, RunConfig
 
@@ -76,12 +77,13 @@ def task_of(config: RunConfig) -> str:
 
 
 def build_context(config: RunConfig, scene_dir: Path, *, victim: "Victim | None" = None,
-                  scenes: SceneCache | None = None) -> RunContext:
+                  scenes: SceneCache | None = None, local: LocalSettings = LocalSettings()) -> RunContext:
     """Load the sequence, scenes, victim and attack of a run.
 
     ``victim`` and ``scenes``: already loaded ones to share (a farm worker
     serving several runs of one scene and victim loads them once); loaded here
-    when None. Everything else is the run's own.
+    when None. Everything else is the run's own. ``local``: this process's
+    settings, read at the edge (frozen renders, the simulator's options, the hub).
     """
     import torch
 
@@ -94,14 +96,15 @@ def build_context(config: RunConfig, scene_dir: Path, *, victim: "Victim | None"
     seq = load_sequence(scene_dir / "sequence.json")
     task = task_of(config)
     if victim is None:
-        victim = load_victim(config.victim, device=config.device, task=task)
+        victim = load_victim(config.victim, device=config.device, task=task, offline=local.hf_offline)
     label, target = class_ids(config, seq, victim)
     targets = [Target(label=label, target_label=target,
                       box=mask_box(read_mask(scene_dir, f.index)) if task == "detection" else None)
                for f in seq.frames]
     attack = attack_of(config)
     if scenes is None:
-        scenes = SceneCache(scene_dir)
-    sim = make_backend(config.sim, scene_dir, **({"scenes": scenes} if config.sim == "mitsuba" else {}))
+        scenes = SceneCache(scene_dir, frozen=local.frozen)
+    sim = make_backend(config.sim, scene_dir, **({"scenes": scenes} if config.sim == "mitsuba" else {}),
+                       **backend_options(config.sim, local))
     gradients = GradientPath(scenes, config.gradient, config.transport_refresh, config.seed)
     return RunContext(config, scene_dir, seq, scenes, sim, victim, targets, attack, gradients)

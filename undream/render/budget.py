@@ -19,11 +19,11 @@ for an order of magnitude, not a promise (a GPU is far faster).
 from __future__ import annotations
 
 import os
-import re
 from dataclasses import dataclass
 from typing import Iterable
 
 from undream.errors import SpecError
+from undream.settings import MEMORY_LIMIT_ENV
 from undream.spec import Sequence
 from undream.spec.run import RunConfig
 
@@ -34,7 +34,6 @@ TRANSPORT_BYTES_PER_SAMPLE = 10  # a captured transport, per gradient sample
 MAX_TRANSPORT_BYTES = 4 << 30  # undream.engine.gradient's cap on captured transports
 MAX_SAMPLES_PER_RENDER = 2**32 - 1  # Dr.Jit's wavefront: one lane per sample
 CPU_SAMPLES_PER_SECOND = 3.0e6  # llvm_ad_rgb on 2 cores, measured 1.5–6.3 M/s
-MEMORY_LIMIT_ENV = "UNDREAM_MEMORY_LIMIT"  # bytes, or with a K/M/G/T suffix
 
 
 @dataclass(frozen=True)
@@ -84,19 +83,9 @@ def _size(n: float) -> str:
     return f"{n:.3g} TB"
 
 
-def parse_bytes(text: str, source: str = MEMORY_LIMIT_ENV) -> int:
-    """``"8G"``, ``"512M"`` or ``"1000000"`` as bytes (powers of 1024); SpecError naming ``source``."""
-    match = re.fullmatch(r"\s*(\d+(?:\.\d+)?)\s*([KMGT]?)i?B?\s*", str(text), re.IGNORECASE)
-    if not match:
-        raise SpecError(f"{source}: {text!r} is not a size; give bytes, or a number with K, M, G or T")
-    power = " KMGT".index(match.group(2).upper() or " ")
-    return int(float(match.group(1)) * 1024**power)
-
-
 def available_memory() -> int:
-    """Bytes a render may use: ``$UNDREAM_MEMORY_LIMIT`` if set, else the system's MemAvailable."""
-    if os.environ.get(MEMORY_LIMIT_ENV):
-        return parse_bytes(os.environ[MEMORY_LIMIT_ENV])
+    """Bytes a render may use: the system's MemAvailable (a limit the user sets,
+    ``$UNDREAM_MEMORY_LIMIT``, is read at the edge and passed as ``limit``)."""
     try:
         with open("/proc/meminfo") as f:
             for line in f:
@@ -113,7 +102,7 @@ def check_renders(jobs: Iterable[RenderJob], transport_samples: int = 0, limit: 
     SpecError naming the field when one render has more samples than Dr.Jit
     can index (2³² − 1), or when the largest render (plus the captured
     transports of ``transport_samples`` gradient samples) needs more memory
-    than ``limit`` (default :func:`available_memory`).
+    than ``limit`` (bytes; None: :func:`available_memory`).
     """
     jobs = list(jobs)
     for job in jobs:

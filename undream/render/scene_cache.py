@@ -17,7 +17,6 @@ names or differs in a host-side (non-JIT) parameter starts a group of its own.
 """
 from __future__ import annotations
 
-import os
 import re
 from collections import OrderedDict
 from dataclasses import dataclass, field
@@ -79,20 +78,20 @@ class SceneCache:
 
     ``max_loaded`` bounds the scenes kept loaded at once (least recently used
     ones are dropped and reloaded when needed again). ``frozen`` runs the
-    renders as Dr.Jit frozen functions (default: on, unless the environment
-    sets ``UNDREAM_FROZEN=0``). ``share=False`` gives every frame a scene of
+    renders as Dr.Jit frozen functions (default: on; the edge passes
+    ``UNDREAM_FROZEN=0`` as False). ``share=False`` gives every frame a scene of
     its own (the engine's former behaviour, kept for benchmarks and tests).
     """
 
     def __init__(self, scene_dir: str | Path, mi: ModuleType | None = None, max_loaded: int = 4,
-                 frozen: bool | None = None, share: bool = True):
+                 frozen: bool = True, share: bool = True):
         from undream.variant import mitsuba
 
         self.dir = Path(scene_dir)
         self.mi = mi or mitsuba()
         self.max_loaded = max_loaded
         self.share = share
-        self.frozen = os.environ.get("UNDREAM_FROZEN", "1") != "0" if frozen is None else frozen
+        self.frozen = bool(frozen)
         self._frozen: dict[str, Any] = {}
         self._groups: dict[tuple[str, tuple[str, int]], _Group] = {}
         self._states: dict[tuple[str, int], _FrameState] = {}

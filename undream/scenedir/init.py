@@ -52,6 +52,7 @@ class InitOptions:
     verify_spp: int = 16  # samples per pixel of the verification renders
     scene_spp: int = 64  # the default ``$spp`` written into the XML files
     progress: bool = False  # show a progress bar
+    memory_limit: int | None = None  # bytes the renders may use (None: MemAvailable; the edge reads $UNDREAM_MEMORY_LIMIT)
 
 
 @dataclass(frozen=True)
@@ -87,7 +88,7 @@ def check_source(source: Source, options: InitOptions = InitOptions(),
     except AssetError as err:
         raise AssetError(f"{source}: {err}" if not isinstance(source, Sequence) else str(err)) from None
     try:
-        estimate = init_estimate(seq, options.verify_spp)
+        estimate = init_estimate(seq, options.verify_spp, limit=options.memory_limit)
     except SpecError as err:
         raise SpecError(f"{source}: {err}" if not isinstance(source, Sequence) else str(err)) from None
     return CheckedSource(seq, base_dir, spec_text, meshes, texture, estimate, tuple(envmaps))

@@ -16,6 +16,7 @@ from typing import Any, Callable, Protocol, runtime_checkable
 import numpy as np
 
 from undream.errors import RenderError
+from undream.settings import LocalSettings
 
 
 @runtime_checkable
@@ -59,19 +60,29 @@ def make_backend(name: str, scene_dir: str | Path, **options) -> SimulatorBacken
     return _BACKENDS[name](Path(scene_dir), **options)
 
 
-def check_simulator(name: str) -> None:
-    """Raise a one-line :class:`RenderError` unless backend ``name`` can run here (before anything is written)."""
+def backend_options(name: str, local: LocalSettings = LocalSettings()) -> dict[str, Any]:
+    """The options of backend ``name`` that come from this process's settings (read at the edge)."""
+    if name == "blender":
+        return {"threads": local.blender_threads, "python": local.blender_python, "env": local.child_env}
+    if name == "unreal":
+        return {"spool": local.unreal_spool, "timeout_s": local.unreal_timeout_s}
+    return {}
+
+
+def check_simulator(name: str, local: LocalSettings = LocalSettings()) -> None:
+    """Raise a one-line :class:`RenderError` unless backend ``name`` can run here (before anything is
+    written), with this process's settings ``local`` (Blender's interpreter, Unreal's spool)."""
     _load_builtin()
     if name not in _BACKENDS:
         raise RenderError(f"sim: unknown simulator {name!r} (one of {', '.join(sorted(_BACKENDS))})")
     if name == "blender":
         from undream.sim.blender import check_blender
 
-        check_blender()
+        check_blender(local.blender_python)
     if name == "unreal":
         from undream.sim.unreal import check_unreal
 
-        check_unreal()
+        check_unreal(local.unreal_spool)
 
 
 def _load_builtin() -> None:

@@ -5,19 +5,18 @@ a process-wide singleton with its own thread pool, so Cycles lives in a
 separate interpreter (``.venv-blender``, made by ``deploy/setup.sh``) and a
 separate process: :mod:`undream.sim.blender_server`, started on the first
 render, loads the scene directory once and serves frames over a pipe
-(:mod:`undream.sim.blender_protocol`). The interpreter is
-``$UNDREAM_BLENDER_PYTHON`` or ``.venv-blender/bin/python`` next to the
-undream package.
+(:mod:`undream.sim.blender_protocol`). The interpreter is the backend's
+``python`` option (``$UNDREAM_BLENDER_PYTHON`` at the edge) or
+``.venv-blender/bin/python`` next to the undream package.
 """
 from __future__ import annotations
 
-import os
 import shutil
 import subprocess
 import sys
 import weakref
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -27,12 +26,11 @@ from undream.errors import RenderError
 from undream.sim import register_backend
 from undream.sim.blender_protocol import ProtocolError, read_message, write_message
 
-THREADS_ENV = "UNDREAM_BLENDER_THREADS"
 
-
-def check_blender(python: Path | None = None) -> None:
-    """Raise a one-line :class:`RenderError` unless Blender's Python exists and imports ``bpy`` (~1 s once)."""
-    python = Path(python) if python else blender_python()
+def check_blender(python: str | Path | None = None) -> None:
+    """Raise a one-line :class:`RenderError` unless Blender's Python (``python``, default
+    :func:`blender_python`'s) exists and imports ``bpy`` (~1 s once)."""
+    python = blender_python(python)
     problem = bpy_problem(python)
     if problem is None:
         return
@@ -43,16 +41,12 @@ def check_blender(python: Path | None = None) -> None:
 
 
 def cycles_threads(threads: int | None = None) -> int:
-    """Cycles' CPU threads: ``threads`` if given, else ``$UNDREAM_BLENDER_THREADS``, else Dr.Jit's.
-
-    Dr.Jit's is this process's render thread count: a farm worker sets it from
-    ``drjit_threads`` (its share of the cores, :func:`workers.runtime.init_process`),
-    so Cycles renders on the same share; 0 (when Dr.Jit is not loaded) means all cores.
+    """Cycles' CPU threads: ``threads`` if given (``$UNDREAM_BLENDER_THREADS`` at the edge; a farm
+    worker passes its share of the cores, ``drjit_threads``), else this process's Dr.Jit thread
+    count; 0 (when Dr.Jit is not loaded) means all cores.
     """
     if threads is not None:
         return int(threads)
-    if os.environ.get(THREADS_ENV):
-        return int(os.environ[THREADS_ENV])
     drjit = sys.modules.get("drjit")
     return int(drjit.thread_count()) if drjit is not None else 0
 
@@ -62,16 +56,19 @@ class BlenderSimulator:
     """Renders frames of ``scene_dir`` with Cycles (CPU) through a lazily started render server.
 
     ``threads``: Cycles' CPU threads (default: :func:`cycles_threads`; 0: all
-    cores); ``python``: Blender's interpreter (default :func:`blender_python`).
+    cores); ``python``: Blender's interpreter (default :func:`blender_python`);
+    ``env``: the server's environment (the edge's, :attr:`undream.settings.LocalSettings.child_env`;
+    None: only what :func:`blender_env` sets).
     :attr:`server_threads` is the count the started server reports Cycles uses.
     """
 
     name = "blender"
 
     def __init__(self, scene_dir: Path, threads: int | None = None, python: str | Path | None = None,
-                 **_shared: Any):
+                 env: Mapping[str, str] | None = None, **_shared: Any):
         self.scene_dir = Path(scene_dir).resolve()
-        self.python = Path(python) if python else blender_python()
+        self.python = blender_python(python)
+        self.env = env
         self.threads = cycles_threads(threads)
         self._proc: subprocess.Popen | None = None
         self._root: Path | None = None
@@ -84,7 +81,7 @@ class BlenderSimulator:
         if self._proc is not None and self._proc.poll() is None:
             return self._proc
         self._root = root = import_root()
-        env = blender_env(root)
+        env = blender_env(root, self.env)
         cmd = [str(self.python), "-m", "undream.sim.blender_server", str(self.scene_dir),
                "--threads", str(self.threads)]
         with open(root / "server.log", "wb") as log:  # Blender's own output, for errors

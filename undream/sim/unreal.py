@@ -3,7 +3,7 @@
 Unreal runs elsewhere (an editor on a Windows or Linux workstation); a
 worker script inside that editor (``deploy/unreal/render_texture.py --spool
 DIR``) serves the frame jobs. The two sides share one folder, the *spool*
-(``$UNDREAM_UNREAL_SPOOL``, or the backend's ``spool`` option), and talk
+(the backend's ``spool`` option; ``$UNDREAM_UNREAL_SPOOL`` at the edge), and talk
 through files only, so any shared file system works (SMB, NFS, a synced
 folder). The protocol, version 1 (``docs/unreal.md``)::
 
@@ -21,7 +21,7 @@ folder). The protocol, version 1 (``docs/unreal.md``)::
 
 The editor claims a request by renaming ``ID.json`` to ``ID.json.taken``;
 this backend waits for ``responses/ID.json`` (``timeout_s``, default
-``$UNDREAM_UNREAL_TIMEOUT`` or 600 s), reads the frame, and removes the
+600 s; ``$UNDREAM_UNREAL_TIMEOUT`` at the edge), reads the frame, and removes the
 request and response files. ``frame`` is the frame's index in the scene's
 ``sequence.json`` (for an Unreal export, Unreal's own frame number). Every
 failure is one :class:`RenderError` line: no answer in time, an error the
@@ -41,11 +41,11 @@ from PIL import Image
 
 from undream.color import srgb_to_linear, to_uint8
 from undream.errors import RenderError
+from undream.settings import UNREAL_SPOOL_ENV, UNREAL_TIMEOUT_ENV
 from undream.sim import register_backend
 from undream.spec import load_sequence
 
-SPOOL_ENV = "UNDREAM_UNREAL_SPOOL"
-TIMEOUT_ENV = "UNDREAM_UNREAL_TIMEOUT"
+SPOOL_ENV, TIMEOUT_ENV = UNREAL_SPOOL_ENV, UNREAL_TIMEOUT_ENV  # named in messages; read at the edge
 DEFAULT_TIMEOUT_S = 600.0
 REQUEST_FORMAT, RESPONSE_FORMAT, WORKER_FORMAT = "undream-unreal-request", "undream-unreal-response", \
     "undream-unreal-worker"
@@ -54,8 +54,9 @@ IMAGE_SUFFIXES = {".exr": "linear", ".png": "srgb"}
 
 
 def spool_folder(spool: str | Path | None = None) -> Path:
-    """The spool folder: ``spool`` or ``$UNDREAM_UNREAL_SPOOL``; a one-line RenderError when neither is a folder."""
-    value = spool if spool is not None else os.environ.get(SPOOL_ENV)
+    """The spool folder ``spool`` (``$UNDREAM_UNREAL_SPOOL`` at the edge); a one-line RenderError
+    when it is not given or not a folder."""
+    value = spool
     if not value:
         raise RenderError(f"sim: unreal needs a spool folder shared with the editor's worker "
                           f"(deploy/unreal/render_texture.py --spool DIR): set {SPOOL_ENV} (docs/unreal.md)")
@@ -83,9 +84,9 @@ def _write_atomically(path: Path, text: str) -> None:
 class UnrealSimulator:
     """Hands frame renders of ``scene_dir`` to an Unreal editor worker through the spool folder.
 
-    ``spool``: the shared folder (default ``$UNDREAM_UNREAL_SPOOL``);
-    ``timeout_s``: how long to wait for one frame (default
-    ``$UNDREAM_UNREAL_TIMEOUT`` or 600 s); ``poll_s``: how often to look.
+    ``spool``: the shared folder (the edge passes ``$UNDREAM_UNREAL_SPOOL``);
+    ``timeout_s``: how long to wait for one frame (default 600 s; the edge
+    passes ``$UNDREAM_UNREAL_TIMEOUT``); ``poll_s``: how often to look.
     """
 
     name = "unreal"
@@ -93,7 +94,7 @@ class UnrealSimulator:
     def __init__(self, scene_dir: Path, spool: str | Path | None = None, timeout_s: float | None = None,
                  poll_s: float = 0.05, **_shared: Any):
         self.spool = spool_folder(spool)
-        given: Any = timeout_s if timeout_s is not None else os.environ.get(TIMEOUT_ENV, DEFAULT_TIMEOUT_S)
+        given: Any = timeout_s if timeout_s is not None else DEFAULT_TIMEOUT_S
         try:
             timeout = float(given)
         except (TypeError, ValueError):

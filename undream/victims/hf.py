@@ -1,7 +1,8 @@
 """Hugging Face victims: image classifiers and DETR-style object detectors.
 
 Loaded by hub id (from the local Hugging Face cache first; over the network
-only when ``HF_HUB_OFFLINE``/``TRANSFORMERS_OFFLINE`` are unset) or by the
+only when not ``offline``: the edge passes ``HF_HUB_OFFLINE``/``TRANSFORMERS_OFFLINE``,
+:class:`undream.settings.LocalSettings`) or by the
 path of a folder written by ``save_pretrained``. Preprocessing is read from
 the folder's ``preprocessor_config.json`` and re-done in torch (see
 :mod:`undream.victims.preprocess`). ``transformers`` is imported only when a
@@ -23,13 +24,6 @@ from undream.victims.detector import Detector
 from undream.victims.preprocess import PreprocessConfig
 
 PROCESSOR_FILE = "preprocessor_config.json"
-_TRUE = ("1", "true", "yes", "on")
-
-
-def hf_offline() -> bool:
-    """True when the environment forbids the Hugging Face hub (read at call time)."""
-    return any(os.environ.get(v, "").strip().lower() in _TRUE
-               for v in ("HF_HUB_OFFLINE", "TRANSFORMERS_OFFLINE"))
 
 
 def _looks_like_path(spec: str) -> bool:
@@ -38,9 +32,9 @@ def _looks_like_path(spec: str) -> bool:
             or (os.sep != "/" and os.sep in spec) or os.path.exists(spec))
 
 
-def _cannot_load(spec: str, err: BaseException | None = None) -> VictimError:
+def _cannot_load(spec: str, err: BaseException | None = None, offline: bool = False) -> VictimError:
     why = f" ({type(err).__name__}: {str(err).splitlines()[0]})" if err else ""
-    net = "no network allowed here" if hf_offline() else "not on the hub or no network"
+    net = "no network allowed here" if offline else "not on the hub or no network"
     return VictimError(f"cannot load victim {spec!r}: not a local path and not in the Hugging Face "
                        f"cache ({net}); save it with save_pretrained and pass the folder{why}")
 
@@ -54,8 +48,8 @@ def _weights_errors() -> tuple[type[BaseException], ...]:
     return (SafetensorError,)
 
 
-def _pretrained(load: Callable[..., Any], spec: str) -> tuple[Any, bool]:
-    """``load(spec, local_files_only=...)``: the cache first, then the hub if allowed.
+def _pretrained(load: Callable[..., Any], spec: str, offline: bool = False) -> tuple[Any, bool]:
+    """``load(spec, local_files_only=...)``: the cache first, then the hub unless ``offline``.
 
     Returns the loaded object and whether it came from local files only.
     """
@@ -73,18 +67,18 @@ def _pretrained(load: Callable[..., Any], spec: str) -> tuple[Any, bool]:
     try:
         return load(spec, local_files_only=True), True
     except (OSError, ValueError) as err:
-        if hf_offline():
-            raise _cannot_load(spec) from err
+        if offline:
+            raise _cannot_load(spec, offline=True) from err
     try:
         return load(spec, local_files_only=False), False
     except (OSError, ValueError) as err:
         raise _cannot_load(spec, err) from err
 
 
-def load_hf_config(spec: str) -> tuple[Any, bool]:
-    """The model's ``PretrainedConfig`` and whether it was found locally."""
+def load_hf_config(spec: str, offline: bool = False) -> tuple[Any, bool]:
+    """The model's ``PretrainedConfig`` and whether it was found locally (the hub only unless ``offline``)."""
     from transformers import AutoConfig
-    return _pretrained(AutoConfig.from_pretrained, spec)
+    return _pretrained(AutoConfig.from_pretrained, spec, offline)
 
 
 def hf_task(config: Any) -> str | None:
@@ -132,19 +126,19 @@ def _labels(config: Any) -> list[str]:
     return [id2label.get(i, f"LABEL_{i}") for i in range(n)]
 
 
-def _load(spec: str, task: str, preprocess: PreprocessConfig | None
+def _load(spec: str, task: str, preprocess: PreprocessConfig | None, offline: bool = False
           ) -> tuple[torch.nn.Module, list[str], PreprocessConfig]:
     import transformers
-    config, local = load_hf_config(spec)
+    config, local = load_hf_config(spec, offline)
     _check_task(spec, config, task)
     auto = (transformers.AutoModelForObjectDetection if task == "detection"
             else transformers.AutoModelForImageClassification)
     # transformers draws a "Loading weights" bar on stderr for every model: a victim loads
     # quietly, so that a run's error stays one line and its own bar the only one.
     transformers.utils.logging.disable_progress_bar()
-    model, _ = _pretrained(auto.from_pretrained, spec)
+    model, _ = _pretrained(auto.from_pretrained, spec, offline)
     if preprocess is None:
-        preprocess = load_hf_preprocess(spec, local_only=local or hf_offline())
+        preprocess = load_hf_preprocess(spec, local_only=local or offline)
         if preprocess is None:
             warnings.warn(f"victim {spec!r} has no {PROCESSOR_FILE}: images reach the model "
                           f"unresized and unnormalised", stacklevel=3)
@@ -157,10 +151,10 @@ class HFClassifier(Classifier):
 
     @classmethod
     def from_pretrained(cls, spec: str, device: str | torch.device = "cpu",
-                        preprocess: PreprocessConfig | None = None) -> "HFClassifier":
+                        preprocess: PreprocessConfig | None = None, offline: bool = False) -> "HFClassifier":
         """Load by hub id or ``save_pretrained`` folder; ``preprocess`` overrides
-        the model's ``preprocessor_config.json``."""
-        model, labels, pre = _load(spec, "classification", preprocess)
+        the model's ``preprocessor_config.json``; ``offline``: never ask the hub."""
+        model, labels, pre = _load(spec, "classification", preprocess, offline)
         return cls(model, labels, pre, name=spec, device=device)
 
 
@@ -172,22 +166,23 @@ class HFDetector(Detector):
     @classmethod
     def from_pretrained(cls, spec: str, device: str | torch.device = "cpu",
                         preprocess: PreprocessConfig | None = None,
-                        score_threshold: float = 0.5) -> "HFDetector":
-        """Load by hub id or ``save_pretrained`` folder; see :class:`Detector`."""
-        model, labels, pre = _load(spec, "detection", preprocess)
+                        score_threshold: float = 0.5, offline: bool = False) -> "HFDetector":
+        """Load by hub id or ``save_pretrained`` folder; see :class:`Detector`; ``offline``: never ask the hub."""
+        model, labels, pre = _load(spec, "detection", preprocess, offline)
         return cls(model, labels, pre, name=spec, device=device, score_threshold=score_threshold)
 
 
 def load_hf_victim(spec: str, task: str | None = None,
-                   device: str | torch.device = "cpu") -> Victim:
-    """A Hugging Face victim; the task is the model's own unless ``task`` is given."""
+                   device: str | torch.device = "cpu", offline: bool = False) -> Victim:
+    """A Hugging Face victim; the task is the model's own unless ``task`` is given; ``offline``:
+    from local files only, never the hub."""
     if task is None:
-        config, _ = load_hf_config(spec)
+        config, _ = load_hf_config(spec, offline)
         task = hf_task(config)
         if task is None:
             _check_task(spec, config, "classification or detection")
     if task == "classification":
-        return HFClassifier.from_pretrained(spec, device=device)
+        return HFClassifier.from_pretrained(spec, device=device, offline=offline)
     if task == "detection":
-        return HFDetector.from_pretrained(spec, device=device)
+        return HFDetector.from_pretrained(spec, device=device, offline=offline)
     raise VictimError(f"task: must be classification or detection, got {task!r}")

@@ -62,11 +62,13 @@ def check_device(device: str | torch.device) -> torch.device:
     return dev
 
 
-def load_victim(spec: str, device: str | torch.device = "cpu", task: str | None = None) -> Victim:
+def load_victim(spec: str, device: str | torch.device = "cpu", task: str | None = None,
+                offline: bool = False) -> Victim:
     """Load the victim named by ``spec`` (see the module docstring) on ``device``.
 
     ``task`` (``classification`` or ``detection``), when given, must be one the
-    model can do; by default the model's own task is used.
+    model can do; by default the model's own task is used. ``offline``: never
+    ask the Hugging Face hub (the edge passes ``HF_HUB_OFFLINE``).
     """
     if not isinstance(spec, str) or not spec.strip():
         raise VictimError(f"victim: must be a hub id, a folder or bundled:<name>, got {spec!r}")
@@ -76,4 +78,4 @@ def load_victim(spec: str, device: str | torch.device = "cpu", task: str | None 
     if spec.startswith("bundled:"):
         return _load_bundled(spec[len("bundled:"):], task, device)
     from undream.victims.hf import load_hf_victim
-    return load_hf_victim(spec[len("hf:"):] if spec.startswith("hf:") else spec, task, device)
+    return load_hf_victim(spec[len("hf:"):] if spec.startswith("hf:") else spec, task, device, offline)
