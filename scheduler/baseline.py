@@ -35,7 +35,8 @@ def run_patch_baseline(config: RunConfig, out: Path, base_dir: Path, force: bool
     from scheduler.preflight import check_output_folder, preflight, scene_source
     from scheduler.texture0 import starting_texture
     from undream.color import to_uint8
-    from undream.engine.context import attack_of, build_context
+    from undream.attacks import make_attack
+    from undream.engine.context import build_context
     from undream.engine.evaluate import quantise
     from undream.engine.patch import benign_frames, check_attack, evaluate_texture, judge_pasted, optimise_patch
     from undream.progress import progress as progress_bar
@@ -45,7 +46,7 @@ def run_patch_baseline(config: RunConfig, out: Path, base_dir: Path, force: bool
                         inputs=(source,) if source is not None else ())
     victim = preflight(config, base_dir, source, local).victim
     try:
-        check_attack(attack_of(config))
+        check_attack(make_attack(config.attack))
     except SpecError as err:
         raise SpecError(f"{source or 'run'}: {err}") from None
     if out.exists():

@@ -31,11 +31,6 @@ if TYPE_CHECKING:
     from undream.store import RunSnapshot, Store
 
 
-def run_config(run: "RunSnapshot") -> RunConfig:
-    """The run's config as submitted."""
-    return RunConfig.from_json(run.config)
-
-
 class _LRU(OrderedDict):
     def touch(self, key: Any) -> Any:
         self.move_to_end(key)
@@ -67,7 +62,7 @@ class ContextCache:
         run = self.store.get_run(run_id)
         if run.scene_ref is None:
             raise StoreError(f"run {run_id!r}: records no scene (was it made by `undream run`?)")
-        config = run_config(run)
+        config = run.run_config
         scene_dir = unpack_scene(self.store.blobs, run.scene_ref, self.cache_dir)
         ctx = build_context(config, scene_dir, victim=self._victim(config, task_of(config)),
                             scenes=self._scene_cache(scene_dir), local=self.local)

@@ -38,13 +38,10 @@ class MissingResults(UndreamError):
 
 
 def attacked_frames(run: "RunSnapshot") -> list[int]:
-    """The frame positions the attack may render for its gradient (the held-out ones excluded).
-
-    A run stored before ``holdout`` existed holds nothing out, as when it started.
-    """
+    """The frame positions the attack may render for its gradient (the held-out ones excluded)."""
     from undream.spec.run import split_frames
 
-    return split_frames(run.config.get("holdout", "none"), run.n_frames)[0]
+    return split_frames(run.run_config.holdout, run.n_frames)[0]
 
 
 def expected_frames(run: "RunSnapshot", frames_per_step: int | None, k: int) -> list[int]:

@@ -14,7 +14,6 @@ from pathlib import Path
 from typing import Any
 
 from scheduler import stages
-from scheduler.texture0 import starting_texture, visibility
 from undream.engine.context import RunContext, build_context
 from undream.settings import LocalSettings
 from undream.errors import SpecError, UndreamError
@@ -23,8 +22,7 @@ from undream.spec.run import RunConfig
 
 log = logging.getLogger(__name__)
 
-__all__ = ["LocalDispatch", "RunFailed", "check_run", "drain", "resolve_scene", "resume_local", "run_local",
-           "starting_texture", "visibility"]
+__all__ = ["LocalDispatch", "RunFailed", "check_run", "drain", "resolve_scene", "resume_local", "run_local"]
 
 # In one process a failure is rarely transient: one retry, then the run fails with the error.
 LOCAL_OPTIONS = {"max_attempts": 2, "failure_budget": 0}
@@ -181,8 +179,8 @@ def _recorded_run(store: Any, config: RunConfig, out: Path) -> Any:
     if not runs:
         raise SpecError(f"--out {out}: no run is recorded for this folder in its store; nothing to resume")
     run = runs[-1]
-    wanted = config.to_json()
-    changed = sorted(k for k in set(run.config) | set(wanted) if run.config.get(k) != wanted.get(k))
+    stored, wanted = run.run_config.to_json(), config.to_json()  # both complete: defaults filled in
+    changed = sorted(k for k in set(stored) | set(wanted) if stored.get(k) != wanted.get(k))
     if changed:
         raise SpecError(f"--out {out}: run {run.id} was started with another config "
                         f"({', '.join(changed)} differ); resume it with the config it started with")

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from undream import charts
 from undream.color import to_uint8
 from undream.redact import redact
 from undream.versions import versions
@@ -50,7 +51,7 @@ def results(store: "Store", ctx: "RunContext", run: "RunSnapshot", k: int) -> di
                  for j in store.jobs(run.id, k, "adversarial")]
     benign, adv = judge(ctx, benign_preds), judge(ctx, adv_preds)
     report = _success(ctx, benign_preds, adv_preds, list(range(len(benign_preds))))
-    attacked, held = split_frames(run.config.get("holdout", "none"), run.n_frames)
+    attacked, held = split_frames(run.run_config.holdout, run.n_frames)
     splits = {name: None if not positions else {
         "frames": [ctx.sequence.frames[i].index for i in positions],
         "benign": _headline(judge(ctx, benign_preds, positions)),
@@ -133,7 +134,9 @@ def write_outputs(out: Path, store: "Store", ctx: "RunContext", run: "RunSnapsho
     if ctx.attack.config.random_start and isinstance(state0.get("visible"), np.ndarray):
         Image.fromarray(state0["visible"].astype(np.uint8) * 255).save(out / "texture_visibility.png")
     _atomic_text(out / "results.json", json.dumps(res, indent=1) + "\n")
-    _loss_plot(res["loss_per_iteration"], out / "loss.png", ctx)
+    rows = [{"k": r.k, "loss_mean": r.loss_mean, "n_bad": r.n_bad} for r in store.iterations(run.id)]
+    png = charts.loss_chart(rows, ctx.config.loss)  # the chart of the dashboard and the report
+    _atomic(out / "loss.png", lambda f: f.write(png))
     meta = {"run_id": run.id, "config": redact(ctx.config.to_json()), "seed": ctx.config.seed,
             "scene_dir": str(ctx.scene_dir), "scene_blob": run.scene_ref,
             "texture_final": "8-bit quantised sRGB (texture_final.png); the same values as float in [0, 1] "
@@ -160,19 +163,3 @@ def _check_own(out: Path, run_id: str) -> None:
                          f"user's files or run {owner}'s outputs); nothing written there; the results are in "
                          f"the store: `undream report {run_id} --out FOLDER` writes them")
 
-
-def _loss_plot(values: list[float | None], path: Path, ctx: "RunContext") -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    config = ctx.config
-    fig, ax = plt.subplots(figsize=(5, 3), dpi=100)
-    ax.plot(range(1, len(values) + 1), [np.nan if v is None else v for v in values], marker=".")
-    ax.set_xlabel("iteration")
-    ax.set_ylabel(f"mean {config.loss} loss (maximised)")
-    ax.set_title(f"{config.name}: {config.attack.get('name')} ε={config.attack.get('eps')}")
-    ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)

@@ -68,12 +68,13 @@ def preflight(config: RunConfig, base_dir: Path, source: str | Path | None = Non
 
 
 def _preflight(config: RunConfig, base_dir: Path, local: LocalSettings) -> Checked:
-    from undream.engine.context import attack_of, class_ids, task_of
+    from undream.attacks import make_attack
+    from undream.engine.context import class_ids, task_of
     from undream.render.budget import run_estimate
     from undream.sim import check_simulator
     from undream.victims import load_victim
 
-    attack_of(config)
+    make_attack(config.attack)
     check_simulator(config.sim, local)
     if config.store:
         from undream.store.db import check_database
@@ -92,8 +93,8 @@ def check_frames(config: RunConfig, n_frames: int) -> None:
     from undream.spec.run import split_frames
 
     attacked, held = split_frames(config.holdout, n_frames)
-    per_step = config.attack.get("frames_per_step")
-    if isinstance(per_step, int) and per_step > len(attacked):
+    per_step = config.attack.frames_per_step
+    if per_step is not None and per_step > len(attacked):
         raise SpecError(f"attack.frames_per_step: {per_step} is more than the {len(attacked)} frames left "
                         f"to attack (the sequence's {n_frames} frames, {len(held)} held out)")
 

@@ -7,15 +7,9 @@ if TYPE_CHECKING:
     from undream.store import RunSnapshot, Store
 
 
-def _steps(run: "RunSnapshot") -> int | None:
-    steps = (run.config.get("attack") or {}).get("steps")
-    return steps if isinstance(steps, int) else None
-
-
 def current_phase(store: "Store", run: "RunSnapshot") -> tuple[str, int]:
     """The phase whose jobs the run is on (or was on when it stopped) and its k."""
-    steps = _steps(run)
-    if steps is None or run.iteration < steps:
+    if run.iteration < run.run_config.attack.steps:
         return "attack", run.iteration
     if store.final_texture(run.id) is None:
         return "pre", run.iteration
@@ -37,7 +31,7 @@ def run_rows(store: "Store", runs: list["RunSnapshot"]) -> list[dict[str, Any]]:
         jobs = store.jobs(run.id, k, phase)
         done = sum(j.status == "succeeded" for j in jobs)
         rows.append({"run": run.id[:8], "name": run.name, "status": run.status,
-                     "iteration": f"{run.iteration}/{_steps(run)}",
+                     "iteration": f"{run.iteration}/{run.run_config.attack.steps}",
                      "phase": phase, "jobs": f"{done}/{len(jobs)}" if jobs else "-",
                      "failures": run.failures, "updated": run.updated.strftime("%H:%M:%S"),
                      "error": _short(run.error)})

@@ -33,10 +33,10 @@ from dataclasses import asdict, dataclass
 from typing import TYPE_CHECKING, Any, Callable, Protocol, Sequence
 
 from scheduler.iteration import MissingResults, expected_frames, frame_job, reduce_and_step
+from undream import attacks  # lazy: make_attack loads torch when first called
 from undream.store import ACTIVE, UNFINISHED
 
 if TYPE_CHECKING:
-    from undream.attacks.base import Attack
     from undream.engine.context import RunContext
     from undream.settings import Settings
     from undream.spec.run import RunConfig
@@ -84,22 +84,10 @@ def batches(frames: Sequence[int], size: int) -> list[list[int]]:
     return [frames[i:i + size] for i in range(0, len(frames), size)]
 
 
-def attack_of(run: "RunSnapshot") -> "Attack":
-    """The run's attack (its step function only: no scene, no victim)."""
-    from undream.attacks import AttackConfig, make_attack
-
-    attack = run.config["attack"]
-    return make_attack(AttackConfig.from_dict({**attack, "seed": attack.get("seed", run.config["seed"])}))
-
-
-def _steps(run: "RunSnapshot") -> int:
-    return attack_of(run).config.steps
-
-
 def expected(run: "RunSnapshot", phase: str, k: int) -> list[int]:
     """The frame positions whose jobs ``phase`` at ``k`` needs."""
     if phase == "attack":
-        return expected_frames(run, attack_of(run).config.frames_per_step, k)
+        return expected_frames(run, run.run_config.attack.frames_per_step, k)
     return list(range(run.n_frames))
 
 
@@ -262,12 +250,12 @@ def collect(store: "Store", contexts: Contexts, run_id: str, phase: str, k: int,
 
 def _step(store: "Store", run: "RunSnapshot", k: int, dispatch: Dispatch) -> str:
     try:
-        if not reduce_and_step(store, attack_of(run), run.id, k):
+        if not reduce_and_step(store, attacks.make_attack(run.run_config.attack), run.id, k):
             return "stale"
     except MissingResults:  # a job was re-queued between our look and reduce's: its callback follows
         return "stale"
     run = store.get_run(run.id)
-    if k + 1 < _steps(run):
+    if k + 1 < run.run_config.attack.steps:
         plan(store, run, "attack", k + 1, dispatch)
     elif store.transition(run.id, ("running",), "evaluating"):
         plan(store, store.get_run(run.id), "pre", k + 1, dispatch)
@@ -279,7 +267,7 @@ def _final(store: "Store", run: "RunSnapshot", k: int, dispatch: Dispatch) -> st
 
     if store.final_texture(run.id) is not None:  # another callback picked it (resume plans the rest)
         return "stale"
-    store.put_final_texture(run.id, select_final(store, attack_of(run), run.id, k))
+    store.put_final_texture(run.id, select_final(store, attacks.make_attack(run.run_config.attack), run.id, k))
     plan(store, run, "adversarial", k, dispatch)
     return "final"
 
@@ -327,7 +315,7 @@ def resume(store: "Store", run_id: str, dispatch: Dispatch) -> str:
         dispatch.start(run_id)
         return "start"
     store.transition(run_id, ("queued",), "running")
-    steps = _steps(run)
+    steps = run.run_config.attack.steps
     run = store.get_run(run_id)
     if run.iteration < steps:
         phase = "attack"

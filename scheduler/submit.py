@@ -60,7 +60,8 @@ class Validator:
         return self._scenes[src]
 
     def __call__(self, config: RunConfig, base_dir: Path) -> Prepared:
-        from undream.engine.context import attack_of, build_context
+        from undream.attacks import make_attack
+        from undream.engine.context import build_context
         from undream.render.budget import run_estimate
 
         scene_dir = self.scene(config, base_dir)
@@ -70,7 +71,7 @@ class Validator:
             ctx.scenes.close()
             self._sequences[key] = ctx.sequence
         else:  # same scene and victim: only the attack can differ
-            attack_of(config)
+            make_attack(config.attack)
         sequence = self._sequences[key]
         check_frames(config, len(sequence.frames))
         run_estimate(sequence, config, limit=self.local.memory_limit)  # the renders fit in memory; one line naming the field if not

@@ -105,11 +105,13 @@ def load_sweep(path: str | Path, max_runs: int = MAX_SWEEP_RUNS) -> Sweep:
 
 
 def grid_values(spec: Mapping[str, Any], config: Mapping[str, Any]) -> dict[str, Any]:
-    """The grid fields' values in a run's config (for the results table)."""
+    """The grid fields' values in a run's config (for the results table), as the grid writes them
+    (``8``, not the stored config's normalised ``8.0``)."""
     out = {}
-    for key in spec.get("grid", {}):
+    for key, values in spec.get("grid", {}).items():
         node: Any = config
         for part in str(key).split("."):
             node = node.get(part) if isinstance(node, Mapping) else None
-        out[str(key)] = node
+        listed = values if isinstance(values, list) else []
+        out[str(key)] = next((v for v in listed if v == node and type(v) is not bool), node)
     return out

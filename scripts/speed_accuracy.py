@@ -234,7 +234,7 @@ class _Setup:
         from undream.attacks.minibatch import frame_batch
         from undream.engine.job import render_and_grad
 
-        k = self.config.attack.get("frames_per_step")
+        k = self.config.attack.frames_per_step
         chosen = [self.attacked[i] for i in frame_batch(len(self.attacked), k, iteration, self.config.seed)]
         return sum(render_and_grad(self.ctx, p, self.texture, iteration).grad for p in chosen)
 

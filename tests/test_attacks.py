@@ -241,7 +241,7 @@ def test_config_dict_round_trip_and_unknown_fields():
 
 
 def test_config_module_imports_no_torch():
-    code = ("import sys, undream.attacks.config, undream.attacks; "
+    code = ("import sys, undream.spec.attack, undream.attacks; "
             "assert 'torch' not in sys.modules, 'torch imported'")
     subprocess.run([sys.executable, "-c", code], check=True)
 

@@ -13,7 +13,8 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from dashboard_data import WORKERS, RunShape, add_run, build_farm  # noqa: E402
 
-from undream.dashboard import charts, fleet, grid, images, query, sweeps  # noqa: E402
+from undream import charts  # noqa: E402
+from undream.dashboard import fleet, grid, images, query, sweeps  # noqa: E402
 from undream.dashboard.errors import BadRequest, NotFound, Unavailable, from_store_error  # noqa: E402
 from undream.errors import StoreError  # noqa: E402
 from undream.store import RUN_STATUSES, open_store  # noqa: E402

@@ -315,9 +315,9 @@ def test_sweep_expands_a_grid_and_names_bad_fields(tiny, tmp_path):
     sweep = load_sweep(write_yaml(tmp_path / "s.yaml", {"name": "grid", "run": "run.yaml",
                                                         "grid": {"attack.eps": [8, 16], "seed": [0, 1, 2]}}))
     assert [r.config.name for r in sweep.runs] == [f"grid-{i:03d}" for i in range(6)]
-    assert [(r.config.attack["eps"], r.config.seed) for r in sweep.runs] == \
+    assert [(r.config.attack.eps, r.config.seed) for r in sweep.runs] == \
         [(8, 0), (8, 1), (8, 2), (16, 0), (16, 1), (16, 2)]
-    assert sweep.runs[0].config.attack["steps"] == 3 and sweep.runs[0].base_dir == base.parent
+    assert sweep.runs[0].config.attack.steps == 3 and sweep.runs[0].base_dir == base.parent
     with pytest.raises(SpecError, match=r"s2.yaml: grid.epsilon: not a run-config field"):
         load_sweep(write_yaml(tmp_path / "s2.yaml", {"name": "g", "run": "run.yaml", "grid": {"epsilon": [1]}}))
     with pytest.raises(SpecError, match=r"s3.yaml: run 1 \(loss='hinge'\): loss"):
@@ -367,7 +367,7 @@ def test_the_example_sweep_expands():
     from scheduler.sweep import load_sweep
 
     sweep = load_sweep(ROOT / "examples" / "sweeps" / "bin_park_eps.yaml")
-    assert len(sweep.runs) == 6 and {r.config.attack["eps"] for r in sweep.runs} == {16, 32, 64}
+    assert len(sweep.runs) == 6 and {r.config.attack.eps for r in sweep.runs} == {16, 32, 64}
     assert all((r.base_dir / r.config.scene).is_file() for r in sweep.runs)
 
 

@@ -56,7 +56,7 @@ def _config(tiny, steps: int = 1) -> RunConfig:
 def test_a_frame_with_a_nan_victim_gradient_is_dropped_from_the_step(tiny, tmp_path, monkeypatch):
     from scheduler.local import run_local
     from scheduler.state import decode_state
-    from undream.engine.context import attack_of
+    from undream.attacks import make_attack
     from undream.store import open_store
 
     _nan_victim_gradient(monkeypatch, {0})
@@ -71,7 +71,7 @@ def test_a_frame_with_a_nan_victim_gradient_is_dropped_from_the_step(tiny, tmp_p
     assert (it.n_ok, it.n_bad, it.dropped_frames) == (2, 1, [0])
     assert it.loss_mean == pytest.approx((rows[1].loss + rows[2].loss) / 2)
     # The step from the finite frames only, by the attack itself:
-    attack = attack_of(cfg)
+    attack = make_attack(cfg.attack)
     T0 = torch.from_numpy(store.texture(run_id, 0))
     G = torch.from_numpy((rows[1].grad + rows[2].grad) / 2)
     expected, _ = attack.step(T0, G, it.loss_mean, decode_state(store.attack_state(run_id, 0) or {}))

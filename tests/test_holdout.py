@@ -5,7 +5,7 @@ import json
 import subprocess
 import sys
 from pathlib import Path
-from types import SimpleNamespace
+import datetime as dt
 
 import pytest
 from hypothesis import given, settings
@@ -15,6 +15,7 @@ from farm_support import make_scene, make_victim, run_config, write_yaml
 from scheduler.iteration import attacked_frames, expected_frames
 from undream.errors import SpecError
 from undream.spec.run import RunConfig, split_frames
+from undream.store import RunSnapshot
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -51,15 +52,23 @@ def test_no_iteration_ever_draws_a_held_out_frame(n, every, offset, per_step, k,
     attacked, held = split_frames(holdout, n)
     if per_step is not None and per_step > len(attacked):
         return
-    run = SimpleNamespace(config={"holdout": holdout}, n_frames=n, seed=seed)
+    run = _stored({"holdout": holdout}, n, seed)
     frames = expected_frames(run, per_step, k)
     assert frames and not set(frames) & set(held)
     assert set(frames) <= set(attacked) and sorted(set(attacked) | set(held)) == list(range(n))
     assert frames == expected_frames(run, per_step, k)  # a retried iteration draws the same frames
 
 
+def _stored(config: dict, n_frames: int, seed: int) -> RunSnapshot:
+    """A run as the store hands it out, its config as stored (``scene`` and ``config`` only)."""
+    now = dt.datetime.now(dt.timezone.utc)
+    return RunSnapshot(id="r", name="r", config={"scene": "x", **config}, status="running", iteration=0,
+                       n_frames=n_frames, seed=seed, created=now, updated=now, error=None,
+                       attack_state_ref=None, results=None)
+
+
 def test_a_run_stored_before_holdout_attacks_every_frame():
-    run = SimpleNamespace(config={}, n_frames=8, seed=0)
+    run = _stored({}, 8, 0)
     assert attacked_frames(run) == list(range(8))
     assert RunConfig(scene="x").holdout == "auto"  # new runs hold out by default
 

@@ -4,15 +4,16 @@ Adding an attack is one class decorated with :func:`register`; switching is
 ``name`` in :class:`AttackConfig`. See :mod:`undream.attacks.base` for the
 contract (units, visibility mask, non-finite gradients).
 
-Imports are lazy so that :mod:`undream.attacks.config` stays free of torch.
+Imports are lazy so that reaching :class:`AttackConfig` (plain data, :mod:`undream.spec.attack`)
+through this package loads no torch.
 """
 from __future__ import annotations
 
 from typing import Any
 
 _LAZY = {
-    "AttackConfig": "undream.attacks.config",
-    "AttackError": "undream.attacks.config",
+    "AttackConfig": "undream.spec.attack",
+    "AttackError": "undream.errors",
     "Attack": "undream.attacks.base",
     "attack_names": "undream.attacks.base",
     "make_attack": "undream.attacks.base",

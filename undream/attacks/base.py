@@ -40,7 +40,8 @@ from typing import Any, Callable, ClassVar, TypeVar
 
 import torch
 
-from undream.attacks.config import AttackConfig, AttackError
+from undream.errors import AttackError
+from undream.spec.attack import AttackConfig
 from undream.attacks.state import state_from_dict, state_to_dict
 from undream.errors import SpecError
 

@@ -12,7 +12,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from undream.attacks.config import AttackError
+from undream.errors import AttackError
 
 
 def frame_batch(n_frames: int, batch_size: int | None, iteration: int, seed: int) -> list[int]:

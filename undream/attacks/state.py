@@ -19,7 +19,7 @@ from typing import Any, Mapping
 
 import torch
 
-from undream.attacks.config import AttackError
+from undream.errors import AttackError
 
 _DTYPES = {str(d).removeprefix("torch."): d for d in
            (torch.float16, torch.float32, torch.float64, torch.bool,

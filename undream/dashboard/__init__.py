@@ -6,7 +6,7 @@ store (database and blobs) except cancel and resume, which need the
 settings' ``dashboard_token``. Layers: :mod:`~undream.dashboard.query`,
 :mod:`~undream.dashboard.grid`, :mod:`~undream.dashboard.sweeps` and
 :mod:`~undream.dashboard.fleet` turn the store into plain data (no HTTP);
-:mod:`~undream.dashboard.charts` and :mod:`~undream.dashboard.images` draw
+:mod:`~undream.charts` and :mod:`~undream.dashboard.images` draw
 it; :mod:`~undream.dashboard.api`, :mod:`~undream.dashboard.pages` and
 :mod:`~undream.dashboard.artifacts` serve it; :mod:`~undream.dashboard.app`
 builds the app (:func:`create_app`) and maps errors at the edge.

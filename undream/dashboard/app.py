@@ -17,7 +17,8 @@ from flask import Flask, jsonify, render_template, request
 from werkzeug.exceptions import HTTPException
 from werkzeug.routing import BaseConverter
 
-from undream.dashboard import charts, filters
+from undream import charts
+from undream.dashboard import filters
 from undream.dashboard.api import api
 from undream.dashboard.artifacts import artifacts
 from undream.dashboard.errors import DashboardError, from_store_error
@@ -155,7 +156,7 @@ def create_app(settings: "Settings", opener: Callable[[str | None, str], "Store"
 
 def warm_up(app: Flask) -> None:
     """What a server does once as it starts, not during its first pages: import matplotlib and load
-    its fonts (:func:`undream.dashboard.charts.warm_up`, ~0.5 s) and compile the page templates."""
+    its fonts (:func:`undream.charts.warm_up`, ~0.5 s) and compile the page templates."""
     charts.warm_up()
     for name in app.jinja_env.list_templates(extensions=["html"]):
         app.jinja_env.get_template(name)

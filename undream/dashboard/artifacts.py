@@ -12,7 +12,8 @@ from typing import Any
 
 from flask import Blueprint, Response
 
-from undream.dashboard import charts, images, query, sweeps
+from undream import charts
+from undream.dashboard import images, query, sweeps
 from undream.dashboard.errors import NotFound
 from undream.dashboard.state import farm
 

@@ -5,7 +5,7 @@ import datetime as dt
 import json
 from typing import Any, Callable
 
-from undream.dashboard.charts import sparkline
+from undream.charts import sparkline
 
 
 def duration(seconds: float | None) -> str:

@@ -32,12 +32,6 @@ def iso(stamp: dt.datetime | None) -> str | None:
     return None if stamp is None else stamp.isoformat()
 
 
-def steps_of(run: "RunSnapshot") -> int | None:
-    """The run's attack steps (N), None when its config does not say."""
-    steps = (run.config.get("attack") or {}).get("steps")
-    return steps if isinstance(steps, int) and not isinstance(steps, bool) else None
-
-
 def check_status(status: str | None) -> str | None:
     if status not in (None, "", *RUN_STATUSES):
         raise BadRequest(f"status {status!r}: not a run status; valid statuses are {', '.join(RUN_STATUSES)}")
@@ -45,16 +39,16 @@ def check_status(status: str | None) -> str | None:
 
 
 def _frames_per_iteration(run: "RunSnapshot", phase: str) -> int:
-    per_step = (run.config.get("attack") or {}).get("frames_per_step")
-    if phase == "attack" and isinstance(per_step, int) and 0 < per_step < run.n_frames:
+    per_step = run.run_config.attack.frames_per_step
+    if phase == "attack" and per_step is not None and per_step < run.n_frames:
         return per_step
     return run.n_frames
 
 
 def _eta(run: "RunSnapshot", iters: list["IterationSnapshot"], now: dt.datetime) -> float | None:
     """Seconds until the last attack step at the median pace of the steps so far; None when unknown."""
-    steps = steps_of(run)
-    if run.status != "running" or steps is None or not iters or run.iteration >= steps:
+    steps = run.run_config.attack.steps
+    if run.status != "running" or not iters or run.iteration >= steps:
         return None
     stamps = [run.created] + [r.created for r in iters]
     pace = statistics.median((b - a).total_seconds() for a, b in zip(stamps, stamps[1:]))
@@ -88,13 +82,13 @@ def run_summary(store: "Store", run: "RunSnapshot", now: dt.datetime,
     phase, k = current_phase(store, run)
     done = reads.counts.get((run.id, phase, k), {}).get("succeeded", 0) if run.status != "done" else 0
     iters = reads.iterations.get(run.id, [])
-    attack = run.config.get("attack") or {}
+    config = run.run_config
     evaluation = _evaluation(run)
     return {
         "id": run.id, "name": run.name, "status": run.status, "sweep_id": run.sweep_id,
-        "victim": run.config.get("victim"), "loss_kind": run.config.get("loss"),
-        "attack": attack.get("name"), "eps": attack.get("eps"),
-        "iteration": run.iteration, "steps": steps_of(run), "n_frames": run.n_frames, "phase": phase,
+        "victim": config.victim, "loss_kind": config.loss,
+        "attack": config.attack.name, "eps": config.attack.eps,
+        "iteration": run.iteration, "steps": config.attack.steps, "n_frames": run.n_frames, "phase": phase,
         "frames_done": done, "frames_total":
             _frames_per_iteration(run, phase) if run.status != "done" else run.n_frames,
         "loss": [r.loss_mean for r in iters], "created": iso(run.created), "updated": iso(run.updated),
@@ -240,8 +234,8 @@ def chart_data(store: "Store", run_id: str, attack_jobs: list["JobLine"] | None 
     run = store.get_run(run_id)
     jobs = store.job_lines(run_id) if attack_jobs is None else attack_jobs
     return {"iterations": _iteration_rows(run, store.iterations(run_id)), "evaluation": _evaluation(run),
-            "loss_kind": run.config.get("loss"), "steps": steps_of(run), "attacked": attacked_metric(jobs),
-            "sim_spp": run.config.get("sim_spp"), "eval_spp": run.config.get("eval_spp")}
+            "loss_kind": run.run_config.loss, "steps": run.run_config.attack.steps,
+            "attacked": attacked_metric(jobs), "sim_spp": run.run_config.sim_spp, "eval_spp": run.run_config.eval_spp}
 
 
 def run_detail(store: "Store", run_id: str, now: dt.datetime | None = None) -> dict[str, Any]:

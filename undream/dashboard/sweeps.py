@@ -21,11 +21,11 @@ def eps_series(store: "Store", sweep_id: str) -> dict[str, list[dict[str, Any]]]
     runs without results are left out."""
     series: dict[str, list[dict[str, Any]]] = {}
     for run in store.runs(sweep_id=sweep_id):
-        res, attack = run.results or {}, run.config.get("attack") or {}
-        eps, adv = _number(attack.get("eps")), _number((res.get("adversarial") or {}).get("value"))
-        if eps is None or adv is None:
+        res, attack = run.results or {}, run.run_config.attack
+        eps, adv = attack.eps, _number((res.get("adversarial") or {}).get("value"))
+        if adv is None:
             continue
-        series.setdefault(str(attack.get("name")), []).append(
+        series.setdefault(attack.name, []).append(
             {"eps": eps, "adversarial": adv, "benign": _number((res.get("benign") or {}).get("value")),
              "held_out_adversarial": _number(((res.get("held_out") or {}).get("adversarial") or {}).get("value")),
              "metric": (res.get("adversarial") or {}).get("metric"), "run_id": run.id})

@@ -5,6 +5,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from undream.attacks import make_attack
 from undream.engine.gradient import GradientPath
 from undream.errors import SpecError, VictimError
 from undream.render.scene_cache import SceneCache
@@ -64,13 +65,6 @@ def class_ids(config: RunConfig, seq: Sequence, victim: Any) -> tuple[int, int |
     return label, target
 
 
-def attack_of(config: RunConfig) -> "Attack":
-    """The run's attack, seeded with the run's seed unless the attack block sets its own."""
-    from undream.attacks import AttackConfig, make_attack
-
-    return make_attack(AttackConfig.from_dict({**config.attack, "seed": config.attack.get("seed", config.seed)}))
-
-
 def task_of(config: RunConfig) -> str:
     """The victim's task that the run's loss belongs to (``classification`` or ``detection``)."""
     return next(t for t, kinds in TASK_LOSSES.items() if config.loss in kinds)
@@ -101,7 +95,7 @@ def build_context(config: RunConfig, scene_dir: Path, *, victim: "Victim | None"
     targets = [Target(label=label, target_label=target,
                       box=mask_box(read_mask(scene_dir, f.index)) if task == "detection" else None)
                for f in seq.frames]
-    attack = attack_of(config)
+    attack = make_attack(config.attack)
     if scenes is None:
         scenes = SceneCache(scene_dir, frozen=local.frozen)
     sim = make_backend(config.sim, scene_dir, **({"scenes": scenes} if config.sim == "mitsuba" else {}),

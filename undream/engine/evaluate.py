@@ -45,13 +45,6 @@ def predict(ctx: RunContext, images: list[np.ndarray]) -> list[Any]:
         return [ctx.victim.predict(_batch([im]))[0] for im in images]
 
 
-def losses(ctx: RunContext, images: list[np.ndarray]) -> list[float]:
-    """The attack loss of each frame (what the attack maximises)."""
-    import torch
-    with torch.no_grad():
-        return [float(ctx.victim.loss(_batch([im]), ctx.targets[i], ctx.config.loss)) for i, im in enumerate(images)]
-
-
 def ground_truths(ctx: RunContext) -> list[Any]:
     """The object's box per frame (from its visibility mask); no box where it is unseen."""
     return [ground_truth(t) for t in ctx.targets]

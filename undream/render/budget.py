@@ -134,8 +134,8 @@ def init_estimate(seq: Sequence, verify_spp: int, limit: int | None = None) -> E
 
 def run_estimate(seq: Sequence, config: RunConfig, limit: int | None = None) -> Estimate:
     """Check and estimate a run: its simulator, gradient and evaluation renders, its transports."""
-    per_step = config.attack.get("frames_per_step")
-    n = per_step if isinstance(per_step, int) and 0 < per_step < len(seq.frames) else len(seq.frames)
+    per_step = config.attack.frames_per_step
+    n = per_step if per_step is not None and per_step < len(seq.frames) else len(seq.frames)
     sim, grad = _frame_jobs(seq, config.sim_spp, "sim_spp"), _frame_jobs(seq, config.grad_spp, "grad_spp")
     evaluation = _frame_jobs(seq, config.eval_spp, "eval_spp")
     transport = 0 if config.gradient == "prb" else sum(j.samples for j in grad)

@@ -1,7 +1,7 @@
 """The report's charts as PNG bytes, each with a caption naming the command that made it.
 
 The loss chart and the texture pictures are the dashboard's own
-(:mod:`undream.dashboard.charts`, :mod:`undream.dashboard.images`); the
+(:mod:`undream.charts`, :mod:`undream.dashboard.images`); the
 sweep's chart adds what the dashboard's lacks: one line per attack *and*
 split (attacked, held-out) with mean ± standard deviation over seeds.
 Metric values are fractions in [0, 1], drawn as %; ε in 0–255 sRGB units.
@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from undream.dashboard import charts as dash_charts
+from undream import charts as dash_charts
 from undream.dashboard import images as dash_images
 from undream.report.data import RunData
 from undream.report.draw import INK, PAPER, caption_png, decode_png, encode_png, font, with_caption
@@ -28,7 +28,7 @@ def made_by(command: str) -> str:
 
 def loss_png(data: RunData, command: str) -> bytes:
     """Mean attack loss per iteration (the dashboard's chart) with the command as caption."""
-    kind = str(data.run.config.get("loss") or "loss")
+    kind = data.run.run_config.loss
     png = dash_charts.loss_chart(data.iterations, f"{kind}, {LOSS_UNITS.get(kind, 'unitless')}")
     return caption_png(png, made_by(command))
 
@@ -52,7 +52,7 @@ def unseen_sentence(data: RunData) -> str:
 
 def _difference(data: RunData) -> np.ndarray:
     """|final − T0| per texel (max over RGB), scaled so that ε is white: H×W×3 sRGB in [0, 1]."""
-    eps = float((data.run.config.get("attack") or {}).get("eps") or 255.0)
+    eps = data.run.run_config.attack.eps
     diff = np.abs(data.texture_final - data.texture0).max(axis=2) * 255.0 / max(eps, 1e-6)
     return np.repeat(np.clip(diff, 0.0, 1.0)[..., None], 3, axis=2)
 

@@ -108,7 +108,7 @@ def _legend() -> str:
 
 def run_body(data: RunData, headline: list[dict[str, Any]], unseen: str, command: str) -> str:
     """The sections of a run's page (headline, contact sheet, loss, texture, config)."""
-    loss = str(data.run.config.get("loss"))
+    loss = data.run.run_config.loss
     return "".join([
         f"<h1>Run {escape(data.run.name)}</h1>", _meta(data),
         "<h2>Headline</h2>", headline_table(headline),

@@ -78,7 +78,7 @@ class SeenFinder:
                 return Seen(visible.astype(bool), STORED)
             return Seen(None, "unknown: the run's scene directory is no longer where its metadata.json "
                               "says, and the store holds no copy of it")
-        spp, seed = max(MIN_SPP, int(run.config.get("grad_spp", 8))), int(run.config.get("seed", 0))
+        spp, seed = max(MIN_SPP, run.run_config.grad_spp), run.run_config.seed
         key = (scene.resolve(), spp, seed)
         if key not in self._masks:
             self._masks[key] = self._visibility(scene, spp, seed, texture0)

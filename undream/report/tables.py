@@ -119,7 +119,7 @@ class Point:
 
 
 def _series_key(run: "RunSnapshot", grid: list[str], values: Mapping[str, Any]) -> tuple[str, ...]:
-    attack = str((run.config.get("attack") or {}).get("name"))
+    attack = run.run_config.attack.name
     others = [f"{k}={values[k]}" for k in grid if k not in (X_AXIS, "attack.name", *SEED_AXES)]
     return (attack, *others)
 
@@ -131,8 +131,8 @@ def eps_points(sweep: "SweepSnapshot", runs: list["RunSnapshot"]) -> dict[tuple[
     grid = [str(k) for k in (sweep.spec.get("grid") or {})]
     found: dict[tuple[tuple[str, ...], str, float], list[float]] = {}
     for run in runs:
-        res, eps = run.results or {}, (run.config.get("attack") or {}).get("eps")
-        if run.status != "done" or not isinstance(eps, (int, float)):
+        res, eps = run.results or {}, run.run_config.attack.eps
+        if run.status != "done":
             continue
         key = _series_key(run, grid, grid_values(sweep.spec, run.config))
         for split in SPLITS:

@@ -1,16 +1,19 @@
 """The attack run configuration (``RUN.yaml``): frozen, validated, JSON round trip.
 
-No heavy imports: the attack block is kept as a plain mapping here and
-validated by :mod:`undream.attacks.config` where attacks are built.
+No heavy imports. The attack block is typed (:class:`undream.spec.attack.AttackConfig`) and
+complete: every field the attack runs with, its seed included (the run's seed unless the block gives
+its own), so a stored run config says everything about the run and every reader reads the same
+numbers through :class:`RunConfig` (``RunSnapshot.run_config`` for a stored run).
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
 from undream.errors import SpecError
 from undream.spec import _check as c
+from undream.spec.attack import AttackConfig
 from undream.spec.io import read_yaml
 from undream.spec.limits import bounded
 
@@ -51,7 +54,9 @@ class RunConfig:
     loss: str = "ce"
     label: str | None = None
     target_label: str | None = None
-    attack: Mapping[str, Any] = field(default_factory=lambda: {"name": "pgd", "eps": 8.0, "steps": 10})
+    # A mapping (as in RUN.yaml) is parsed into an AttackConfig, seed = the run's unless given;
+    # omitted: DEFAULT_ATTACK.
+    attack: AttackConfig = None  # type: ignore[assignment]
     sim_spp: int = 16
     grad_spp: int = 16
     eval_spp: int = 32
@@ -78,12 +83,9 @@ class RunConfig:
                 raise c.fail(f, v, "must be a class name")
         if self.loss in ("targeted_ce", "mislabel") and self.target_label is None:
             raise c.fail("target_label", None, f"is required by the targeted loss {self.loss!r}")
-        attack = c.mapping("attack", self.attack)
-        if "name" not in attack:
-            raise c.fail("attack.name", None, "is required")
-        object.__setattr__(self, "attack", dict(attack))
         for f in ("sim_spp", "grad_spp", "eval_spp", "seed"):
             bounded(f, getattr(self, f))
+        object.__setattr__(self, "attack", self._typed_attack())
         c.integer("torch_threads", self.torch_threads, 1, 1024)
         c.choice("gradient", self.gradient, ("auto", "transport", "prb"))
         c.integer("transport_refresh", self.transport_refresh, 1, 10**6)
@@ -100,7 +102,16 @@ class RunConfig:
                              "the camera and light per render)")
         c.choice("sim", self.sim, SIMULATORS)
 
+    def _typed_attack(self) -> AttackConfig:
+        if isinstance(self.attack, AttackConfig):
+            return self.attack
+        attack = DEFAULT_ATTACK if self.attack is None else c.mapping("attack", self.attack)
+        if "name" not in attack:
+            raise c.fail("attack.name", None, "is required")
+        return AttackConfig.from_dict({**attack, "seed": attack.get("seed", self.seed)})
+
     def to_json(self) -> dict[str, Any]:
+        """Every field, the attack block complete (its defaults filled in): what the store keeps."""
         return asdict(self)
 
     @classmethod
@@ -109,6 +120,9 @@ class RunConfig:
         c.no_extra(d, set(cls.__dataclass_fields__))
         c.require(d, "scene")
         return cls(**d)
+
+
+DEFAULT_ATTACK = {"name": "pgd", "eps": 8.0, "steps": 10}  # a run config without an attack block
 
 
 # eot: field → (largest value, unit and meaning). Each iteration draws, per frame, a camera shift

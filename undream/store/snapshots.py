@@ -9,11 +9,13 @@ import datetime as dt
 import json
 import math
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any, NamedTuple
 
 import numpy as np
 
-from undream.errors import StoreError
+from undream.errors import SpecError, StoreError
+from undream.spec.run import RunConfig
 from undream.store.models import IterationRecord, Run, Sweep
 
 
@@ -86,6 +88,17 @@ class RunSnapshot:
     failures: int = 0
     owner: str | None = None  # host:pid of the process holding the run's lease (``undream run``)
     heartbeat: dt.datetime | None = None  # that process's last heartbeat (UTC)
+
+    @cached_property
+    def run_config(self) -> RunConfig:
+        """The run's config, typed, with every default filled in (the attack's steps and seed
+        included): the one way to read what the run was asked to do. A run stored before
+        ``holdout`` existed held nothing out, and reads so."""
+        try:
+            return RunConfig.from_json({"holdout": "none", **self.config})
+        except SpecError as err:
+            raise StoreError(f"run {self.id}: its stored config is not a run config this version reads "
+                             f"({err})") from None
 
     @classmethod
     def of(cls, row: Run) -> "RunSnapshot":

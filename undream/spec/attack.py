@@ -15,7 +15,7 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any, Mapping
 
-from undream.errors import AttackError, SpecError
+from undream.errors import SpecError
 from undream.spec.limits import bounded
 
 
