@@ -91,7 +91,7 @@ def test_manifest_references_resolve():
     for svc in (d for d in objs if d["kind"] == "Service"):
         assert any(svc["spec"]["selector"].items() <= w["spec"]["template"]["metadata"]["labels"].items()
                    for w in workloads.values()), svc["metadata"]["name"]
-    readme = (ROOT / "README.md").read_text()
+    readme = (ROOT / "docs" / "deploy.md").read_text()  # where the deploy steps live
     for wname, spec in pod_specs():
         for c in spec.get("initContainers", []) + spec["containers"]:
             for src in c.get("envFrom", []):

@@ -46,7 +46,8 @@ def test_speed_settings_are_valid_run_configs(tmp_path):
         config = sa._config(base, scenes, s, 1, "x")
         assert config.seed == 1 and config.scene == str(scenes[s.scene])
         for key, value in s.run.items():
-            node = config.attack if key.startswith("attack.") else config.to_json()
+            stored = config.to_json()
+            node = stored["attack"] if key.startswith("attack.") else stored
             assert node[key.split(".", 1)[-1]] == value, s.name
         names.add(s.name)
     assert len(names) == len(sa.SETTINGS) + 1, "setting names must be unique (they name the runs)"
@@ -69,5 +70,5 @@ def test_stability_cases_are_valid_specs_and_runs(case):
     for key, value in overrides.items():
         set_dotted(d, key, value, case)
     config = RunConfig.from_json(d)
-    assert config.attack["eps"] == overrides.get("attack.eps", base["attack"]["eps"])
+    assert config.attack.eps == overrides.get("attack.eps", base["attack"]["eps"])
     assert base["attack"]["eps"] == 255, "the base config itself is left as it was"
