@@ -18,23 +18,17 @@ a worker serving all of them loads each once.
 """
 from __future__ import annotations
 
-from collections import OrderedDict
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from undream.errors import StoreError
+from undream.lru import LRU
 from undream.settings import LocalSettings
 from undream.spec.run import RunConfig
 
 if TYPE_CHECKING:
     from undream.engine.context import RunContext
     from undream.store import RunSnapshot, Store
-
-
-class _LRU(OrderedDict):
-    def touch(self, key: Any) -> Any:
-        self.move_to_end(key)
-        return self[key]
 
 
 class ContextCache:
@@ -45,10 +39,9 @@ class ContextCache:
         self.store = store
         self.local = local  # this process's settings, read at the edge (the worker's start)
         self.cache_dir = Path(cache_dir)
-        self.sizes = {"scenes": scenes, "victims": victims, "runs": runs}
-        self._scenes: _LRU = _LRU()
-        self._victims: _LRU = _LRU()
-        self._contexts: _LRU = _LRU()
+        self._scenes: LRU[Path, Any] = LRU(scenes, on_evict=self._drop_scenes)
+        self._victims: LRU[tuple[Any, ...], Any] = LRU(victims)
+        self._contexts: LRU[str, "RunContext"] = LRU(runs)
         self.built = {"contexts": 0, "scenes": 0, "victims": 0}  # loads so far (tests, benchmark)
 
     def __call__(self, run_id: str) -> "RunContext":
@@ -70,24 +63,22 @@ class ContextCache:
 
         ctx.gradients.shelf = BlobTransportShelf(self.store.blobs, run.scene_ref)
         self.built["contexts"] += 1
-        self._contexts[run_id] = ctx
-        while len(self._contexts) > self.sizes["runs"]:
-            self._contexts.popitem(last=False)
-        return ctx
+        return self._contexts.put(run_id, ctx)
 
     def _scene_cache(self, scene_dir: Path) -> Any:
         from undream.render.scene_cache import SceneCache
 
         if scene_dir in self._scenes:
             return self._scenes.touch(scene_dir)
-        self._scenes[scene_dir] = scenes = SceneCache(scene_dir, frozen=self.local.frozen)
+        scenes = SceneCache(scene_dir, frozen=self.local.frozen)
         self.built["scenes"] += 1
-        while len(self._scenes) > self.sizes["scenes"]:
-            old_dir, old = self._scenes.popitem(last=False)
-            for run_id in [r for r, c in self._contexts.items() if c.scenes is old]:
-                del self._contexts[run_id]
-            old.close()
-        return scenes
+        return self._scenes.put(scene_dir, scenes)
+
+    def _drop_scenes(self, scene_dir: Path, old: Any) -> None:
+        """A scene cache dropped: the contexts that use it go with it, then its scenes are closed."""
+        for run_id in [r for r, c in self._contexts.items() if c.scenes is old]:
+            del self._contexts[run_id]
+        old.close()
 
     def _victim(self, config: RunConfig, task: str) -> Any:
         from undream.victims import load_victim
@@ -95,12 +86,9 @@ class ContextCache:
         key = (config.victim, config.device, task)
         if key in self._victims:
             return self._victims.touch(key)
-        self._victims[key] = victim = load_victim(config.victim, device=config.device, task=task,
-                                                  offline=self.local.hf_offline)
+        victim = load_victim(config.victim, device=config.device, task=task, offline=self.local.hf_offline)
         self.built["victims"] += 1
-        while len(self._victims) > self.sizes["victims"]:
-            self._victims.popitem(last=False)
-        return victim
+        return self._victims.put(key, victim)
 
     def __contains__(self, run_id: str) -> bool:
         return run_id in self._contexts
@@ -108,5 +96,4 @@ class ContextCache:
     def clear(self) -> None:
         self._contexts.clear()
         self._victims.clear()
-        while self._scenes:
-            self._scenes.popitem(last=False)[1].close()
+        self._scenes.clear()  # each closed, least recently used first

@@ -18,6 +18,7 @@ from undream.engine.context import RunContext, build_context
 from undream.settings import LocalSettings
 from undream.errors import SpecError, UndreamError
 from undream.progress import progress as progress_bar
+from undream.spec.io import join_against
 from undream.spec.run import RunConfig
 
 log = logging.getLogger(__name__)
@@ -39,9 +40,7 @@ def resolve_scene(config: RunConfig, out: Path, base_dir: Path, reuse: bool = Fa
     ``local``: this process's settings, read at the edge: the memory limit)."""
     from undream.scenedir.init import InitOptions, init_scene
 
-    src = Path(config.scene)
-    if not src.is_absolute():
-        src = base_dir / src
+    src = join_against(config.scene, base_dir)
     if (src / "sequence.json").is_file():
         return src
     if not src.exists():

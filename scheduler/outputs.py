@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import datetime as dt
 import json
-import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -19,6 +18,7 @@ import numpy as np
 from undream import charts
 from undream.color import to_uint8
 from undream.redact import redact
+from undream.spec.io import atomic_write
 from undream.versions import versions
 
 if TYPE_CHECKING:
@@ -93,21 +93,6 @@ def default_out_dir(store: "Store", run: "RunSnapshot") -> Path:
     return store.blobs.root / "outputs" / f"{run.name}-{run.id[:8]}"
 
 
-def _atomic(path: Path, write: Any) -> None:
-    """``write(f)`` into a temporary sibling, then renamed over ``path``: readers see old or new, never half."""
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        with open(tmp, "wb") as f:
-            write(f)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
-def _atomic_text(path: Path, text: str) -> None:
-    _atomic(path, lambda f: f.write(text.encode("utf-8")))
-
-
 def write_outputs(out: Path, store: "Store", ctx: "RunContext", run: "RunSnapshot", k: int,
                   res: dict[str, Any]) -> None:
     """Write the run's output folder (see the module docstring) from the store."""
@@ -122,8 +107,8 @@ def write_outputs(out: Path, store: "Store", ctx: "RunContext", run: "RunSnapsho
     T_q = store.final_texture(run.id)
     if T_q is None:
         raise StoreError(f"run {run.id!r}: no final texture to write (the 'pre' evaluation has not finished)")
-    _atomic(out / "texture_final.png", lambda f: Image.fromarray(to_uint8(T_q)).save(f, format="PNG"))
-    _atomic(out / "texture_final.npy", lambda f: np.save(f, T_q))
+    atomic_write(out / "texture_final.png", lambda f: Image.fromarray(to_uint8(T_q)).save(f, format="PNG"))
+    atomic_write(out / "texture_final.npy", lambda f: np.save(f, T_q))
     for phase, folder in (("pre", "frames_benign"), ("adversarial", "frames_adversarial")):
         (out / folder).mkdir(exist_ok=True)
         for job in store.jobs(run.id, k, phase):
@@ -133,16 +118,16 @@ def write_outputs(out: Path, store: "Store", ctx: "RunContext", run: "RunSnapsho
     state0 = store.attack_state(run.id, 0) or {}
     if ctx.attack.config.random_start and isinstance(state0.get("visible"), np.ndarray):
         Image.fromarray(state0["visible"].astype(np.uint8) * 255).save(out / "texture_visibility.png")
-    _atomic_text(out / "results.json", json.dumps(res, indent=1) + "\n")
+    atomic_write(out / "results.json", json.dumps(res, indent=1) + "\n")
     rows = [{"k": r.k, "loss_mean": r.loss_mean, "n_bad": r.n_bad} for r in store.iterations(run.id)]
     png = charts.loss_chart(rows, ctx.config.loss)  # the chart of the dashboard and the report
-    _atomic(out / "loss.png", lambda f: f.write(png))
+    atomic_write(out / "loss.png", png)
     meta = {"run_id": run.id, "config": redact(ctx.config.to_json()), "seed": ctx.config.seed,
             "scene_dir": str(ctx.scene_dir), "scene_blob": run.scene_ref,
             "texture_final": "8-bit quantised sRGB (texture_final.png); the same values as float in [0, 1] "
                              "(texture_final.npy) — what the adversarial evaluation rendered",
             "versions": {**versions(), "simulator": ctx.sim.name, **ctx.sim.versions()}}
-    _atomic_text(out / "metadata.json", json.dumps(meta, indent=1) + "\n")
+    atomic_write(out / "metadata.json", json.dumps(meta, indent=1) + "\n")
 
 
 def _check_own(out: Path, run_id: str) -> None:

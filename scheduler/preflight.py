@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING
 from undream.errors import SpecError, StoreError, UndreamError, already_exists
 from undream.redact import redact
 from undream.settings import LocalSettings
-from undream.spec.io import check_writable_target
+from undream.spec.io import check_writable_target, resolve_against
 from undream.spec.run import RunConfig
 
 if TYPE_CHECKING:
@@ -33,8 +33,7 @@ MARKER = "undream_output"  # key of the metadata.json written when a run starts
 
 def scene_source(config: RunConfig, base_dir: Path) -> Path:
     """The run's scene as the user named it: a scene directory or a spec file (absolute)."""
-    src = Path(config.scene)
-    return (src if src.is_absolute() else Path(base_dir) / src).resolve()
+    return Path(resolve_against(config.scene, base_dir))
 
 
 @dataclass(frozen=True)

@@ -28,12 +28,12 @@ never closes while a job has no result.
 from __future__ import annotations
 
 import logging
-from collections import OrderedDict
 from dataclasses import asdict, dataclass
 from typing import TYPE_CHECKING, Any, Callable, Protocol, Sequence
 
 from scheduler.iteration import MissingResults, expected_frames, frame_job, reduce_and_step
 from undream import attacks  # lazy: make_attack loads torch when first called
+from undream.lru import LRU
 from undream.store import ACTIVE, UNFINISHED
 
 if TYPE_CHECKING:
@@ -45,6 +45,7 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 PHASES = ("attack", "pre", "adversarial")
+TEXTURE_VERSIONS = 8  # texture versions (run, phase, k) a process keeps read (run_batch)
 Contexts = Callable[[str], "RunContext"]
 
 
@@ -147,13 +148,13 @@ def plan(store: "Store", run: "RunSnapshot", phase: str, k: int, dispatch: Dispa
 
 
 def run_batch(store: "Store", contexts: Contexts, run_id: str, phase: str, k: int,
-              frames: Sequence[int], textures: "OrderedDict[tuple, dict] | None" = None) -> dict[str, Any]:
+              frames: Sequence[int], textures: "LRU[tuple, dict] | None" = None) -> dict[str, Any]:
     """The header task's body: the jobs of ``frames`` that have no result yet, failures recorded.
 
     ``textures``: the process's cache of the textures each (run, phase, k)
     renders, so a process reads a texture version once however many of its
-    batches it serves (least recently used dropped past 8). Returns a small
-    JSON summary: frames ``done``, ``failed`` (gave up), ``retry`` (failed,
+    batches it serves (least recently used dropped past ``TEXTURE_VERSIONS``).
+    Returns a small JSON summary: frames ``done``, ``failed`` (gave up), ``retry`` (failed,
     attempts left: run the batch again), ``skipped`` (the run moved on or was
     cancelled), and the blob bytes read and written.
     """
@@ -168,7 +169,7 @@ def run_batch(store: "Store", contexts: Contexts, run_id: str, phase: str, k: in
     max_attempts = FarmOptions.of(run).max_attempts
     jobs = {j.frame: j for j in store.jobs(run_id, k, phase)}
     read0, written0 = store.blobs.bytes_read, store.blobs.bytes_written
-    cache: OrderedDict[tuple, dict] = textures if textures is not None else OrderedDict()
+    cache: LRU[tuple, dict] = textures if textures is not None else LRU(TEXTURE_VERSIONS)
     key = (run_id, phase, k)
     for f in frames:
         job = jobs.get(f)
@@ -182,16 +183,15 @@ def run_batch(store: "Store", contexts: Contexts, run_id: str, phase: str, k: in
             continue
         try:
             ctx = contexts(run_id)
-            if key not in cache:
-                cache[key] = {"k": store.texture(run_id, k)} if phase == "attack" \
-                    else eval_textures(store, run_id, phase, k)
-                while len(cache) > 8:
-                    cache.popitem(last=False)
-            cache.move_to_end(key)
-            if phase == "attack":
-                frame_job(store, ctx, run_id, k, f, cache[key]["k"])
+            if key in cache:
+                read = cache.touch(key)
             else:
-                eval_job(store, ctx, run_id, phase, k, f, cache[key])
+                read = cache.put(key, {"k": store.texture(run_id, k)} if phase == "attack"
+                                 else eval_textures(store, run_id, phase, k))
+            if phase == "attack":
+                frame_job(store, ctx, run_id, k, f, read["k"])
+            else:
+                eval_job(store, ctx, run_id, phase, k, f, read)
             summary["done"].append(f)
         except Exception as exc:  # any failure of a job is recorded with it, then retried or counted
             again = (job.attempts if job is not None else 0) + 1 < max_attempts

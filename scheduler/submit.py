@@ -18,6 +18,7 @@ from scheduler import stages
 from scheduler.local import resolve_scene
 from scheduler.preflight import check_frames
 from undream.settings import LocalSettings
+from undream.spec.io import resolve_against
 from undream.spec.run import RunConfig
 
 if TYPE_CHECKING:
@@ -52,8 +53,7 @@ class Validator:
         self._sequences: dict[str, Any] = {}
 
     def scene(self, config: RunConfig, base_dir: Path) -> Path:
-        src = Path(config.scene) if Path(config.scene).is_absolute() else Path(base_dir) / config.scene
-        src = src.resolve()
+        src = Path(resolve_against(config.scene, base_dir))
         if src not in self._scenes:
             self._scenes[src] = resolve_scene(config, self.work_dir / str(len(self._scenes)), base_dir,
                                               local=self.local)

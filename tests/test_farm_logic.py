@@ -372,11 +372,11 @@ def test_the_example_sweep_expands():
 
 
 def test_a_process_reads_each_texture_version_once(tiny, tmp_path):
-    from collections import OrderedDict
+    from undream.lru import LRU
 
     store, run_id, ctx = _local_run(tiny, tmp_path, _config(tiny))
     stages.start(store, lambda _: ctx, run_id, LocalDispatch())
-    cache: OrderedDict = OrderedDict()
+    cache: LRU = LRU(stages.TEXTURE_VERSIONS)
     first = stages.run_batch(store, lambda _: ctx, run_id, "attack", 0, [0, 1], cache)
     second = stages.run_batch(store, lambda _: ctx, run_id, "attack", 0, [2], cache)
     texture_bytes = store.blobs.path(f"runs/{run_id}/texture/000000.npy").stat().st_size

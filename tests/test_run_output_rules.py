@@ -152,7 +152,7 @@ def test_a_binary_spec_is_one_line_for_init(tmp_path):
 
 def test_outputs_are_replaced_whole_or_not_at_all(tmp_path):
     """A write that dies half-way leaves the earlier file as it was, and no temporary file."""
-    from scheduler.outputs import _atomic
+    from undream.spec.io import atomic_write  # what scheduler.outputs writes with
 
     target = tmp_path / "results.json"
     target.write_text('{"old": true}')
@@ -162,6 +162,6 @@ def test_outputs_are_replaced_whole_or_not_at_all(tmp_path):
         raise OSError("disk full")
 
     with pytest.raises(OSError, match="disk full"):
-        _atomic(target, dies)
+        atomic_write(target, dies)
     assert target.read_text() == '{"old": true}'
     assert sorted(p.name for p in tmp_path.iterdir()) == ["results.json"]

@@ -13,7 +13,6 @@ from __future__ import annotations
 import fcntl
 import logging
 import os
-from collections import OrderedDict
 from pathlib import Path
 from typing import IO, TYPE_CHECKING
 
@@ -39,6 +38,8 @@ class Runtime:
 
     def __init__(self, app: "Celery") -> None:
         from scheduler.contexts import ContextCache
+        from scheduler.stages import TEXTURE_VERSIONS
+        from undream.lru import LRU
         from undream.store import open_store
         from workers.dispatch import CeleryDispatch
 
@@ -49,7 +50,7 @@ class Runtime:
         self.contexts: ContextCache = ContextCache(self.store, settings.cache_dir, scenes=settings.scene_cache,
                                                    local=local)
         self.dispatch: CeleryDispatch = CeleryDispatch(app)
-        self.textures: OrderedDict[tuple, dict] = OrderedDict()  # texture versions read (run, phase, k)
+        self.textures: LRU[tuple, dict] = LRU(TEXTURE_VERSIONS)  # texture versions read (run, phase, k)
 
 
 def runtime(app: "Celery") -> Runtime:

@@ -48,11 +48,9 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import os
 import re
 import shutil
 import subprocess
-import tempfile
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Mapping
@@ -63,6 +61,7 @@ from undream.bridge.blender_python import HINT, blender_env, blender_python, bpy
 from undream.errors import BridgeError, SpecError
 from undream.spec import ActorPose, Asset, Camera, Environment, Frame, Sequence, TextureParam, Transform
 from undream.spec import _check
+from undream.spec.io import atomic_write
 
 FORMAT = "undream-blender-export"
 VERSION = 1
@@ -337,9 +336,6 @@ def write_cached_ply(mesh: BlendMesh, cache: Path) -> Path:
     path = cache / f"{hashlib.sha256(blob).hexdigest()[:24]}.ply"
     if not path.is_file():
         cache.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=cache, suffix=".ply.tmp")
-        with os.fdopen(fd, "wb") as f:
-            f.write(blob)
-        os.replace(tmp, path)
+        atomic_write(path, blob, mode=0o600)
     return path
 

@@ -57,6 +57,7 @@ from undream.bridge.unreal import (
 from undream.errors import BridgeError, SpecError
 from undream.spec import ActorPose, Asset, Camera, Environment, Frame, Sequence, TextureParam, Transform
 from undream.spec import _check
+from undream.spec.io import resolve_against
 from undream.spec.model import BUILTIN_PREFIX
 
 FORMAT = "undream-unreal-export"
@@ -226,8 +227,8 @@ def _name(d: Mapping[str, Any], path: Path) -> str:
 
 
 def _resolve(value: Any, base: Path) -> Any:
-    if isinstance(value, str) and value and not value.startswith(BUILTIN_PREFIX) and not Path(value).is_absolute():
-        return str((base / value).resolve())
+    if isinstance(value, str) and value and not value.startswith(BUILTIN_PREFIX):
+        return resolve_against(value, base, keep_absolute=True)
     return value
 
 

@@ -2,13 +2,13 @@
 from __future__ import annotations
 
 import threading
-from collections import OrderedDict
 from typing import TYPE_CHECKING, Any, Callable
 
 from undream.dashboard.errors import Unavailable
 from undream.dashboard.grid import job_grid
 from undream.dashboard.query import ACTIVE_STATUSES
 from undream.errors import StoreError
+from undream.lru import LRU
 
 if TYPE_CHECKING:
     from undream.settings import Settings
@@ -23,21 +23,16 @@ class Cache:
     that changes makes new keys. Least recently used entries go first."""
 
     def __init__(self, size: int = CACHE_ITEMS) -> None:
-        self._items: OrderedDict[tuple[Any, ...], Any] = OrderedDict()
-        self._size = size
+        self._items: LRU[tuple[Any, ...], Any] = LRU(size)
         self._lock = threading.Lock()
 
     def get(self, key: tuple[Any, ...], make: Callable[[], Any]) -> Any:
         with self._lock:
             if key in self._items:
-                self._items.move_to_end(key)
-                return self._items[key]
+                return self._items.touch(key)
         data = make()
         with self._lock:
-            self._items[key] = data
-            while len(self._items) > self._size:
-                self._items.popitem(last=False)
-        return data
+            return self._items.put(key, data)
 
 
 class Farm:

@@ -18,7 +18,6 @@ names or differs in a host-side (non-JIT) parameter starts a group of its own.
 from __future__ import annotations
 
 import re
-from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import ModuleType
@@ -27,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from undream.errors import RenderError
+from undream.lru import LRU
 from undream.render.loading import load_scene, texture_param_key
 from undream.scene.layout import frame_xml
 
@@ -95,7 +95,8 @@ class SceneCache:
         self._frozen: dict[str, Any] = {}
         self._groups: dict[tuple[str, tuple[str, int]], _Group] = {}
         self._states: dict[tuple[str, int], _FrameState] = {}
-        self._lru: OrderedDict[tuple[str, tuple[str, int]], None] = OrderedDict()
+        # the loaded groups; _make_room drops the least recently used before a load, so put() drops none
+        self._lru: LRU[tuple[str, tuple[str, int]], _Group] = LRU(max(1, max_loaded), on_evict=self._unload)
 
     def close(self) -> None:
         """Drop the frozen recordings, then the loaded scenes (in that order: recordings refer to scenes)."""
@@ -219,16 +220,17 @@ class SceneCache:
             group.base = {k: _copy(params[k]) for k in params.keys()
                           if _is_jit(params[k]) and k != group.loaded.texture_key}
             group.applied = set()
-        self._lru[gkey] = None
-        self._lru.move_to_end(gkey)
+        self._lru.put(gkey, group)
         return group.loaded
 
     def _make_room(self) -> None:
         while self.loaded_count >= self.max_loaded and self._lru:
-            old, _ = self._lru.popitem(last=False)
-            for f in self._frozen.values():  # recordings may refer to the scene being dropped
-                f.clear()
-            self._groups[old].loaded = None
+            self._lru.drop_oldest()
+
+    def _unload(self, gkey: tuple[str, tuple[str, int]], group: _Group) -> None:
+        for f in self._frozen.values():  # recordings may refer to the scene being dropped
+            f.clear()
+        group.loaded = None
 
     def _apply(self, group: _Group, active: ActiveFrame, state: _FrameState) -> None:
         keys = set(state.values) | group.applied

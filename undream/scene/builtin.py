@@ -32,6 +32,7 @@ import numpy as np
 
 from undream.errors import AssetError
 from undream.scene.mesh import Mesh, concat_meshes, load_mesh_file
+from undream.spec.io import join_against
 from undream.spec.model import Asset
 
 Rect = tuple[float, float, float, float]  # (u0, v0, u1, v1)
@@ -421,5 +422,5 @@ def asset_mesh(asset: Asset, base_dir: Path | None = None, index: int | None = N
         if asset.per_frame and index is None:
             raise AssetError(f"{asset.mesh}: a per-frame mesh needs a frame index")
         path = Path(asset.mesh_at(index if index is not None else 0))
-        mesh = load_mesh_file(path if path.is_absolute() or base_dir is None else Path(base_dir) / path)
+        mesh = load_mesh_file(join_against(path, base_dir))
     return mesh if asset.scale == 1.0 else mesh.scaled(asset.scale)

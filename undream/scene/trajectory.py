@@ -30,6 +30,7 @@ from undream.errors import SpecError
 from undream.scene import poses
 from undream.spec import ActorPose, Asset, Camera, Environment, Frame, Sequence, TextureParam, Transform
 from undream.spec import _check as c
+from undream.spec.io import resolve_against
 from undream.spec.limits import bounded
 
 PATH_TYPES = ("static", "orbit", "dolly", "drive_by", "flyover", "keyframes")
@@ -74,7 +75,7 @@ def _asset(d: Any, base_dir: Path | None, adversarial: bool) -> Asset:
             d["texture"] = TextureParam().to_json()
         mesh = d.get("mesh")
         if isinstance(mesh, str) and not mesh.startswith("builtin:") and base_dir is not None:
-            d["mesh"] = str((base_dir / mesh).resolve()) if not Path(mesh).is_absolute() else mesh
+            d["mesh"] = resolve_against(mesh, base_dir, keep_absolute=True)
         return Asset.from_json(d)
 
 
@@ -240,5 +241,4 @@ def _resolve_envmap(d: Any, base_dir: Path | None) -> Any:
     """A relative ``envmap`` path resolved against the spec's folder, as mesh paths are."""
     if not isinstance(d, Mapping) or not isinstance(d.get("envmap"), str) or base_dir is None:
         return d
-    path = Path(d["envmap"])
-    return {**d, "envmap": str(path if path.is_absolute() else (base_dir / path).resolve())}
+    return {**d, "envmap": resolve_against(Path(d["envmap"]), base_dir, keep_absolute=True)}

@@ -39,7 +39,7 @@ from undream.scene.xml import to_xml
 from undream.scenedir.envmaps import Envmap, envmap_sources, load_envmaps, write_envmaps
 from undream.scenedir.verify import check_visible
 from undream.spec import Sequence, TextureParam, save_sequence
-from undream.spec.io import check_writable_target, resolve_against
+from undream.spec.io import check_writable_target, join_against, resolve_against
 
 Source = str | Path | Sequence | BlendSource  # a spec file, a sequence, or a .blend and its object
 
@@ -196,9 +196,7 @@ def texture_from_spec(tex: TextureParam, base_dir: Path | None) -> np.ndarray:
     """
     if not isinstance(tex.init, str):
         return np.broadcast_to(np.array(tex.init, np.float32), tex.shape).copy()
-    path = Path(tex.init)
-    if not path.is_absolute() and base_dir is not None:
-        path = base_dir / path
+    path = join_against(tex.init, base_dir)
     try:
         img = Image.open(path).convert("RGB").resize(tex.resolution, Image.BILINEAR)
     except FileNotFoundError:

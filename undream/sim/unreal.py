@@ -44,6 +44,7 @@ from undream.errors import RenderError
 from undream.settings import UNREAL_SPOOL_ENV, UNREAL_TIMEOUT_ENV
 from undream.sim import register_backend
 from undream.spec import load_sequence
+from undream.spec.io import atomic_write
 
 SPOOL_ENV, TIMEOUT_ENV = UNREAL_SPOOL_ENV, UNREAL_TIMEOUT_ENV  # named in messages; read at the edge
 DEFAULT_TIMEOUT_S = 600.0
@@ -72,12 +73,6 @@ def spool_folder(spool: str | Path | None = None) -> Path:
 def check_unreal(spool: str | Path | None = None) -> None:
     """Raise a one-line RenderError unless the spool folder is set and writable (before anything is written)."""
     spool_folder(spool)
-
-
-def _write_atomically(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
 
 
 @register_backend("unreal")
@@ -132,7 +127,7 @@ class UnrealSimulator:
         Image.fromarray(to_uint8(tex)).save(self.requests / f"{rid}.png")
         w, h = self.frames[index].camera.resolution
         request = self.requests / f"{rid}.json"
-        _write_atomically(request, json.dumps({
+        atomic_write(request, json.dumps({
             "format": REQUEST_FORMAT, "version": VERSION, "id": rid, "sequence": self.seq.name, "frame": index,
             "resolution": [w, h], "spp": int(spp), "seed": int(seed), "texture": f"{rid}.png"}))
         return request

@@ -1,4 +1,5 @@
-"""Reading spec files (JSON, YAML), writing the canonical ``sequence.json``, checking an output folder.
+"""Reading spec files (JSON, YAML), writing the canonical ``sequence.json``, checking an output folder;
+paths relative to a spec's folder; writing a file atomically.
 
 Errors are one :class:`~undream.errors.SpecError` line naming the file (and
 the line of a syntax error), whichever reader finds them.
@@ -7,8 +8,9 @@ from __future__ import annotations
 
 import json
 import os
+import secrets
 from pathlib import Path
-from typing import Any
+from typing import IO, Any, Callable
 
 from undream.errors import SpecError
 from undream.spec.limits import FILE_LIMITS
@@ -131,11 +133,49 @@ def save_sequence(seq: Sequence, path: str | Path) -> None:
     Path(path).write_text(json.dumps(seq.to_json(), indent=1) + "\n")
 
 
-def resolve_against(path: str | Path, base_dir: Path | None) -> str:
-    """``path`` as an absolute path: a relative one against ``base_dir`` (the spec's folder; the
-    working directory when None)."""
+def join_against(path: str | Path, base_dir: str | Path | None) -> Path:
+    """``path`` joined to ``base_dir`` (the spec's folder) when it is relative; as given when it is
+    absolute or ``base_dir`` is None. Not resolved: see :func:`resolve_against`."""
     p = Path(path)
-    return str((p if p.is_absolute() or base_dir is None else Path(base_dir) / p).resolve())
+    return p if p.is_absolute() or base_dir is None else Path(base_dir) / p
+
+
+def resolve_against(path: str | Path, base_dir: str | Path | None, *, keep_absolute: bool = False) -> str:
+    """``path`` as an absolute path: a relative one against ``base_dir`` (the spec's folder; the
+    working directory when None), resolved. ``keep_absolute``: an absolute ``path`` is returned as
+    given (``str(path)``), not resolved."""
+    if keep_absolute and Path(path).is_absolute():
+        return str(path)
+    return str(join_against(path, base_dir).resolve())
+
+
+def atomic_write(path: str | Path, data: bytes | str | Callable[[IO[bytes]], Any], *, fsync: bool = False,
+                 mode: int = 0o666) -> int:
+    """Write ``path`` so that a reader sees its old content or the new, never part of either.
+
+    ``data``: bytes, text (written as UTF-8) or a writer called with the open binary file. It goes
+    into a new hidden sibling (``.NAME.<random>.tmp``), is flushed (and with ``fsync``, forced to
+    disk), then renamed over ``path`` (``os.replace``). Whatever fails, even the writer, the
+    temporary file is removed, ``path`` is left as it was and the exception propagates. ``mode``:
+    the new file's permission bits, before the umask. Returns the bytes written.
+    """
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{secrets.token_hex(8)}.tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, mode)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            if callable(data):
+                data(f)
+            else:
+                f.write(data.encode("utf-8") if isinstance(data, str) else data)
+            f.flush()
+            if fsync:
+                os.fsync(f.fileno())
+            size = f.tell()
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return size
 
 
 # Kernel file systems that show the machine's state: nothing undream writes can live there.

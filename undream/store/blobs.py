@@ -18,8 +18,8 @@ The blob store is given as a URL like the database: a local folder
 cluster), see :func:`blob_root`.
 
 Every write goes to a temporary file in the key's directory, is flushed to
-disk, then renamed over the key (``os.replace``): a reader sees the old content
-or the new, never a partial file, even when the writer dies mid-write.
+disk, then renamed over the key (``os.replace``, :func:`undream.spec.io.atomic_write`): a reader
+sees the old content or the new, never a partial file, even when the writer dies mid-write.
 """
 from __future__ import annotations
 
@@ -37,6 +37,7 @@ from typing import Any, Callable, IO
 import numpy as np
 
 from undream.errors import StoreError
+from undream.spec.io import atomic_write
 
 _SEGMENT = re.compile(r"^[A-Za-z0-9_-][A-Za-z0-9._-]*$")
 _TEMP_SUFFIX = ".tmp"
@@ -222,20 +223,8 @@ class BlobStore:
 
     def _write(self, key: str, write: Callable[[IO[bytes]], Any]) -> None:
         final = self.path(key)
-        tmp: str | None = None
         try:
             final.parent.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(prefix=f".{final.name}.", suffix=_TEMP_SUFFIX,
-                                       dir=final.parent)
-            with os.fdopen(fd, "wb") as f:
-                write(f)
-                f.flush()
-                os.fsync(f.fileno())
-                self.bytes_written += f.tell()
-            os.replace(tmp, final)
-            tmp = None
+            self.bytes_written += atomic_write(final, write, fsync=True, mode=0o600)
         except OSError as exc:
             raise StoreError(f"blob {key!r}: cannot write under {self.root}: {exc}") from exc
-        finally:
-            if tmp is not None:
-                Path(tmp).unlink(missing_ok=True)
