@@ -14,6 +14,24 @@ ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = sorted((ROOT / "examples").glob("*.yaml")) + sorted((ROOT / "examples" / "unreal").glob("*.json"))
 
 
+# The slow tier: modules that start real workers, browsers, Blender or many CLI subprocesses, or render
+# and attack for seconds per test (each over 9 s in all, measured with --durations=0; docs/testing.md).
+# `pytest -m "not slow"` leaves them out for the inner loop; CI runs everything.
+SLOW_MODULES = {
+    "test_farm_integration.py", "test_output_folders.py", "test_deploy_topology.py", "test_stale_runs.py",
+    "test_farm_cli.py", "test_run_output_rules.py", "test_secrets.py", "test_sim_blender.py",
+    "test_scene_cache.py", "test_input_rules.py", "test_settings_edge.py", "test_farm_trust.py",
+    "test_fuzz_inputs.py", "test_cli_errors.py", "test_patch_baseline.py", "test_dashboard_browser.py",
+    "test_eot.py", "test_blender_import.py", "test_init.py", "test_holdout.py", "test_motion.py",
+}
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        if item.path.name in SLOW_MODULES:
+            item.add_marker(pytest.mark.slow)
+
+
 def service_missing(reason: str) -> None:
     """Skip a test whose service (Redis, PostgreSQL) is down; fail instead where
     ``UNDREAM_REQUIRE_SERVICES`` is set (.ci/run sets it), so CI never passes by skipping."""

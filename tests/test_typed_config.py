@@ -37,6 +37,7 @@ def tiny(tmp_path_factory, mi):
     return farm_inputs(tmp_path_factory, "typed", 2)
 
 
+@pytest.mark.slow  # a real broker and CLI subprocesses
 def test_a_run_without_attack_steps_shows_its_real_step_count_in_status_and_the_dashboard(tiny, tmp_path):
     """Through the commands: submit a run whose YAML gives no ``attack.steps`` (no worker runs it), then
     ``undream status``, the stored row and the dashboard's JSON all say the steps it will run."""
