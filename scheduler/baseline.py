@@ -15,8 +15,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from PIL import Image
 
+from scheduler.preflight import check_output_folder, preflight, scene_source
+from scheduler.texture0 import starting_texture
+from undream.color import to_uint8
 from undream.errors import SpecError
+from undream.progress import progress as progress_bar
 from undream.settings import LocalSettings
 from undream.spec.run import RunConfig, split_frames
 
@@ -29,17 +34,11 @@ def run_patch_baseline(config: RunConfig, out: Path, base_dir: Path, force: bool
     """Optimise the pasted patch on the run's attacked frames, judge it in the simulator; the results.
 
     ``local``: this process's settings, read at the edge (:func:`undream.settings.load_local`)."""
-    from PIL import Image
-
     from scheduler.local import resolve_scene
-    from scheduler.preflight import check_output_folder, preflight, scene_source
-    from scheduler.texture0 import starting_texture
-    from undream.color import to_uint8
     from undream.attacks import make_attack
     from undream.engine.context import build_context
     from undream.engine.evaluate import quantise
     from undream.engine.patch import benign_frames, check_attack, evaluate_texture, judge_pasted, optimise_patch
-    from undream.progress import progress as progress_bar
 
     out = Path(out).resolve()
     check_output_folder(out, scene_source(config, base_dir), force, command="undream baseline", marker=MARK,

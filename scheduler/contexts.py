@@ -21,8 +21,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from scheduler.transports import BlobTransportShelf
 from undream.errors import StoreError
 from undream.lru import LRU
+from undream.render.scene_cache import SceneCache
 from undream.settings import LocalSettings
 from undream.spec.run import RunConfig
 
@@ -59,15 +61,11 @@ class ContextCache:
         scene_dir = unpack_scene(self.store.blobs, run.scene_ref, self.cache_dir)
         ctx = build_context(config, scene_dir, victim=self._victim(config, task_of(config)),
                             scenes=self._scene_cache(scene_dir), local=self.local)
-        from scheduler.transports import BlobTransportShelf
-
         ctx.gradients.shelf = BlobTransportShelf(self.store.blobs, run.scene_ref)
         self.built["contexts"] += 1
         return self._contexts.put(run_id, ctx)
 
     def _scene_cache(self, scene_dir: Path) -> Any:
-        from undream.render.scene_cache import SceneCache
-
         if scene_dir in self._scenes:
             return self._scenes.touch(scene_dir)
         scenes = SceneCache(scene_dir, frozen=self.local.frozen)

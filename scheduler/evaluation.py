@@ -19,6 +19,11 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from scheduler.iteration import worker_name
+from scheduler.state import decode_state
+from undream.color import linear_to_srgb, to_uint8
+from undream.errors import StoreError
+
 if TYPE_CHECKING:
     from undream.engine.context import RunContext
     from undream.store import Store
@@ -26,7 +31,6 @@ if TYPE_CHECKING:
 
 def _render(ctx: "RunContext", position: int, texture: np.ndarray) -> np.ndarray:
     """Frame ``position`` with ``texture`` at ``eval_spp``: sRGB H×W×3 in [0, 1]."""
-    from undream.color import linear_to_srgb
     from undream.engine.evaluate import EVAL_ITERATION
     from undream.engine.job import frame_seed
 
@@ -75,9 +79,6 @@ def eval_job(store: "Store", ctx: "RunContext", run_id: str, phase: str, k: int,
     ``textures``: ``benign`` and ``last`` for ``pre``, ``final`` for
     ``adversarial`` (sRGB H×W×3; the caller reads them once per batch).
     """
-    from scheduler.iteration import worker_name
-    from undream.color import to_uint8
-
     store.job_started(run_id, k, position, phase, worker=worker_name())
     t0 = time.perf_counter()
     if phase == "pre":
@@ -94,7 +95,6 @@ def eval_job(store: "Store", ctx: "RunContext", run_id: str, phase: str, k: int,
 def eval_textures(store: "Store", run_id: str, phase: str, k: int) -> dict[str, np.ndarray]:
     """The textures the evaluation jobs of ``phase`` render (see :func:`eval_job`)."""
     from undream.engine.evaluate import quantise
-    from undream.errors import StoreError
 
     if phase == "pre":
         state0 = store.attack_state(run_id, 0) or {}
@@ -111,7 +111,6 @@ def select_final(store: "Store", attack: Any, run_id: str, k: int) -> np.ndarray
     """Pick the texture to report after the last step (``Attack.final``), quantised to 8 bits."""
     import torch
 
-    from scheduler.state import decode_state
     from undream.engine.evaluate import quantise
 
     losses = [float("nan") if (j.result or {}).get("loss") is None else j.result["loss"]  # type: ignore[index]

@@ -9,12 +9,16 @@ process. The math lives in the library (:mod:`undream.engine`,
 from __future__ import annotations
 
 import logging
+import os
+import socket
 import time
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from scheduler.state import decode_state, encode_state
 from undream.errors import AttackError, UndreamError
+from undream.spec.run import split_frames
 
 if TYPE_CHECKING:
     from undream.attacks.base import Attack
@@ -39,8 +43,6 @@ class MissingResults(UndreamError):
 
 def attacked_frames(run: "RunSnapshot") -> list[int]:
     """The frame positions the attack may render for its gradient (the held-out ones excluded)."""
-    from undream.spec.run import split_frames
-
     return split_frames(run.run_config.holdout, run.n_frames)[0]
 
 
@@ -55,9 +57,6 @@ def expected_frames(run: "RunSnapshot", frames_per_step: int | None, k: int) -> 
 
 def worker_name() -> str:
     """``host:pid`` of this process (recorded with each job it starts)."""
-    import os
-    import socket
-
     return f"{socket.gethostname()}:{os.getpid()}"
 
 
@@ -96,7 +95,6 @@ def reduce_and_step(store: "Store", attack: "Attack", run_id: str, k: int) -> bo
     """
     import torch
 
-    from scheduler.state import decode_state, encode_state
     from undream.attacks import average_frames
     from undream.store import ACTIVE
 

@@ -14,7 +14,9 @@ from pathlib import Path
 from typing import Any
 
 from scheduler import stages
+from scheduler.preflight import check_output_folder, is_run_output, mark_output, preflight, scene_source
 from undream.engine.context import RunContext, build_context
+from undream.scenedir.init import InitOptions, init_scene
 from undream.settings import LocalSettings
 from undream.errors import SpecError, UndreamError
 from undream.progress import progress as progress_bar
@@ -38,8 +40,6 @@ def resolve_scene(config: RunConfig, out: Path, base_dir: Path, reuse: bool = Fa
     """The run's scene directory: given, or initialised from a spec file into ``out/scene``
     (``reuse``: the one an earlier start of the run already initialised there, if any;
     ``local``: this process's settings, read at the edge: the memory limit)."""
-    from undream.scenedir.init import InitOptions, init_scene
-
     src = join_against(config.scene, base_dir)
     if (src / "sequence.json").is_file():
         return src
@@ -103,7 +103,6 @@ def run_local(config: RunConfig, out: str | Path, base_dir: Path | None = None, 
     marked failed in the store with the error, which is raised
     (:class:`scheduler.iteration.AllFramesFailed`, :class:`RunFailed`).
     """
-    from scheduler.preflight import check_output_folder, mark_output, preflight, scene_source
     from undream.store import open_store
 
     out, base_dir = Path(out).resolve(), base_dir or Path.cwd()
@@ -135,8 +134,6 @@ def check_run(config: RunConfig, out: str | Path, base_dir: Path | None = None,
               force: bool = False, source: Path | None = None, local: LocalSettings = LocalSettings()) -> Any:
     """``undream run --check``: every check :func:`run_local` makes before it writes, nothing
     written; the run's estimate (:class:`undream.render.budget.Estimate`)."""
-    from scheduler.preflight import check_output_folder, preflight, scene_source
-
     out, base_dir = Path(out).resolve(), base_dir or Path.cwd()
     check_output_folder(out, scene_source(config, base_dir), force, inputs=(source,) if source is not None else ())
     return preflight(config, base_dir, source, local).estimate
@@ -153,7 +150,6 @@ def resume_local(config: RunConfig, out: Path, base_dir: Path, progress: bool = 
     uninterrupted run would. A run already done returns its results.
     """
     from scheduler.lease import expire_stale
-    from scheduler.preflight import is_run_output, preflight
     from undream.store import open_store
 
     if not is_run_output(out):

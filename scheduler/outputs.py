@@ -14,11 +14,18 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from PIL import Image
 
+from scheduler.evaluation import prediction_from_json
+from scheduler.preflight import METADATA, is_run_output, is_scene
 from undream import charts
 from undream.color import to_uint8
+from undream.errors import StoreError
+from undream.metrics import classification_attack_report, detection_attack_report
 from undream.redact import redact
+from undream.scene.layout import frame_name
 from undream.spec.io import atomic_write
+from undream.spec.run import split_frames
 from undream.versions import versions
 
 if TYPE_CHECKING:
@@ -40,9 +47,7 @@ def _timings(store: "Store", run_id: str, k: int) -> dict[str, float]:
 
 def results(store: "Store", ctx: "RunContext", run: "RunSnapshot", k: int) -> dict[str, Any]:
     """The run's results from its stored predictions, iteration records and job timings."""
-    from scheduler.evaluation import prediction_from_json
     from undream.engine.evaluate import judge
-    from undream.spec.run import split_frames
 
     task = ctx.victim.task
     benign_preds = [prediction_from_json(task, j.result["prediction"])  # type: ignore[index]
@@ -78,7 +83,6 @@ def _headline(judged: dict[str, Any]) -> dict[str, Any]:
 def _success(ctx: "RunContext", benign: list[Any], adversarial: list[Any], positions: list[int]) -> Any:
     """The attack-success report of the frames at ``positions``."""
     from undream.engine.evaluate import ground_truths
-    from undream.metrics import classification_attack_report, detection_attack_report
 
     label, target = ctx.targets[0].label, ctx.targets[0].target_label
     b, a = [benign[i] for i in positions], [adversarial[i] for i in positions]
@@ -96,11 +100,6 @@ def default_out_dir(store: "Store", run: "RunSnapshot") -> Path:
 def write_outputs(out: Path, store: "Store", ctx: "RunContext", run: "RunSnapshot", k: int,
                   res: dict[str, Any]) -> None:
     """Write the run's output folder (see the module docstring) from the store."""
-    from PIL import Image
-
-    from undream.errors import StoreError
-    from undream.scene.layout import frame_name
-
     _check_own(out, run.id)
     out.mkdir(parents=True, exist_ok=True)
 
@@ -134,9 +133,6 @@ def _check_own(out: Path, run_id: str) -> None:
     """StoreError unless ``out`` is absent, empty, or this run's own output folder: a worker never
     writes into a scene, a user's folder or another run's outputs (the run keeps its results in the
     store, and `undream report` can write them elsewhere)."""
-    from scheduler.preflight import METADATA, is_run_output, is_scene
-    from undream.errors import StoreError
-
     if not out.is_dir() or not any(out.iterdir()):
         return
     try:

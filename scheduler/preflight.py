@@ -17,10 +17,15 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from undream.errors import SpecError, StoreError, UndreamError, already_exists
-from undream.redact import redact
+from undream.redact import MASK, redact
+from undream.render.budget import run_estimate
+from undream.scenedir.init import InitOptions, check_source
+from undream.scenedir.verify import check_visible
 from undream.settings import LocalSettings
+from undream.sim import check_simulator
+from undream.spec import load_sequence
 from undream.spec.io import check_writable_target, resolve_against
-from undream.spec.run import RunConfig
+from undream.spec.run import RunConfig, split_frames
 
 if TYPE_CHECKING:
     from undream.render.budget import Estimate
@@ -69,8 +74,6 @@ def preflight(config: RunConfig, base_dir: Path, source: str | Path | None = Non
 def _preflight(config: RunConfig, base_dir: Path, local: LocalSettings) -> Checked:
     from undream.attacks import make_attack
     from undream.engine.context import class_ids, task_of
-    from undream.render.budget import run_estimate
-    from undream.sim import check_simulator
     from undream.victims import load_victim
 
     make_attack(config.attack)
@@ -89,8 +92,6 @@ def _preflight(config: RunConfig, base_dir: Path, local: LocalSettings) -> Check
 
 def check_frames(config: RunConfig, n_frames: int) -> None:
     """The held-out split fits the sequence, and ``frames_per_step`` the frames left to attack."""
-    from undream.spec.run import split_frames
-
     attacked, held = split_frames(config.holdout, n_frames)
     per_step = config.attack.frames_per_step
     if per_step is not None and per_step > len(attacked):
@@ -99,10 +100,6 @@ def check_frames(config: RunConfig, n_frames: int) -> None:
 
 
 def _sequence(src: Path, memory_limit: int | None = None) -> "Sequence":
-    from undream.scenedir.init import InitOptions, check_source
-    from undream.scenedir.verify import check_visible
-    from undream.spec import load_sequence
-
     if (src / "sequence.json").is_file():
         seq = load_sequence(src / "sequence.json")
         check_visible(src, [f.index for f in seq.frames])  # a spec file: `undream init` checks it
@@ -170,7 +167,6 @@ def live_owner(out: Path) -> str | None:
     (its lease: :func:`scheduler.lease.stale_reason`), else None. A store that cannot be read for
     want of its password counts as live: nothing is replaced that cannot be checked."""
     from scheduler.lease import stale_reason
-    from undream.redact import MASK
     from undream.store import open_store
     from undream.store.leases import LIVE
     from undream.store.models import utcnow

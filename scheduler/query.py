@@ -3,6 +3,8 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
+from scheduler.sweep import grid_values
+
 if TYPE_CHECKING:
     from undream.store import RunSnapshot, Store
 
@@ -55,8 +57,6 @@ def result_rows(store: "Store", sweep_id: str, spec: dict[str, Any]) -> list[dic
     """One row per run of a sweep: its grid values, status and headline numbers (fractions in
     [0, 1]: ``benign`` and ``adversarial`` over every frame, ``held_out_benign`` and
     ``held_out_adversarial`` over the frames the attack never rendered, None without any)."""
-    from scheduler.sweep import grid_values
-
     rows = []
     for run in store.runs(sweep_id=sweep_id):
         res = run.results or {}

@@ -29,9 +29,16 @@ from __future__ import annotations
 
 import logging
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Protocol, Sequence
 
+import numpy as np
+
+from scheduler.evaluation import eval_job, eval_textures, select_final
 from scheduler.iteration import MissingResults, expected_frames, frame_job, reduce_and_step
+from scheduler.outputs import default_out_dir, results, write_outputs
+from scheduler.state import encode_state
+from scheduler.texture0 import starting_texture, visibility
 from undream import attacks  # lazy: make_attack loads torch when first called
 from undream.lru import LRU
 from undream.store import ACTIVE, UNFINISHED
@@ -113,11 +120,6 @@ def start(store: "Store", contexts: Contexts, run_id: str, dispatch: Dispatch) -
     """The starting texture and attack state (once), then iteration 0's jobs."""
     import torch
 
-    import numpy as np
-
-    from scheduler.state import encode_state
-    from scheduler.texture0 import starting_texture, visibility
-
     run = store.get_run(run_id)
     if run.status not in ACTIVE:
         return "stale"
@@ -158,8 +160,6 @@ def run_batch(store: "Store", contexts: Contexts, run_id: str, phase: str, k: in
     attempts left: run the batch again), ``skipped`` (the run moved on or was
     cancelled), and the blob bytes read and written.
     """
-    from scheduler.evaluation import eval_job, eval_textures
-
     summary: dict[str, Any] = {"run_id": run_id, "phase": phase, "k": k, "done": [], "failed": [],
                                "retry": [], "skipped": []}
     run = store.get_run(run_id)
@@ -263,8 +263,6 @@ def _step(store: "Store", run: "RunSnapshot", k: int, dispatch: Dispatch) -> str
 
 
 def _final(store: "Store", run: "RunSnapshot", k: int, dispatch: Dispatch) -> str:
-    from scheduler.evaluation import select_final
-
     if store.final_texture(run.id) is not None:  # another callback picked it (resume plans the rest)
         return "stale"
     store.put_final_texture(run.id, select_final(store, attacks.make_attack(run.run_config.attack), run.id, k))
@@ -274,10 +272,6 @@ def _final(store: "Store", run: "RunSnapshot", k: int, dispatch: Dispatch) -> st
 
 def finish(store: "Store", contexts: Contexts, run_id: str, k: int) -> str:
     """Results into the store and the run's output folder; the run is done."""
-    from pathlib import Path
-
-    from scheduler.outputs import default_out_dir, results, write_outputs
-
     run = store.get_run(run_id)
     ctx = contexts(run_id)
     res = results(store, ctx, run, k)

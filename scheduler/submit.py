@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any, Sequence
 from scheduler import stages
 from scheduler.local import resolve_scene
 from scheduler.preflight import check_frames
+from undream.render.budget import run_estimate
 from undream.settings import LocalSettings
 from undream.spec.io import resolve_against
 from undream.spec.run import RunConfig
@@ -62,7 +63,6 @@ class Validator:
     def __call__(self, config: RunConfig, base_dir: Path) -> Prepared:
         from undream.attacks import make_attack
         from undream.engine.context import build_context
-        from undream.render.budget import run_estimate
 
         scene_dir = self.scene(config, base_dir)
         key = _signature(config, scene_dir)

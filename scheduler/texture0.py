@@ -5,21 +5,20 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from undream.render.differentiable import texture_gradient
+from undream.render.loading import read_texture_srgb
+
 if TYPE_CHECKING:
     from undream.engine.context import RunContext
 
 
 def starting_texture(ctx: "RunContext") -> np.ndarray:
     """The scene directory's texture, the attack's T0: sRGB H×W×3 float32 (from the exact float EXR)."""
-    from undream.render.loading import read_texture_srgb
-
     return read_texture_srgb(ctx.scenes.mi, ctx.scene_dir / "textures" / f"{ctx.sequence.texture.name}.exr")
 
 
 def visibility(ctx: "RunContext", texture: np.ndarray) -> np.ndarray:
     """Texels some frame sees (H×W bool): a gradient pass seeded with a white image gradient."""
-    from undream.render.differentiable import texture_gradient
-
     seen = np.zeros(texture.shape[:2], dtype=bool)
     for f in ctx.sequence.frames:
         res = f.camera.resolution

@@ -5,6 +5,7 @@ chooses no Mitsuba variant.
 """
 from __future__ import annotations
 
+import importlib
 from typing import Any
 
 from undream.errors import (
@@ -33,6 +34,5 @@ __all__ = ["AssetError", "BridgeError", "RenderError", "SpecError", "StoreError"
 
 def __getattr__(name: str) -> Any:
     if name in _LAZY:
-        import importlib
         return getattr(importlib.import_module(_LAZY[name]), name)
     raise AttributeError(f"module 'undream' has no attribute {name!r}")

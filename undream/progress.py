@@ -3,6 +3,8 @@ from __future__ import annotations
 
 from typing import Any, Iterable
 
+from tqdm import tqdm
+
 
 def progress(items: Iterable[Any] | int, desc: str, unit: str = "it", enabled: bool = True) -> Any:
     """A ``tqdm`` bar over ``items``, or over ``items`` steps when it is an int
@@ -10,8 +12,6 @@ def progress(items: Iterable[Any] | int, desc: str, unit: str = "it", enabled: b
 
     Disabled, it shows nothing and still iterates, updates and closes.
     """
-    from tqdm import tqdm
-
     if isinstance(items, int):
         return tqdm(total=items, desc=desc, unit=unit, disable=not enabled)
     return tqdm(items, desc=desc, unit=unit, disable=not enabled)

@@ -10,6 +10,7 @@ rest (scheme, user, host, port, path) so the reader still sees where it points.
 """
 from __future__ import annotations
 
+import logging
 import re
 from typing import Any
 
@@ -45,8 +46,6 @@ def redact(value: Any) -> Any:
 def install_log_redaction() -> None:
     """Redact every log record of this process (and of the processes it forks) as it is made:
     a password that reaches a log line through an error message or a URL is ``***`` in the log."""
-    import logging
-
     make = logging.getLogRecordFactory()
     if getattr(make, "undream_redacts", False):
         return

@@ -39,9 +39,11 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
+import re
 from typing import Any, Mapping
 
 from undream.errors import SpecError
+from undream.spec.io import read_yaml
 
 ENV_PREFIX = "UNDREAM_"
 SETTINGS_ENV = "UNDREAM_SETTINGS"
@@ -173,8 +175,6 @@ def _bad(source: str, value: Any, what: str) -> Any:
 
 
 def _from_file(path: Path) -> dict[str, Any]:
-    from undream.spec.io import read_yaml
-
     data = read_yaml(path)
     if data is None:
         return {}
@@ -268,8 +268,6 @@ class LocalSettings:
 
 def parse_bytes(text: str, source: str = MEMORY_LIMIT_ENV) -> int:
     """``"8G"``, ``"512M"`` or ``"1000000"`` as bytes (powers of 1024); SpecError naming ``source``."""
-    import re
-
     match = re.fullmatch(r"\s*(\d+(?:\.\d+)?)\s*([KMGT]?)i?B?\s*", str(text), re.IGNORECASE)
     if not match:
         raise SettingsError(f"{source}: {text!r} is not a size; give bytes, or a number with K, M, G or T")

@@ -5,6 +5,8 @@ import platform
 from importlib.metadata import PackageNotFoundError, version
 from types import ModuleType
 
+from undream import __version__
+
 PACKAGES = ("numpy", "scipy", "mitsuba", "drjit", "torch", "transformers")
 
 
@@ -16,8 +18,6 @@ def versions(mi: ModuleType | None = None) -> dict[str, str]:
     ``mi`` (the ``mitsuba`` module, variant set) ``variant`` names the
     Mitsuba variant in use.
     """
-    from undream import __version__
-
     out = {"undream": __version__, "python": platform.python_version()}
     for name in PACKAGES:
         try:

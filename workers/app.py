@@ -16,8 +16,10 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from undream.errors import UndreamError
+from undream.settings import load_local
 from undream.store import mask_url
 from workers.queues import CONTROL_QUEUE, FRAMES_QUEUE, QUEUES
+from workers.tasks import register_tasks
 
 if TYPE_CHECKING:
     from celery import Celery
@@ -38,10 +40,6 @@ def create_celery_app(settings: "Settings", local: "LocalSettings | None" = None
     now, :func:`undream.settings.load_local`), kept as ``app.undream_local`` for :mod:`workers.runtime`.
     """
     from celery import Celery
-
-    from undream.settings import load_local
-
-    from workers.tasks import register_tasks
 
     app = Celery("undream", broker=settings.broker_url, backend=settings.backend_url, set_as_current=False)
     transport = {

@@ -8,6 +8,7 @@ import sys
 from typing import TYPE_CHECKING, Any
 
 from workers.app import QUEUES, create_celery_app
+from workers.runtime import drjit_threads_for, init_process
 
 if TYPE_CHECKING:
     from undream.settings import Settings
@@ -27,8 +28,6 @@ def worker_argv(settings: "Settings", loglevel: str = "INFO", hostname: str | No
 def run_worker(settings: "Settings", loglevel: str = "INFO", hostname: str | None = None) -> None:
     """Run a worker until it is stopped (blocks)."""
     from celery import signals
-
-    from workers.runtime import drjit_threads_for, init_process
 
     app = create_celery_app(settings)
 

@@ -10,11 +10,18 @@ nothing here writes the environment.
 """
 from __future__ import annotations
 
+from dataclasses import replace
 import fcntl
 import logging
 import os
 from pathlib import Path
 from typing import IO, TYPE_CHECKING
+
+from scheduler.contexts import ContextCache
+from undream.lru import LRU
+from undream.settings import load_local
+from undream.variant import mitsuba
+from workers.dispatch import CeleryDispatch
 
 if TYPE_CHECKING:
     from celery import Celery
@@ -37,11 +44,8 @@ class Runtime:
     """One process's store, context cache (LRU by run id) and Celery dispatch."""
 
     def __init__(self, app: "Celery") -> None:
-        from scheduler.contexts import ContextCache
         from scheduler.stages import TEXTURE_VERSIONS
-        from undream.lru import LRU
         from undream.store import open_store
-        from workers.dispatch import CeleryDispatch
 
         settings: Settings = app.undream_settings  # type: ignore[attr-defined]
         local: LocalSettings = app.undream_local  # type: ignore[attr-defined]
@@ -108,13 +112,8 @@ def init_process(settings: "Settings", local: "LocalSettings | None" = None) -> 
     ``$UNDREAM_BLENDER_THREADS`` said otherwise (its render server inherits
     the pinning too); the caller hands them to the process's :class:`Runtime`.
     """
-    from dataclasses import replace
-
     import drjit as dr
     import torch
-
-    from undream.settings import load_local
-    from undream.variant import mitsuba
 
     local = load_local() if local is None else local
     threads = drjit_threads_for(settings)

@@ -16,6 +16,7 @@ import logging
 from typing import TYPE_CHECKING, Any, Callable
 
 from undream.errors import StoreError
+from workers.runtime import runtime
 
 if TYPE_CHECKING:
     from celery import Celery, Task
@@ -28,8 +29,6 @@ RETRY_DELAY_S = 0.5
 
 def _guard(app: "Celery", run_id: str, fn: Callable[[], Any]) -> Any:
     """Run a stage; any error but the store's fails the run with its message (`undream resume` restarts it)."""
-    from workers.runtime import runtime
-
     try:
         return fn()
     except StoreError:
@@ -56,8 +55,6 @@ def _what(task_name: str, args: tuple, kwargs: dict) -> str:
 def give_up(app: "Celery", task: "Task", exc: BaseException, args: tuple, kwargs: dict) -> None:
     """A task failed for good (its store retries used up, or an error no stage caught): its run
     fails with why, in one line, so it never stays queued or running for ever."""
-    from workers.runtime import runtime
-
     run_id = args[0] if args else kwargs.get("run_id")
     retries = task.request.retries
     how = f"gave up after {retries} {'retry' if retries == 1 else 'retries'}" if retries else "failed"
@@ -74,7 +71,6 @@ def register_tasks(app: "Celery") -> None:
     from celery import Task
 
     from scheduler import stages
-    from workers.runtime import runtime
 
     class RunTask(Task):
         """A task of one run (its first argument): when it fails for good, so does the run."""

@@ -9,6 +9,7 @@ through this package loads no torch.
 """
 from __future__ import annotations
 
+import importlib
 from typing import Any
 
 _LAZY = {
@@ -31,6 +32,5 @@ __all__ = sorted(_LAZY)
 
 def __getattr__(name: str) -> Any:
     if name in _LAZY:
-        import importlib
         return getattr(importlib.import_module(_LAZY[name]), name)
     raise AttributeError(f"module 'undream.attacks' has no attribute {name!r}")

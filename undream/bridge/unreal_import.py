@@ -57,7 +57,7 @@ from undream.bridge.unreal import (
 from undream.errors import BridgeError, SpecError
 from undream.spec import ActorPose, Asset, Camera, Environment, Frame, Sequence, TextureParam, Transform
 from undream.spec import _check
-from undream.spec.io import resolve_against
+from undream.spec.io import read_json, resolve_against
 from undream.spec.model import BUILTIN_PREFIX
 
 FORMAT = "undream-unreal-export"
@@ -97,8 +97,6 @@ def sequence_from_unreal(path: str | Path) -> Sequence:
 
 def _read_json(path: Path) -> Any:
     """The export's JSON, read under undream's input limits (:func:`undream.spec.io.read_json`)."""
-    from undream.spec.io import read_json
-
     try:
         return read_json(path)
     except SpecError as err:

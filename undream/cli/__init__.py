@@ -11,8 +11,14 @@ from pathlib import Path
 
 import click
 
+from undream.cli.baseline import COMMANDS as BASELINE
+from undream.cli.dashboard import COMMANDS as DASHBOARD
 from undream.cli.errors import OneLineGroup, one_line_errors
+from undream.cli.farm import COMMANDS
 from undream.cli.options import check_option, force_option, local_settings, out_option, progress_option, spp_option
+from undream.cli.report import COMMANDS as REPORT
+from undream.cli.victims import victims
+from undream.errors import SpecError
 
 
 @click.group(cls=OneLineGroup)
@@ -42,7 +48,6 @@ def init_cmd(spec: Path, out: Path, force: bool, verify_spp: int, scene_spp: int
     Blender .blend with --object NAME)."""
     from scheduler.preflight import check_output_folder
     from undream.bridge.blender_import import BlendSource
-    from undream.errors import SpecError
     from undream.scenedir.init import InitOptions, Source, check_init, init_scene
 
     local = local_settings()
@@ -100,12 +105,6 @@ def _fmt(v: float | None) -> str:
 
 
 def _register_subgroups() -> None:
-    from undream.cli.baseline import COMMANDS as BASELINE
-    from undream.cli.dashboard import COMMANDS as DASHBOARD
-    from undream.cli.farm import COMMANDS
-    from undream.cli.report import COMMANDS as REPORT
-    from undream.cli.victims import victims
-
     main.add_command(victims)
     for command in COMMANDS + DASHBOARD + REPORT + BASELINE:
         main.add_command(command)

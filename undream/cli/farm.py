@@ -10,6 +10,7 @@ from __future__ import annotations
 import csv
 import functools
 import io
+import json
 import os
 import tempfile
 from pathlib import Path
@@ -19,6 +20,8 @@ import click
 
 from undream.cli.errors import one_line_errors
 from undream.cli.options import check_option, local_settings
+from undream.errors import SpecError, StoreError, UndreamError
+from undream.redact import MASK
 
 if TYPE_CHECKING:
     from celery import Celery
@@ -114,7 +117,6 @@ def submit_cmd(run_yaml: Path, out: Path | None, check: bool, settings: Callable
     """Validate RUN_YAML, then queue it on the farm; prints the run id (--check: validate only)."""
     from scheduler.preflight import scene_source
     from scheduler.submit import Validator, dispatch_starts, record
-    from undream.errors import SpecError, StoreError, UndreamError
     from undream.spec.run import load_run_config
 
     cfg = settings()
@@ -189,16 +191,11 @@ def status_cmd(run: str | None, out: Path | None, settings: Callable[..., "Setti
 def _run_store(out: Path, database: str | None = None) -> "Store":
     """The store of an `undream run` output folder: its database URL from the folder's metadata.json,
     or ``database`` (``--database``) where that URL's password was redacted there."""
-    import json
-
     from scheduler.preflight import METADATA, is_run_output
-    from undream.errors import SpecError
     from undream.store import open_store
 
     if not is_run_output(out) or not (out / "store").is_dir():
         raise SpecError(f"--out {out}: not an output folder of `undream run` (no {METADATA} and store/)")
-    from undream.redact import MASK
-
     url = (json.loads((out / METADATA).read_text()).get("config") or {}).get("store")
     if url and MASK in url:
         if not database:
@@ -232,7 +229,6 @@ def resume_cmd(run: str, settings: Callable[..., "Settings"]) -> None:
     """Send RUN's current work to the farm again, from what the store says (after any crash)."""
     from scheduler.lease import expire_stale
     from scheduler.stages import resume
-    from undream.errors import StoreError
 
     cfg = settings()
     app = _app(cfg)
@@ -298,7 +294,6 @@ def _validate_sweep(sweep: Any, sweep_yaml: Path, tmp: Path) -> list[Any]:
     """Every run of ``sweep`` validated (:class:`scheduler.submit.Validator`, scenes prepared in ``tmp``);
     the first error names the sweep file and the run."""
     from scheduler.submit import Validator
-    from undream.errors import SpecError, StoreError, UndreamError
 
     validate, prepared = Validator(tmp, local_settings()), []
     for i, run in enumerate(sweep.runs):

@@ -16,6 +16,8 @@ import click
 from undream.cli.errors import one_line_errors
 from undream.cli.farm import _run_store, _store, settings_options
 from undream.cli.options import out_option
+from undream.errors import SpecError, StoreError
+from undream.redact import redact_text
 
 if TYPE_CHECKING:
     from undream.report import Target
@@ -28,7 +30,6 @@ SETTINGS_FLAGS = (("settings_file", "--settings"), ("database", "--database"), (
 def _folder_target(folder: Path, database: str | None = None) -> "Target":
     """The run an `undream run` output folder records, with its store (``database``: its URL where
     the folder keeps it without its password)."""
-    from undream.errors import SpecError
     from undream.report import Target
 
     try:
@@ -51,7 +52,6 @@ def _folder_target(folder: Path, database: str | None = None) -> "Target":
 
 def _store_target(store: "Store", ref: str, where: str) -> "Target":
     """Run ``ref`` (an id or its first characters), else sweep ``ref`` (an id or a name)."""
-    from undream.errors import StoreError
     from undream.report import Target
 
     try:
@@ -68,8 +68,6 @@ def _store_target(store: "Store", ref: str, where: str) -> "Target":
 
 def _command(target: str, out: Path) -> str:
     """The command line as given (settings flags included, their secrets redacted), for the captions."""
-    from undream.redact import redact_text
-
     params = click.get_current_context().params
     flags = [part for name, flag in SETTINGS_FLAGS if params.get(name) is not None
              for part in (flag, redact_text(str(params[name])))]
@@ -84,7 +82,6 @@ def _command(target: str, out: Path) -> str:
 @one_line_errors
 def report_cmd(target: str, out: Path, force: bool, settings: Callable[..., "Settings"]) -> None:
     """Write the report of TARGET: an `undream run` output folder, or a run id or sweep id/name on the farm."""
-    from undream.errors import SpecError
     from undream.report import build_report
     from undream.store import mask_url
 

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 from undream.dashboard.errors import Conflict, Forbidden, NotFound, Unavailable
 from undream.errors import UndreamError
+from workers.dispatch import CeleryDispatch
 
 if TYPE_CHECKING:
     from undream.settings import Settings
@@ -47,7 +48,6 @@ def _cancel(store: "Store", run_id: str) -> dict[str, Any]:
 def _resume(settings: "Settings", store: "Store", run_id: str) -> dict[str, Any]:
     from scheduler.stages import resume
     from workers.app import BrokerError, check_reachable, create_celery_app
-    from workers.dispatch import CeleryDispatch
 
     if store.get_run(run_id).status == "done":
         raise Conflict(f"run {run_id} is done; nothing to resume")

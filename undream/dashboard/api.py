@@ -13,6 +13,7 @@ from flask import Blueprint, jsonify, request, url_for
 
 from undream.dashboard import fleet, query, sweeps
 from undream.dashboard.actions import TOKEN_HEADER, act
+from undream.dashboard.errors import Unavailable
 from undream.dashboard.state import farm
 
 api = Blueprint("api", __name__)
@@ -39,7 +40,6 @@ def health() -> Any:
     A farm with no database yet (nothing submitted, no worker started) is healthy with no runs
     and a ``note`` saying so: the dashboard creates none, and shows it as soon as there is one.
     """
-    from undream.dashboard.errors import Unavailable
     from undream.store import NoDatabase, mask_url
 
     try:

@@ -10,6 +10,7 @@ HTML page, ``/api/`` a JSON ``{"error": ...}``; never a stack trace.
 from __future__ import annotations
 
 import functools
+import ipaddress
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
 
@@ -86,8 +87,6 @@ LOCAL_NAMES = ("localhost", "localhost.localdomain", "127.0.0.1", "::1")
 
 def host_allowed(host_header: str, allowed: tuple[str, ...]) -> bool:
     """Whether a request's ``Host`` header names this dashboard (see :data:`LOCAL_NAMES`)."""
-    import ipaddress
-
     host = host_header.strip().lower()
     if host.startswith("["):
         host = host[1:].split("]", 1)[0]

@@ -12,6 +12,7 @@ import io
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from PIL import Image, ImageDraw
 
 from undream.errors import StoreError
 
@@ -31,8 +32,6 @@ def _enlarge(img: np.ndarray, side: int) -> tuple[np.ndarray, int]:
 
 
 def _png(img: np.ndarray) -> bytes:
-    from PIL import Image
-
     buf = io.BytesIO()
     Image.fromarray(img).save(buf, format="PNG")
     return buf.getvalue()
@@ -80,8 +79,6 @@ def frame_png(frame: np.ndarray, prediction: dict[str, Any] | None) -> bytes:
     if not boxes:
         return _png(frame)
     big, factor = _enlarge(frame, BOX_SIDE)
-    from PIL import Image, ImageDraw
-
     pic = Image.fromarray(big)
     draw = ImageDraw.Draw(pic)
     scores = (prediction or {}).get("scores") or [None] * len(boxes)

@@ -11,6 +11,7 @@ from undream.engine.context import RunContext
 from undream.engine.job import class_score, frame_seed, ground_truth
 from undream.color import to_uint8
 from undream.color import linear_to_srgb
+from undream.metrics import accuracy, average_precision, correct, is_detected
 from undream.scene.layout import frame_name
 
 EVAL_ITERATION = 10**6  # seeds of evaluation renders never coincide with the attack's
@@ -53,8 +54,6 @@ def ground_truths(ctx: RunContext) -> list[Any]:
 def judge(ctx: RunContext, preds: list[Any], positions: list[int] | None = None) -> dict[str, Any]:
     """Per-frame correctness and the overall measure (accuracy, or AP@0.5 of the object's class)
     over the frames at ``positions`` (default all; ``preds`` holds one prediction per frame)."""
-    from undream.metrics import accuracy, average_precision, correct, is_detected
-
     keep = list(range(len(preds))) if positions is None else list(positions)
     frames, preds = [ctx.sequence.frames[i] for i in keep], [preds[i] for i in keep]
     label = ctx.targets[0].label

@@ -10,6 +10,7 @@ import numpy as np
 
 from undream.engine.context import RunContext
 from undream.color import linear_to_srgb
+from undream.metrics import GroundTruth, is_detected
 from undream.render.differentiable import srgb_encode_grad
 from undream.render.jitter import draw_conditions
 
@@ -49,8 +50,6 @@ def class_score(pred: Any) -> float | None:
 def ground_truth(target: Any) -> Any:
     """The object's true box and class in one frame (:class:`undream.metrics.GroundTruth`); no box
     where the object is unseen (``target.box`` None)."""
-    from undream.metrics import GroundTruth
-
     return GroundTruth.of({"boxes": [target.box] if target.box else np.zeros((0, 4)),
                            "labels": [target.label] if target.box else []})
 
@@ -68,8 +67,6 @@ def prediction_record(ctx: RunContext, position: int, pred: Any) -> dict[str, An
     if ctx.victim.task == "classification":
         label = int(pred.label)
         return {"label": label, "score": class_score(pred), "correct": label == target.label}
-    from undream.metrics import is_detected
-
     scores = pred.scores
     return {"detected": bool(is_detected(pred, ground_truth(target), target.label)),
             "n_detections": int(len(scores)),

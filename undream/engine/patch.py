@@ -25,6 +25,7 @@ from undream.engine.context import RunContext
 from undream.engine.evaluate import judge, predict, quantise, render_frames
 from undream.engine.job import frame_seed
 from undream.errors import SpecError
+from undream.scenedir.verify import mask_box, read_mask
 
 
 @dataclass(frozen=True)
@@ -52,8 +53,6 @@ def paste(image: Any, patch: Any, footprint: Footprint) -> Any:
 
 def footprints(ctx: RunContext, positions: Sequence[int]) -> list[Footprint]:
     """The object's footprint in each frame at ``positions`` where it is visible (from the scene's masks)."""
-    from undream.scenedir.verify import mask_box, read_mask
-
     out = []
     for p in positions:
         mask = read_mask(ctx.scene_dir, ctx.frame_indices[p])

@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 
+from undream.color import linear_to_srgb
 from undream.errors import RenderError
 from undream.scene.mitsuba_scene import OBJECT_ID
 
@@ -34,8 +35,6 @@ def load_scene(mi: ModuleType, xml: Path, spp: int, merge: bool = True) -> Any:
 
 def read_texture_srgb(mi: ModuleType, exr: Path) -> np.ndarray:
     """A scene directory's texture file (linear float EXR) as sRGB H×W×3 float32 in [0, 1]."""
-    from undream.color import linear_to_srgb
-
     try:
         linear = np.array(mi.Bitmap(str(exr)), dtype=np.float32)
     except Exception as err:  # Mitsuba raises plain RuntimeError

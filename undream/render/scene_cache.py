@@ -29,6 +29,7 @@ from undream.errors import RenderError
 from undream.lru import LRU
 from undream.render.loading import load_scene, texture_param_key
 from undream.scene.layout import frame_xml
+from undream.variant import mitsuba
 
 KINDS = ("sim", "grad")
 
@@ -85,8 +86,6 @@ class SceneCache:
 
     def __init__(self, scene_dir: str | Path, mi: ModuleType | None = None, max_loaded: int = 4,
                  frozen: bool = True, share: bool = True):
-        from undream.variant import mitsuba
-
         self.dir = Path(scene_dir)
         self.mi = mi or mitsuba()
         self.max_loaded = max_loaded

@@ -11,6 +11,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+from PIL import Image, ImageDraw
 
 from undream import charts as dash_charts
 from undream.dashboard import images as dash_images
@@ -59,8 +60,6 @@ def _difference(data: RunData) -> np.ndarray:
 
 def texture_png(data: RunData, command: str) -> bytes:
     """Initial texture, final texture and their difference side by side, unseen texels hatched."""
-    from PIL import Image, ImageDraw
-
     mask = data.seen.mask
     panels = [("initial (T0, benign)", data.texture0), ("final (adversarial)", data.texture_final),
               ("|final − T0| (white: ε)", _difference(data))]

@@ -11,6 +11,7 @@ import textwrap
 from typing import Any
 
 import numpy as np
+from PIL import Image, ImageDraw, ImageFont
 
 INK = (34, 34, 34)
 MUTED = (110, 110, 110)
@@ -23,7 +24,6 @@ CAPTION_CHARS = 110  # a caption line wraps after this many characters
 def font(size: int) -> Any:
     """DejaVu Sans at ``size`` px."""
     from matplotlib import font_manager
-    from PIL import ImageFont
 
     return ImageFont.truetype(font_manager.findfont("DejaVu Sans"), size)
 
@@ -35,15 +35,11 @@ def enlarge(img: np.ndarray, factor: int) -> np.ndarray:
 
 def decode_png(data: bytes) -> np.ndarray:
     """PNG bytes → H×W×3 uint8 RGB."""
-    from PIL import Image
-
     return np.asarray(Image.open(io.BytesIO(data)).convert("RGB"))
 
 
 def encode_png(img: Any) -> bytes:
     """A PIL image or H×W×3 uint8 array → PNG bytes."""
-    from PIL import Image
-
     pic = Image.fromarray(img) if isinstance(img, np.ndarray) else img
     buf = io.BytesIO()
     pic.save(buf, format="PNG")
@@ -52,8 +48,6 @@ def encode_png(img: Any) -> bytes:
 
 def with_caption(img: Any, caption: str) -> Any:
     """``img`` (a PIL image) with a white strip below it holding ``caption`` (wrapped), small and grey."""
-    from PIL import Image, ImageDraw
-
     lines = [part for line in caption.splitlines() for part in textwrap.wrap(line, CAPTION_CHARS) or [""]]
     step = CAPTION_PX + 4
     out = Image.new("RGB", (img.width, img.height + 6 + step * len(lines)), PAPER)
@@ -66,6 +60,4 @@ def with_caption(img: Any, caption: str) -> Any:
 
 def caption_png(png: bytes, caption: str) -> bytes:
     """PNG bytes (a chart) with :func:`with_caption` applied."""
-    from PIL import Image
-
     return encode_png(with_caption(Image.open(io.BytesIO(png)).convert("RGB"), caption))

@@ -18,7 +18,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from scheduler.texture0 import visibility
+from undream.render.scene_cache import SceneCache
 from undream.report.data import Seen
+from undream.spec.io import load_sequence
 
 if TYPE_CHECKING:
     from undream.render.scene_cache import SceneCache
@@ -85,10 +88,6 @@ class SeenFinder:
         return Seen(self._masks[key], COMPUTED.format(spp=spp, seed=seed))
 
     def _visibility(self, scene: Path, spp: int, seed: int, texture0: np.ndarray) -> np.ndarray:
-        from scheduler.texture0 import visibility
-        from undream.render.scene_cache import SceneCache
-        from undream.spec.io import load_sequence
-
         if scene not in self._scenes:
             self._scenes[scene] = SceneCache(scene)
         # visibility() reads only these three of a RunContext: no victim or simulator is loaded.

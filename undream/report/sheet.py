@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from PIL import Image, ImageDraw
 
 from undream.errors import StoreError
 from undream.report.data import FrameData, RunData, Side
@@ -85,8 +86,6 @@ def _layout(frames: list[FrameData], h: int, w: int, factor: int) -> SheetLayout
 
 def _picture(draw: Any, sheet: Any, side: Side, box: Box, factor: int, colour: tuple[int, int, int],
              task: str) -> None:
-    from PIL import Image
-
     x0, y0, x1, y1 = box
     sheet.paste(Image.fromarray(np.ascontiguousarray(enlarge(side.image, factor))), (x0, y0))
     draw.rectangle((x0 - BORDER, y0 - BORDER, x1 + BORDER - 1, y1 + BORDER - 1), outline=colour, width=BORDER)
@@ -106,8 +105,6 @@ def _band(draw: Any, row: RowBox) -> None:
 
 def contact_sheet(data: RunData) -> tuple[Any, SheetLayout]:
     """The sheet of ``data`` (a PIL RGB image) and its layout; frames must share one size."""
-    from PIL import Image, ImageDraw
-
     sizes = {f.benign.image.shape[:2] for f in data.frames} | {f.adversarial.image.shape[:2] for f in data.frames}
     if len(sizes) != 1:
         raise StoreError(f"run {data.run.id}: frames of different sizes {sorted(sizes)}; one sheet needs one")

@@ -13,6 +13,8 @@ import statistics
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Mapping
 
+from scheduler.query import result_rows
+from scheduler.sweep import grid_values
 from undream.report.data import SPLITS, RunData
 
 if TYPE_CHECKING:
@@ -77,8 +79,6 @@ def frame_rows(data: RunData) -> list[dict[str, Any]]:
 
 def sweep_rows(store: "Store", sweep: "SweepSnapshot", runs: list["RunSnapshot"]) -> list[dict[str, Any]]:
     """One row per run of the sweep (:func:`scheduler.query.result_rows`), with the split numbers added."""
-    from scheduler.query import result_rows
-
     rows = result_rows(store, sweep.id, sweep.spec)
     for row, run in zip(rows, runs):
         res = run.results or {}
@@ -126,8 +126,6 @@ def _series_key(run: "RunSnapshot", grid: list[str], values: Mapping[str, Any]) 
 
 def eps_points(sweep: "SweepSnapshot", runs: list["RunSnapshot"]) -> dict[tuple[str, ...], list[Point]]:
     """Series (attack name and every grid value but ε and seeds) → points by split and ε."""
-    from scheduler.sweep import grid_values
-
     grid = [str(k) for k in (sweep.spec.get("grid") or {})]
     found: dict[tuple[tuple[str, ...], str, float], list[float]] = {}
     for run in runs:

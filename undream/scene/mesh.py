@@ -28,6 +28,7 @@ from typing import Sequence
 import numpy as np
 
 from undream.errors import AssetError
+from undream.variant import mitsuba
 
 MESH_SUFFIXES = (".obj", ".ply")
 _PLY_POS = ("x", "y", "z")
@@ -176,8 +177,6 @@ def write_ply(mesh: Mesh, path: str | Path) -> Path:
     vertex_indices``. UVs are written as stored (Mitsuba does not flip PLY
     texcoords). Uses the process's Mitsuba variant (see :mod:`undream.variant`).
     """
-    from undream.variant import mitsuba
-
     path = Path(path)
     mi = mitsuba()
     shape = mi.Mesh("mesh", mesh.n_vertices, mesh.n_faces, has_vertex_normals=mesh.normals is not None,
@@ -268,8 +267,6 @@ def load_mesh_file(path: str | Path) -> Mesh:
         raise AssetError(f"{path}: unsupported mesh extension {path.suffix!r} (valid: .obj, .ply)")
     if not path.is_file():
         raise AssetError(f"{path}: file not found")
-    from undream.variant import mitsuba
-
     mi = mitsuba()
     try:
         shape = mi.load_dict({"type": suffix[1:], "filename": str(path.resolve())})

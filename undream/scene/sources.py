@@ -12,6 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from undream.bridge.blender_import import BlendSource, sequence_from_blend
+from undream.bridge.unreal_import import sequence_from_unreal
 from undream.errors import SpecError, UndreamError
 from undream.spec import Sequence, load_sequence
 from undream.spec.io import read_json, read_yaml
@@ -36,7 +37,6 @@ def sequence_from_file(path: "str | Path | BlendSource") -> Sequence:
         raise SpecError(f"{path}: unknown spec type {suffix!r} (valid: .yaml, .yml, .json, .blend)")
     data = read_json(path)
     if isinstance(data, dict) and data.get("format") == UNREAL_FORMAT:
-        from undream.bridge.unreal_import import sequence_from_unreal
         return sequence_from_unreal(path)
     return load_sequence(path)
 

@@ -20,6 +20,7 @@ import numpy as np
 from undream.errors import AssetError
 from undream.spec import Sequence
 from undream.spec.io import resolve_against
+from undream.variant import mitsuba
 
 ENVMAP_DIR = "textures"
 
@@ -65,8 +66,6 @@ def load_envmaps(seq: Sequence, base_dir: Path | None) -> tuple[Sequence, list[E
 
 def read_envmap(path: str | Path, field: str = "environment.envmap") -> np.ndarray:
     """An equirectangular map as H×W×3 float32 linear radiance, checked (see :func:`load_envmaps`)."""
-    from undream.variant import mitsuba
-
     mi = mitsuba()
     p = Path(path)
     if not p.is_file():
@@ -92,8 +91,6 @@ def read_envmap(path: str | Path, field: str = "environment.envmap") -> np.ndarr
 
 def write_envmaps(maps: list[Envmap], root: Path) -> None:
     """Write each map into the scene directory ``root`` (linear float32 RGB OpenEXR)."""
-    from undream.variant import mitsuba
-
     mi = mitsuba()
     for m in maps:
         mi.Bitmap(m.data).write(str(root / m.file))

@@ -27,19 +27,24 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from undream import __version__
 from undream.bridge.blender_import import BlendSource
 from undream.color import linear_to_srgb, srgb_to_linear, to_uint8
 from undream.errors import AssetError, SpecError, already_exists
 from undream.progress import progress
 from undream.render.budget import Estimate, init_estimate
+from undream.scene.builtin import asset_mesh
 from undream.scene.layout import frame_name, frame_xml, mask_png, mesh_name
-from undream.scene.mesh import Mesh
+from undream.scene.mesh import Mesh, write_ply
 from undream.scene.mitsuba_scene import OBJECT_ID, ScenePaths, scene_dict
+from undream.scene.sources import sequence_from_file
 from undream.scene.xml import to_xml
 from undream.scenedir.envmaps import Envmap, envmap_sources, load_envmaps, write_envmaps
-from undream.scenedir.verify import check_visible
+from undream.scenedir.verify import check_visible, contact_sheet, render_mask, render_white, save_mask, save_rgb
 from undream.spec import Sequence, TextureParam, save_sequence
 from undream.spec.io import check_writable_target, join_against, resolve_against
+from undream.variant import mitsuba
+from undream.versions import versions
 
 Source = str | Path | Sequence | BlendSource  # a spec file, a sequence, or a .blend and its object
 
@@ -137,8 +142,6 @@ def _check_target(out: Path, force: bool) -> None:
 def _resolve_source(source: Source, spec_text: str | None) -> tuple[Sequence, Path | None, str | None]:
     if isinstance(source, Sequence):
         return source, None, spec_text
-    from undream.scene.sources import sequence_from_file
-
     if isinstance(source, BlendSource):
         return sequence_from_file(source), Path(source.path).parent, source.describe()
 
@@ -154,8 +157,6 @@ def _load_meshes(seq: Sequence, base_dir: Path | None) -> dict[str, object]:
     adversarial object's must all share the first one's triangles and UVs
     (one UV layout, so a texel stays on the same piece of surface).
     """
-    from undream.scene.builtin import asset_mesh
-
     out: dict[str, object] = {}
     shown = {a.name: [f.index for f in seq.frames if any(p.name == a.name for p in f.actors)] for a in seq.actors}
     for field, asset in [("asset", seq.asset)] + [(f"actors[{i}]", a) for i, a in enumerate(seq.actors)]:
@@ -207,10 +208,6 @@ def texture_from_spec(tex: TextureParam, base_dir: Path | None) -> np.ndarray:
 
 
 def _write(checked: CheckedSource, root: Path, opt: InitOptions) -> None:
-    from undream.variant import mitsuba
-    from undream.scenedir.verify import contact_sheet, render_mask, render_white, save_mask, save_rgb
-    from undream.scene.mesh import write_ply
-
     seq, meshes, texture = checked.sequence, checked.meshes, checked.texture
     mi = mitsuba()
     for sub in ("meshes", "textures", "frames", "verify"):
@@ -247,9 +244,6 @@ def _mesh_sources(seq: Sequence, base_dir: Path | None) -> dict[str, str]:
 
 
 def _write_metadata(checked: CheckedSource, root: Path, opt: InitOptions, mi) -> None:
-    from undream import __version__
-    from undream.versions import versions
-
     seq, spec_text = checked.sequence, checked.spec_text
     meta = {
         "undream": __version__, "created_unix": time.time(), "seed": seq.seed, "source": seq.source,

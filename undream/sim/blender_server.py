@@ -27,6 +27,8 @@ import sys
 import time
 from typing import BinaryIO
 
+from undream.sim.blender_protocol import ProtocolError, read_message, write_message
+
 
 def _protocol_stdout() -> BinaryIO:
     """A private binary stream on the real stdout; fd 1 then goes to stderr (Blender's chatter)."""
@@ -38,8 +40,6 @@ def _protocol_stdout() -> BinaryIO:
 
 def serve(scene_dir: str, threads: int, inp: BinaryIO, out: BinaryIO) -> None:
     """Load ``scene_dir`` and answer requests until ``quit`` or the end of ``inp``."""
-    from undream.sim.blender_protocol import ProtocolError, read_message, write_message
-
     try:
         from undream.sim.blender_scene import CyclesScene
 

@@ -45,6 +45,7 @@ from undream.settings import UNREAL_SPOOL_ENV, UNREAL_TIMEOUT_ENV
 from undream.sim import register_backend
 from undream.spec import load_sequence
 from undream.spec.io import atomic_write
+from undream.variant import mitsuba
 
 SPOOL_ENV, TIMEOUT_ENV = UNREAL_SPOOL_ENV, UNREAL_TIMEOUT_ENV  # named in messages; read at the edge
 DEFAULT_TIMEOUT_S = 600.0
@@ -204,8 +205,6 @@ class UnrealSimulator:
 def _read_linear(path: Path, space: str) -> np.ndarray:
     """H×W×3 float32 linear radiance from an EXR (as stored) or a PNG (sRGB 8 or 16 bit, decoded)."""
     if space == "linear":
-        from undream.variant import mitsuba
-
         mi = mitsuba()
         bitmap = mi.Bitmap(str(path))
         arr = np.array(bitmap.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32, srgb_gamma=False),

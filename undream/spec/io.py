@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import secrets
 from pathlib import Path
 from typing import IO, Any, Callable
@@ -48,9 +49,7 @@ def _line_of(text: str, needle: str, nth: int = 0) -> int:
 
 def _json_depth(text: str) -> int:
     """How deeply the arrays and objects of JSON ``text`` nest (strings skipped), without recursion."""
-    import re
-
-    import numpy as np
+    import numpy as np  # here, not at the top: `import undream.spec` stays ~20 ms without numpy
 
     bare = re.sub(r'"(?:[^"\\]|\\.)*"', '""', text).encode("utf-8", "replace")
     codes = np.frombuffer(bare, np.uint8)
@@ -103,7 +102,7 @@ def read_yaml(path: str | Path) -> Any:
     """The parsed content of a YAML file (safe types only), under :data:`undream.spec.limits.FILE_LIMITS`:
     size, nesting depth, values after alias expansion, digits of a number; a key given twice in one
     mapping is refused, naming it and both lines. Each refusal is one :class:`SpecError` line."""
-    import yaml
+    import yaml  # here, with yaml_strict: yaml loads only when a YAML file is read
 
     from undream.spec.yaml_strict import load
 

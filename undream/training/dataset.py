@@ -40,6 +40,7 @@ from types import ModuleType
 from typing import Any, Iterator
 
 import numpy as np
+from PIL import Image
 
 from undream.color import linear_to_srgb, srgb_to_linear, to_uint8
 from undream.errors import UndreamError
@@ -52,6 +53,7 @@ from undream.scene.xml import to_mitsuba
 from undream.scenedir.verify import mask_box
 from undream.spec.io import check_new_folder
 from undream.spec import Asset, Camera, Environment, Frame, Sequence, TextureParam, Transform
+from undream.variant import mitsuba
 from undream.versions import versions
 
 # The bundled victims' classes: the built-in assets they were trained on (fixed, so that a new
@@ -349,8 +351,6 @@ def render_sample(mi: ModuleType, meshes: _Meshes, cfg: DatasetConfig, index: in
 def _mitsuba_variant(name: str) -> Iterator[ModuleType]:
     """Mitsuba with variant ``name`` for the block; the process's own variant (the
     one :func:`undream.variant.mitsuba` picks) is set again after it."""
-    from undream.variant import mitsuba
-
     before = mitsuba().variant()
     mi = mitsuba(name)
     try:
@@ -371,8 +371,6 @@ def make_dataset(out: str | Path, cfg: DatasetConfig, progress: bool = True,
     holds a dataset. ``command`` (the command line that asked) goes into the
     metadata.
     """
-    from PIL import Image
-
     out = Path(out)
     if (out / LABELS_FILE).exists():
         raise DatasetError(f"{out}: already holds a dataset ({LABELS_FILE}); choose another folder")
@@ -433,8 +431,6 @@ def read_records(folder: str | Path) -> Iterator[dict[str, Any]]:
 
 def load_dataset(folder: str | Path) -> Dataset:
     """Read a folder written by :func:`make_dataset`."""
-    from PIL import Image
-
     folder = Path(folder)
     records = list(read_records(folder))
     meta_path = folder / METADATA_FILE

@@ -41,6 +41,7 @@ import numpy as np
 import torch
 
 from undream.errors import VictimError
+from undream.metrics import classification_report, is_detected, per_class_ap
 from undream.spec.io import check_new_folder
 from undream.versions import versions
 from undream.training.dataset import CLASSES, Dataset, load_dataset
@@ -281,8 +282,6 @@ def evaluate(victim: Any, ds: Dataset, batch: int = 100) -> dict[str, Any]:
     (only detections scoring >= 0.5) and ``top1_correct`` (the best-scoring
     detection has the right class and IoU >= 0.5).
     """
-    from undream.metrics import classification_report, is_detected, per_class_ap
-
     weather = lambda r: r["params"]["environment"]["weather"]  # noqa: E731
     name = lambda r: r["name"]  # noqa: E731
     out: dict[str, Any] = {"n_images": len(ds), "victim": getattr(victim, "name", "?")}
