@@ -35,7 +35,7 @@ def _parse(argv=None) -> argparse.Namespace:
 def main(argv=None) -> None:
     args = _parse(argv)
     from scheduler.local import resolve_scene
-    from scheduler.texture0 import starting_texture
+    from undream.engine.algorithm import start_texture as starting_texture
     from undream.engine.context import build_context
     from undream.engine.job import frame_seed, render_and_grad, victim_loss_and_grad
     from undream.color import linear_to_srgb

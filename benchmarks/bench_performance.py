@@ -89,7 +89,7 @@ def measure(scene_dir: Path, mode: str, args, start: int = 1) -> dict[str, float
     Iteration 0 is the warm-up; the timed iterations are ``start`` … ``start + iterations − 1``
     (``iteration`` their median, ``iteration_mean`` their mean).
     """
-    from scheduler.texture0 import starting_texture
+    from undream.engine.algorithm import start_texture as starting_texture
     from undream.engine.context import build_context
     from undream.engine.job import frame_seed, victim_loss_and_grad
     from undream.color import linear_to_srgb

@@ -18,7 +18,6 @@ import numpy as np
 from PIL import Image
 
 from scheduler.preflight import check_output_folder, preflight, scene_source
-from scheduler.texture0 import starting_texture
 from undream.color import to_uint8
 from undream.errors import SpecError
 from undream.progress import progress as progress_bar
@@ -37,7 +36,7 @@ def run_patch_baseline(config: RunConfig, out: Path, base_dir: Path, force: bool
     from scheduler.local import resolve_scene
     from undream.attacks import make_attack
     from undream.engine.context import build_context
-    from undream.engine.evaluate import quantise
+    from undream.engine.algorithm import quantise, start_texture
     from undream.engine.patch import benign_frames, check_attack, evaluate_texture, judge_pasted, optimise_patch
 
     out = Path(out).resolve()
@@ -53,7 +52,7 @@ def run_patch_baseline(config: RunConfig, out: Path, base_dir: Path, force: bool
     out.mkdir(parents=True)
     ctx = build_context(config, resolve_scene(config, out, base_dir, local=local), victim=victim, local=local)
     attacked, held = split_frames(config.holdout, len(ctx.sequence.frames))
-    T0 = starting_texture(ctx)
+    T0 = start_texture(ctx)
     frames = benign_frames(ctx, attacked, T0)
     bar = progress_bar(ctx.attack.config.steps, "patch", "step", progress)
     try:

@@ -1,7 +1,8 @@
 """The evaluation's per-frame jobs and the pick of the final texture, through the store.
 
 Two phases of per-frame jobs, each frame rendered at ``eval_spp`` with the
-evaluation seed (:data:`undream.engine.evaluate.EVAL_ITERATION`):
+evaluation seed (:func:`undream.engine.algorithm.eval_render`, the one evaluation path
+`undream run`, the farm, the baseline and the scripts share):
 
 - ``pre``: the benign frame (the scene's texture, 8-bit) and its prediction,
   and the attack loss of the last iteration's texture (APGD's final pick
@@ -21,7 +22,7 @@ import numpy as np
 
 from scheduler.iteration import worker_name
 from scheduler.state import decode_state
-from undream.color import linear_to_srgb, to_uint8
+from undream.color import to_uint8
 from undream.errors import StoreError
 
 if TYPE_CHECKING:
@@ -29,29 +30,11 @@ if TYPE_CHECKING:
     from undream.store import Store
 
 
-def _render(ctx: "RunContext", position: int, texture: np.ndarray) -> np.ndarray:
-    """Frame ``position`` with ``texture`` at ``eval_spp``: sRGB H×W×3 in [0, 1]."""
-    from undream.engine.evaluate import EVAL_ITERATION
-    from undream.engine.job import frame_seed
-
-    cfg = ctx.config
-    index = ctx.frame_indices[position]
-    return linear_to_srgb(ctx.sim.render(index, texture, cfg.eval_spp,
-                                         frame_seed(cfg.seed, EVAL_ITERATION, index)))
-
-
-def _batch(image: np.ndarray) -> Any:
-    import torch
-    return torch.from_numpy(image.transpose(2, 0, 1)[None].astype(np.float32))
-
-
 def prediction_json(ctx: "RunContext", image: np.ndarray) -> dict[str, Any]:
     """The victim's prediction on one sRGB frame as plain JSON (class id and score, or boxes)."""
-    import torch
+    from undream.engine.algorithm import eval_predict
 
-    with torch.no_grad():
-        pred = ctx.victim.predict(_batch(image))[0]
-    return pred.to_dict()
+    return eval_predict(ctx, image).to_dict()
 
 
 def prediction_from_json(task: str, data: dict[str, Any]) -> Any:
@@ -65,13 +48,6 @@ def prediction_from_json(task: str, data: dict[str, Any]) -> Any:
                            labels=np.asarray(data["labels"], np.int64))
 
 
-def _loss(ctx: "RunContext", position: int, image: np.ndarray) -> float:
-    import torch
-
-    with torch.no_grad():
-        return float(ctx.victim.loss(_batch(image), ctx.targets[position], ctx.config.loss))
-
-
 def eval_job(store: "Store", ctx: "RunContext", run_id: str, phase: str, k: int, position: int,
              textures: dict[str, np.ndarray]) -> None:
     """Evaluation job of frame ``position`` in ``phase`` (see the module docstring); k = the steps.
@@ -79,14 +55,16 @@ def eval_job(store: "Store", ctx: "RunContext", run_id: str, phase: str, k: int,
     ``textures``: ``benign`` and ``last`` for ``pre``, ``final`` for
     ``adversarial`` (sRGB H×W×3; the caller reads them once per batch).
     """
+    from undream.engine.algorithm import eval_loss, eval_render
+
     store.job_started(run_id, k, position, phase, worker=worker_name())
     t0 = time.perf_counter()
     if phase == "pre":
-        image = _render(ctx, position, textures["benign"])
+        image = eval_render(ctx, position, textures["benign"])
         result = {"prediction": prediction_json(ctx, image),
-                  "loss": _loss(ctx, position, _render(ctx, position, textures["last"]))}
+                  "loss": eval_loss(ctx, position, eval_render(ctx, position, textures["last"]))}
     else:
-        image = _render(ctx, position, textures["final"])
+        image = eval_render(ctx, position, textures["final"])
         result = {"prediction": prediction_json(ctx, image)}
     store.eval_succeeded(run_id, k, position, phase, result, to_uint8(image),
                          {"total": time.perf_counter() - t0})
@@ -94,7 +72,7 @@ def eval_job(store: "Store", ctx: "RunContext", run_id: str, phase: str, k: int,
 
 def eval_textures(store: "Store", run_id: str, phase: str, k: int) -> dict[str, np.ndarray]:
     """The textures the evaluation jobs of ``phase`` render (see :func:`eval_job`)."""
-    from undream.engine.evaluate import quantise
+    from undream.engine.algorithm import quantise
 
     if phase == "pre":
         state0 = store.attack_state(run_id, 0) or {}
@@ -111,7 +89,7 @@ def select_final(store: "Store", attack: Any, run_id: str, k: int) -> np.ndarray
     """Pick the texture to report after the last step (``Attack.final``), quantised to 8 bits."""
     import torch
 
-    from undream.engine.evaluate import quantise
+    from undream.engine.algorithm import quantise
 
     losses = [float("nan") if (j.result or {}).get("loss") is None else j.result["loss"]  # type: ignore[index]
               for j in store.jobs(run_id, k, "pre")]

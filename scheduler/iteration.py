@@ -49,10 +49,9 @@ def attacked_frames(run: "RunSnapshot") -> list[int]:
 def expected_frames(run: "RunSnapshot", frames_per_step: int | None, k: int) -> list[int]:
     """The frame positions of iteration ``k``: every attacked frame, or the run's seeded minibatch
     of them; never a held-out frame."""
-    from undream.attacks import frame_batch
+    from undream.engine.algorithm import plan
 
-    attacked = attacked_frames(run)
-    return [attacked[i] for i in frame_batch(len(attacked), frames_per_step, k, run.seed)]
+    return plan(attacked_frames(run), frames_per_step, k, run.seed)
 
 
 def worker_name() -> str:
@@ -71,7 +70,7 @@ def frame_job(store: "Store", ctx: "RunContext", run_id: str, k: int, position: 
     from which the dashboard charts accuracy per iteration. Errors propagate:
     the caller records the failed attempt.
     """
-    from undream.engine.job import render_and_grad
+    from undream.engine.algorithm import frame_job as render_and_grad
 
     store.job_started(run_id, k, position, worker=worker_name())
     res = render_and_grad(ctx, position, store.texture(run_id, k) if texture is None else texture, k)
@@ -93,9 +92,7 @@ def reduce_and_step(store: "Store", attack: "Attack", run_id: str, k: int) -> bo
     callback already ran, or the run was cancelled): calling it twice never
     steps twice.
     """
-    import torch
-
-    from undream.attacks import average_frames
+    from undream.engine.algorithm import reduce, step
     from undream.store import ACTIVE
 
     run = store.get_run(run_id)
@@ -107,11 +104,9 @@ def reduce_and_step(store: "Store", attack: "Attack", run_id: str, k: int) -> bo
     missing = [f for f in expected if f not in rows or rows[f].grad is None]
     if missing:
         raise MissingResults(run_id, k, missing)
-    texture = torch.from_numpy(store.texture(run_id, k))
-    grads = [torch.from_numpy(rows[f].grad) for f in expected]
-    losses = [float("nan") if rows[f].loss is None else rows[f].loss for f in expected]
     try:
-        G, loss, kept = average_frames(grads, losses, [rows[f].finite for f in expected])
+        G, loss, kept = reduce([rows[f].grad for f in expected], [rows[f].loss for f in expected],
+                               [rows[f].finite for f in expected])
     except AttackError:
         msg = f"iteration {k}: all {len(expected)} frames gave a non-finite gradient or loss; run stopped"
         store.set_status(run_id, "failed", error=msg)
@@ -120,8 +115,8 @@ def reduce_and_step(store: "Store", attack: "Attack", run_id: str, k: int) -> bo
     if dropped:
         log.warning("iteration %d: dropped %d frame(s) with non-finite gradients: %s", k, len(dropped), dropped)
     state = decode_state(store.attack_state(run_id, k) or {})
-    T_next, state = attack.step(texture, G, loss, state)
+    T_next, state = step(attack, store.texture(run_id, k), G, loss, state)
     scalars, arrays = encode_state(state)
     record = {"loss_mean": loss, "n_ok": len(kept), "n_bad": len(dropped), "dropped_frames": dropped,
               "grad_norm": float(G.norm()), "step_seconds": time.perf_counter() - t0}
-    return store.advance(run_id, k, T_next.numpy().astype(np.float32), scalars, record, arrays)
+    return store.advance(run_id, k, T_next, scalars, record, arrays)

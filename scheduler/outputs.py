@@ -47,7 +47,7 @@ def _timings(store: "Store", run_id: str, k: int) -> dict[str, float]:
 
 def results(store: "Store", ctx: "RunContext", run: "RunSnapshot", k: int) -> dict[str, Any]:
     """The run's results from its stored predictions, iteration records and job timings."""
-    from undream.engine.evaluate import judge
+    from undream.engine.algorithm import judge
 
     task = ctx.victim.task
     benign_preds = [prediction_from_json(task, j.result["prediction"])  # type: ignore[index]
@@ -82,7 +82,7 @@ def _headline(judged: dict[str, Any]) -> dict[str, Any]:
 
 def _success(ctx: "RunContext", benign: list[Any], adversarial: list[Any], positions: list[int]) -> Any:
     """The attack-success report of the frames at ``positions``."""
-    from undream.engine.evaluate import ground_truths
+    from undream.engine.algorithm import ground_truths
 
     label, target = ctx.targets[0].label, ctx.targets[0].target_label
     b, a = [benign[i] for i in positions], [adversarial[i] for i in positions]

@@ -38,7 +38,6 @@ from scheduler.evaluation import eval_job, eval_textures, select_final
 from scheduler.iteration import MissingResults, expected_frames, frame_job, reduce_and_step
 from scheduler.outputs import default_out_dir, results, write_outputs
 from scheduler.state import encode_state
-from scheduler.texture0 import starting_texture, visibility
 from undream import attacks  # lazy: make_attack loads torch when first called
 from undream.lru import LRU
 from undream.store import ACTIVE, UNFINISHED
@@ -120,14 +119,17 @@ def start(store: "Store", contexts: Contexts, run_id: str, dispatch: Dispatch) -
     """The starting texture and attack state (once), then iteration 0's jobs."""
     import torch
 
+    from undream.engine.algorithm import start_texture, visibility
+
     run = store.get_run(run_id)
     if run.status not in ACTIVE:
         return "stale"
     if run.attack_state_ref is None:
         ctx = contexts(run_id)
-        T0 = starting_texture(ctx)
+        T0 = start_texture(ctx)
         random = ctx.attack.config.random_start
-        seen = visibility(ctx, T0) if random else np.zeros(T0.shape[:2], dtype=bool)
+        seen = visibility(ctx.scenes, ctx.sequence.frames, T0, ctx.config.grad_spp, ctx.config.seed) if random \
+            else np.zeros(T0.shape[:2], dtype=bool)
         T_start, state = ctx.attack.start(torch.from_numpy(T0), visible=torch.from_numpy(seen))
         scalars, arrays = encode_state(state)
         store.start_run(run_id, T_start.numpy(), scalars, arrays)

@@ -27,7 +27,7 @@ import numpy as np
 
 from scheduler.local import run_local
 from undream.engine.context import build_context
-from undream.engine.evaluate import predict, quantise, render_frames
+from undream.engine.algorithm import predict, quantise, render_frames
 from undream.engine.job import render_and_grad
 from undream.spec.run import load_run_config, split_frames
 

@@ -221,7 +221,7 @@ class _Setup:
     that step uses) at the starting texture, as the run with that setting computes it."""
 
     def __init__(self, base: dict, scenes: dict[str, Path], s: Setting, victim) -> None:
-        from scheduler.texture0 import starting_texture
+        from undream.engine.algorithm import start_texture as starting_texture
         from undream.engine.context import build_context
         from undream.spec.run import split_frames
 
@@ -293,7 +293,7 @@ class _Judge:
         self.held = split_frames(config.holdout, len(self.ctx.sequence.frames))[1]
 
     def __call__(self, texture: np.ndarray) -> dict[str, float]:
-        from undream.engine.evaluate import predict
+        from undream.engine.algorithm import predict
         from undream.engine.patch import quantise, render_frames
 
         preds = predict(self.ctx, render_frames(self.ctx, quantise(texture), None))

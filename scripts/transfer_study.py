@@ -80,7 +80,7 @@ def init_scene_from(spec: dict, out: Path, init_scene, options) -> Path:
 
 
 def _start(ctx) -> np.ndarray:
-    from scheduler.texture0 import starting_texture
+    from undream.engine.algorithm import start_texture as starting_texture
 
     return starting_texture(ctx)
 

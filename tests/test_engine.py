@@ -9,7 +9,7 @@ import torch
 
 from farm_support import make_victim
 from undream.engine.context import build_context
-from undream.engine.evaluate import quantise
+from undream.engine.algorithm import quantise
 from undream.engine.job import FrameResult
 from scheduler.iteration import AllFramesFailed, reduce_and_step
 from undream.scenedir.init import InitOptions, init_scene

@@ -22,7 +22,7 @@ import numpy as np
 
 from undream.color import linear_to_srgb
 from undream.engine.context import RunContext
-from undream.engine.evaluate import judge, predict, quantise, render_frames
+from undream.engine.algorithm import judge, predict, quantise, render_frames
 from undream.engine.job import frame_seed
 from undream.errors import SpecError
 from undream.scenedir.verify import mask_box, read_mask

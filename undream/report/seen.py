@@ -3,7 +3,7 @@
 A texel counts as seen when a gradient pass over *every* frame (attacked and
 held-out), seeded with a white image gradient at :data:`MIN_SPP` samples per
 pixel (or the run's ``grad_spp`` when higher) and the run's seed, reaches it:
-:func:`scheduler.texture0.visibility`, the function a run with
+:func:`undream.engine.algorithm.visibility`, the function a run with
 ``random_start`` calls when it starts. Without the scene, that run's stored
 mask (computed at ``grad_spp``) is used. "Unchanged from T0" is not used: it
 also holds for seen texels the attack left alone (clipped, zero gradient,
@@ -13,12 +13,10 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from types import SimpleNamespace
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from scheduler.texture0 import visibility
 from undream.render.scene_cache import SceneCache
 from undream.report.data import Seen
 from undream.spec.io import load_sequence
@@ -31,7 +29,7 @@ STORED = ("from the scene's visibility, computed when the run started (random st
           "grad_spp: the scene itself is no longer at hand")
 COMPUTED = ("from the scene's visibility: a gradient pass over every frame, attacked and held-out, "
             "seeded with a white image gradient at {spp} samples per pixel and the run's seed ({seed}); "
-            "a texel no frame's gradient reaches is unseen (scheduler.texture0.visibility)")
+            "a texel no frame's gradient reaches is unseen (undream.engine.algorithm.visibility)")
 MIN_SPP = 32  # samples per pixel of the visibility pass at least: at 2 spp it misses texels the attack changed
 
 
@@ -88,9 +86,9 @@ class SeenFinder:
         return Seen(self._masks[key], COMPUTED.format(spp=spp, seed=seed))
 
     def _visibility(self, scene: Path, spp: int, seed: int, texture0: np.ndarray) -> np.ndarray:
+        from undream.engine.algorithm import visibility  # torch: only when a report needs a pass
+
         if scene not in self._scenes:
             self._scenes[scene] = SceneCache(scene)
-        # visibility() reads only these three of a RunContext: no victim or simulator is loaded.
-        ctx: Any = SimpleNamespace(scenes=self._scenes[scene], sequence=load_sequence(scene / "sequence.json"),
-                                   config=SimpleNamespace(grad_spp=spp, seed=seed))
-        return visibility(ctx, np.ascontiguousarray(texture0, dtype=np.float32))
+        frames = load_sequence(scene / "sequence.json").frames  # no victim or simulator is loaded
+        return visibility(self._scenes[scene], frames, np.ascontiguousarray(texture0, dtype=np.float32), spp, seed)

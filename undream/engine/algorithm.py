@@ -1,0 +1,171 @@
+"""Algorithm 1, stage by stage, in the order a run goes through them, without store or broker.
+
+Every caller goes through these functions: the farm's stages (:mod:`scheduler.stages`: start, the
+per-frame batches, collect; :mod:`scheduler.iteration`: the frame job and the reduce-and-step
+callback; :mod:`scheduler.evaluation`: the evaluation's frame jobs), ``undream run`` (the same stages
+drained in one process), the pasted-patch baseline and the study scripts. Around them the scheduler
+only reads and writes run state.
+
+1. **start**: :func:`start_texture` (T0, the scene's texture) and :func:`visibility` (the texels some
+   frame sees, for a random start and the report);
+2. **plan**: :func:`plan` (the frames of iteration k: all attacked ones or a seeded minibatch);
+3. **per-frame job**: :func:`frame_job` (simulator render → victim loss → texture gradient);
+4. **reduce**: :func:`reduce` (mean gradient and loss over the finite frames);
+5. **step**: :func:`step` (the attack's projected step);
+6. **evaluate**: :func:`quantise` (the 8-bit texture), :func:`eval_render` and :func:`eval_predict`
+   per frame (:func:`render_frames` and :func:`predict` over a list), :func:`eval_loss`, and
+   :func:`judge` (accuracy or AP@0.5 over attacked and held-out frames).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Sequence
+
+import numpy as np
+import torch
+from PIL import Image
+
+from undream.attacks import average_frames, frame_batch
+from undream.color import linear_to_srgb, to_uint8
+from undream.engine.context import RunContext
+from undream.engine import job
+from undream.engine.job import FrameResult, class_score, frame_seed, ground_truth
+from undream.metrics import accuracy, average_precision, correct, is_detected
+from undream.render.differentiable import texture_gradient
+from undream.render.loading import read_texture_srgb
+from undream.scene.layout import frame_name
+
+if TYPE_CHECKING:
+    from undream.attacks.base import Attack
+    from undream.render.scene_cache import SceneCache
+    from undream.spec import Frame
+
+EVAL_ITERATION = 10**6  # seeds of evaluation renders never coincide with the attack's
+
+
+# --------------------------------------------------------------------------- 1. start
+
+def start_texture(ctx: RunContext) -> np.ndarray:
+    """The scene directory's texture, the attack's T0: sRGB H×W×3 float32 (from the exact float EXR)."""
+    return read_texture_srgb(ctx.scenes.mi, ctx.scene_dir / "textures" / f"{ctx.sequence.texture.name}.exr")
+
+
+def visibility(scenes: "SceneCache", frames: Sequence["Frame"], texture: np.ndarray, spp: int,
+               seed: int) -> np.ndarray:
+    """Texels some frame sees (H×W bool): a gradient pass per frame seeded with a white image gradient
+    at ``spp`` samples per pixel (a run passes its ``grad_spp`` and seed; the report at least 32)."""
+    seen = np.zeros(texture.shape[:2], dtype=bool)
+    for f in frames:
+        res = f.camera.resolution
+        g = texture_gradient(scenes, f.index, texture, np.ones((res[1], res[0], 3), np.float32), spp, seed, seed + 1)
+        seen |= (g != 0).any(axis=2)
+    return seen
+
+
+# --------------------------------------------------------------------------- 2. plan
+
+def plan(attacked: Sequence[int], frames_per_step: int | None, k: int, seed: int) -> list[int]:
+    """The frame positions of iteration ``k``: every attacked position, or ``frames_per_step`` of them
+    drawn from (seed, k) only, so a retried iteration draws the same ones; never a held-out frame."""
+    return [attacked[i] for i in frame_batch(len(attacked), frames_per_step, k, seed)]
+
+
+# --------------------------------------------------------------------------- 3. per-frame job
+
+def frame_job(ctx: RunContext, position: int, texture: np.ndarray, k: int) -> FrameResult:
+    """Frame ``position`` of iteration ``k`` with texture ``k``: the simulator's render at ``sim_spp``,
+    the victim's loss and image gradient, and that gradient carried back to the texture
+    (:func:`undream.engine.job.render_and_grad`, where each part is timed)."""
+    return job.render_and_grad(ctx, position, texture, k)
+
+
+# --------------------------------------------------------------------------- 4. reduce
+
+def reduce(grads: Sequence[np.ndarray], losses: Sequence[float | None],
+           finite: Sequence[bool]) -> tuple[torch.Tensor, float, list[int]]:
+    """Mean texture gradient and mean loss over the frames whose gradient and loss are finite (and not
+    recorded otherwise), and the indices of the frames kept; none kept: :class:`AttackError`."""
+    values = [float("nan") if v is None else v for v in losses]
+    return average_frames([torch.from_numpy(g) for g in grads], values, list(finite))
+
+
+# --------------------------------------------------------------------------- 5. step
+
+def step(attack: "Attack", texture: np.ndarray, grad: torch.Tensor, loss: float,
+         state: Any) -> tuple[np.ndarray, Any]:
+    """T_{k+1} and the attack's next state: PGD, APGD, MI-FGSM or Adam, projected onto the ε ball
+    around T0 and onto [0, 1] (:meth:`undream.attacks.base.Attack.step`)."""
+    T_next, state = attack.step(torch.from_numpy(texture), grad, loss, state)
+    return T_next.numpy().astype(np.float32), state
+
+
+# --------------------------------------------------------------------------- 6. evaluate
+
+def quantise(texture: np.ndarray) -> np.ndarray:
+    """The 8-bit texture a user would print or import into a simulator, back in [0, 1]."""
+    return to_uint8(texture).astype(np.float32) / 255.0
+
+
+def eval_render(ctx: RunContext, position: int, texture: np.ndarray) -> np.ndarray:
+    """Frame ``position`` with ``texture`` at ``eval_spp`` and the evaluation's seed: sRGB H×W×3."""
+    index = ctx.frame_indices[position]
+    return linear_to_srgb(ctx.sim.render(index, texture, ctx.config.eval_spp,
+                                         frame_seed(ctx.config.seed, EVAL_ITERATION, index)))
+
+
+def _batch(image: np.ndarray) -> torch.Tensor:
+    return torch.from_numpy(image.transpose(2, 0, 1)[None].astype(np.float32))
+
+
+def eval_predict(ctx: RunContext, image: np.ndarray) -> Any:
+    """The victim's prediction on one sRGB frame (a class and its score, or boxes)."""
+    with torch.no_grad():
+        return ctx.victim.predict(_batch(image))[0]
+
+
+def eval_loss(ctx: RunContext, position: int, image: np.ndarray) -> float:
+    """The attack's loss on frame ``position`` rendered as ``image`` (APGD's final pick reads it)."""
+    with torch.no_grad():
+        return float(ctx.victim.loss(_batch(image), ctx.targets[position], ctx.config.loss))
+
+
+def render_frames(ctx: RunContext, texture: np.ndarray, out_dir: Path | None) -> list[np.ndarray]:
+    """:func:`eval_render` of every frame; saved as PNGs when ``out_dir`` is set."""
+    images = []
+    for position, index in enumerate(ctx.frame_indices):
+        img = eval_render(ctx, position, texture)
+        if out_dir is not None:
+            out_dir.mkdir(parents=True, exist_ok=True)
+            Image.fromarray(to_uint8(img)).save(out_dir / f"{frame_name('frame', index)}.png")
+        images.append(img)
+    return images
+
+
+def predict(ctx: RunContext, images: list[np.ndarray]) -> list[Any]:
+    """:func:`eval_predict` of each image."""
+    return [eval_predict(ctx, im) for im in images]
+
+
+def ground_truths(ctx: RunContext) -> list[Any]:
+    """The object's box per frame (from its visibility mask); no box where it is unseen."""
+    return [ground_truth(t) for t in ctx.targets]
+
+
+def judge(ctx: RunContext, preds: list[Any], positions: list[int] | None = None) -> dict[str, Any]:
+    """Per-frame correctness and the overall measure (accuracy, or AP@0.5 of the object's class)
+    over the frames at ``positions`` (default all; ``preds`` holds one prediction per frame)."""
+    keep = list(range(len(preds))) if positions is None else list(positions)
+    frames, preds = [ctx.sequence.frames[i] for i in keep], [preds[i] for i in keep]
+    label = ctx.targets[0].label
+    if ctx.victim.task == "classification":
+        ok = correct(preds, label)
+        rows = [{"frame": f.index, "prediction": int(p.label), "class": ctx.victim.labels[int(p.label)],
+                 "score": class_score(p), "correct": bool(c)}
+                for f, p, c in zip(frames, preds, ok)]
+        return {"metric": "accuracy", "value": accuracy(preds, label) if preds else None, "per_frame": rows}
+    truths = [ground_truth(ctx.targets[i]) for i in keep]
+    rows = [{"frame": f.index, "detected": bool(is_detected(p, gt, label)), "n_detections": int(len(p.scores)),
+             "score": round(float(p.scores.max()), 4) if len(p.scores) else 0.0}
+            for f, p, gt in zip(frames, preds, truths)]
+    value = average_precision(preds, truths, label) if preds else None
+    return {"metric": "ap50", "value": value, "per_frame": rows}
