@@ -94,12 +94,12 @@ def test_refuses_to_overwrite_without_force(example_scenes, tmp_path):
 
 
 def test_failure_midway_leaves_nothing(tmp_path, monkeypatch):
-    import undream.scenedir.verify as verify
+    import undream.scenedir.init as init_module
 
     def boom(*a, **k):
         raise RuntimeError("renderer died")
 
-    monkeypatch.setattr(verify, "render_mask", boom)
+    monkeypatch.setattr(init_module, "render_mask", boom)  # the name init renders its masks with
     with pytest.raises(RuntimeError):
         init_scene(EXAMPLES[0], tmp_path / "scene", InitOptions(verify_spp=1))
     assert list(tmp_path.iterdir()) == []

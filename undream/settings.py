@@ -37,7 +37,7 @@ environment handed to Blender's interpreter is :attr:`LocalSettings.child_env`.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 import re
 from typing import Any, Mapping
@@ -215,11 +215,6 @@ def load_settings(file: str | Path | None = None, env: Mapping[str, str] | None 
     except SettingsError as err:
         name, _, rest = str(err).partition(": ")
         raise SettingsError(f"{sources[name]}: {rest}" if name in sources else str(err)) from None
-
-
-def with_overrides(settings: Settings, **overrides: Any) -> Settings:
-    """``settings`` with the ``overrides`` that are not None."""
-    return replace(settings, **{k: v for k, v in overrides.items() if v is not None})
 
 
 # --- per-process settings of every command and worker process --------------------------------------
