@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -38,6 +39,20 @@ def service_missing(reason: str) -> None:
     if os.environ.get("UNDREAM_REQUIRE_SERVICES"):
         pytest.fail(f"{reason} (UNDREAM_REQUIRE_SERVICES is set)")
     pytest.skip(reason)
+
+
+@pytest.fixture
+def read_only(tmp_path):
+    """A read-only tmpfs mounted in tmp_path: as root, chmod would not stop writes (needs root;
+    skipped with the reason otherwise)."""
+    mount = tmp_path / "ro"
+    mount.mkdir()
+    res = subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=1m", "tmpfs", str(mount)],
+                         capture_output=True, text=True)
+    if res.returncode != 0:
+        pytest.skip(f"cannot mount a read-only tmpfs here: {res.stderr.strip()}")
+    yield mount
+    subprocess.run(["umount", str(mount)], check=True)
 
 
 @pytest.fixture(scope="session")

@@ -93,20 +93,6 @@ def test_every_frame_nan_still_fails_the_run(tiny, tmp_path, monkeypatch):
 # --- a worker that cannot write its blob folder -------------------------------------------------
 
 @pytest.fixture
-def read_only(tmp_path):
-    """A read-only tmpfs mounted in tmp_path: as root, chmod would not stop writes (needs root;
-    skipped with the reason otherwise)."""
-    mount = tmp_path / "ro"
-    mount.mkdir()
-    res = subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=1m", "tmpfs", str(mount)],
-                         capture_output=True, text=True)
-    if res.returncode != 0:
-        pytest.skip(f"cannot mount a read-only tmpfs here: {res.stderr.strip()}")
-    yield mount
-    subprocess.run(["umount", str(mount)], check=True)
-
-
-@pytest.fixture
 def farm(tmp_path):
     from conftest import service_missing
 

@@ -122,19 +122,6 @@ def test_a_mesh_without_uvs_in_a_runs_spec_is_refused_before_out_exists(tmp_path
 # -- read-only file systems ------------------------------------------------------------------------
 
 
-@pytest.fixture
-def read_only(tmp_path):
-    """A read-only tmpfs mounted in tmp_path (needs root; skipped with the reason otherwise)."""
-    mount = tmp_path / "ro"
-    mount.mkdir()
-    res = subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=1m", "tmpfs", str(mount)],
-                         capture_output=True, text=True)
-    if res.returncode != 0:
-        pytest.skip(f"cannot mount a read-only tmpfs here: {res.stderr.strip()}")
-    yield mount
-    subprocess.run(["umount", str(mount)], check=True)
-
-
 def test_a_read_only_out_is_one_line_for_init_and_run(read_only, tmp_path):
     spec = _write(tmp_path / "s.yaml", _spec())
     for args in (["init", str(spec)], ["run", str(_run_yaml(tmp_path, spec))]):
