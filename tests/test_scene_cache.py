@@ -1,8 +1,10 @@
 """The per-process scene cache: one loaded scene per group of equal frames, same pixels and gradients as before."""
 from __future__ import annotations
 
-import gc
 import json
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -106,17 +108,6 @@ def test_gradient_equals_the_reference_prb_path(example_scenes, mi):
     cache.close()
 
 
-def _live_shapes(mi) -> int:
-    """How many shapes Dr.Jit's registry holds: a probe scene's shape gets the lowest free id."""
-    probe = mi.load_dict({"type": "scene", "s": {"type": "sphere"}})
-    import drjit as dr
-
-    n = int(np.array(dr.reinterpret_array(mi.UInt32, probe.shapes_dr())).max())
-    del probe
-    gc.collect()
-    return n - 1
-
-
 @pytest.fixture(scope="module")
 def long_orbit(tmp_path_factory, mi):
     """14 frames orbiting a sphere, with an actor: as many files as a real sequence."""
@@ -128,28 +119,57 @@ def long_orbit(tmp_path_factory, mi):
     return init_scene(seq, tmp_path_factory.mktemp("orbit") / "scene", InitOptions(verify_spp=1))
 
 
+# Run in a fresh process: the probe reads the lowest free id of Dr.Jit's shape registry, so shapes freed
+# and kept by earlier tests in the same process (holes in the ids) would make the count jump.
+_SHAPES_PROBE = """
+import gc, json, sys
+import numpy as np
+from undream.variant import mitsuba
+from undream.render.differentiable import render_linear, texture_gradient
+from undream.render.scene_cache import SceneCache
+import drjit as dr
+
+mi = mitsuba()
+scene_dir, sharing = sys.argv[1], sys.argv[2] == "1"
+
+def live_shapes():
+    probe = mi.load_dict({"type": "scene", "s": {"type": "sphere"}})
+    n = int(np.array(dr.reinterpret_array(mi.UInt32, probe.shapes_dr())).max())
+    del probe
+    gc.collect()
+    return n - 1
+
+gc.collect()
+before = live_shapes()
+cache = SceneCache(scene_dir, mi, max_loaded=4 if sharing else 10**6, share=sharing)
+tex = np.full((4, 8, 3), 0.5, np.float32)
+g = np.ones((16, 16, 3), np.float32)
+counts = []
+for index in [f["index"] for f in json.load(open(scene_dir + "/sequence.json"))["frames"]]:
+    render_linear(cache, index, tex, spp=1, seed=index)
+    texture_gradient(cache, index, tex, g, spp=1, seed=index, seed_grad=index + 1)
+    counts.append(live_shapes() - before)
+print(json.dumps({"counts": counts, "loaded": cache.loaded_count}))
+cache.close()
+"""
+
+
 @pytest.mark.parametrize("sharing", [True, False], ids=["shared", "one-scene-per-frame"])
-def test_registered_shapes_do_not_grow_with_the_sequence(long_orbit, mi, sharing):
+def test_registered_shapes_do_not_grow_with_the_sequence(long_orbit, sharing):
     """What a render traces over (every registered shape) stays that of one scene per kind.
 
     The per-frame cache the engine had before (one scene per frame kept
     loaded) is what ``max_loaded=∞`` and no sharing gives: the same count grows
     with the frames and the bound fails, so the test can tell the two apart.
     """
-    gc.collect()
-    before = _live_shapes(mi)
-    cache = SceneCache(long_orbit, mi, max_loaded=4 if sharing else 10**6, share=sharing)
-    tex = np.full((4, 8, 3), 0.5, np.float32)
-    g = np.ones((16, 16, 3), np.float32)
-    counts = []
-    for index in _frames(long_orbit):
-        render_linear(cache, index, tex, spp=1, seed=index)
-        texture_gradient(cache, index, tex, g, spp=1, seed=index, seed_grad=index + 1)
-        counts.append(_live_shapes(mi) - before)
+    res = subprocess.run([sys.executable, "-c", _SHAPES_PROBE, str(long_orbit), "1" if sharing else "0"],
+                         capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1], timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    out = json.loads(res.stdout.strip().splitlines()[-1])
+    counts = out["counts"]
     per_scene = 2  # ground + object in each of the sim and grad scenes
     if sharing:
         assert max(counts) <= 2 * per_scene, counts
-        assert cache.loaded_count == 2
+        assert out["loaded"] == 2
     else:
         assert max(counts) > 2 * per_scene, counts
-    cache.close()
