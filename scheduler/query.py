@@ -9,13 +9,20 @@ if TYPE_CHECKING:
     from undream.store import RunSnapshot, Store
 
 
-def current_phase(store: "Store", run: "RunSnapshot") -> tuple[str, int]:
-    """The phase whose jobs the run is on (or was on when it stopped) and its k."""
-    if run.iteration < run.run_config.attack.steps:
-        return "attack", run.iteration
-    if store.final_texture(run.id) is None:
-        return "pre", run.iteration
-    return "adversarial", run.iteration
+Counts = dict[tuple[str, str, int], dict[str, int]]  # (run id, phase, k) → status → jobs: Store.job_counts
+
+
+def current_phase(store: "Store", run: "RunSnapshot", counts: Counts) -> tuple[str, int]:
+    """The phase whose jobs the run is on (or was on when it stopped) and its k, from the run and its
+    job counts (:meth:`Store.job_counts`, read once for a whole list): the attack until the last
+    step, then ``pre`` until the final texture is chosen, then ``adversarial``. No query of its own;
+    only a run past its last step without adversarial jobs yet costs a blob lookup."""
+    k = run.iteration
+    if k < run.run_config.attack.steps:
+        return "attack", k
+    if (run.id, "adversarial", k) in counts or store.has_final_texture(run.id):
+        return "adversarial", k
+    return "pre", k
 
 
 def _short(text: str | None, width: int = 60) -> str:
@@ -26,15 +33,17 @@ def _short(text: str | None, width: int = 60) -> str:
 
 
 def run_rows(store: "Store", runs: list["RunSnapshot"]) -> list[dict[str, Any]]:
-    """One row per run: id, name, status, progress, failures, error."""
+    """One row per run: id, name, status, progress, failures, error. The runs' job counts are read in
+    one grouped query (:meth:`Store.job_counts`), not one query per run."""
     rows = []
+    counts = store.job_counts([run.id for run in runs])
     for run in runs:
-        phase, k = current_phase(store, run)
-        jobs = store.jobs(run.id, k, phase)
-        done = sum(j.status == "succeeded" for j in jobs)
+        phase, k = current_phase(store, run, counts)
+        jobs = counts.get((run.id, phase, k), {})
+        done, total = jobs.get("succeeded", 0), sum(jobs.values())
         rows.append({"run": run.id[:8], "name": run.name, "status": run.status,
                      "iteration": f"{run.iteration}/{run.run_config.attack.steps}",
-                     "phase": phase, "jobs": f"{done}/{len(jobs)}" if jobs else "-",
+                     "phase": phase, "jobs": f"{done}/{total}" if total else "-",
                      "failures": run.failures, "updated": run.updated.strftime("%H:%M:%S"),
                      "error": _short(run.error)})
     return rows
@@ -42,7 +51,7 @@ def run_rows(store: "Store", runs: list["RunSnapshot"]) -> list[dict[str, Any]]:
 
 def job_rows(store: "Store", run: "RunSnapshot") -> tuple[str, int, list[dict[str, Any]]]:
     """The per-frame jobs of the run's current phase: (phase, k, rows)."""
-    phase, k = current_phase(store, run)
+    phase, k = current_phase(store, run, store.job_counts([run.id]))
     rows = []
     for j in store.jobs(run.id, k, phase):
         seconds = j.timings.get("total")

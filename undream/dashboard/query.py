@@ -79,7 +79,7 @@ def run_summary(store: "Store", run: "RunSnapshot", now: dt.datetime,
     ``reads``: the list page's bulk reads (default: this run's alone).
     """
     reads = reads or ListReads(store, [run.id])
-    phase, k = current_phase(store, run)
+    phase, k = current_phase(store, run, reads.counts)
     done = reads.counts.get((run.id, phase, k), {}).get("succeeded", 0) if run.status != "done" else 0
     iters = reads.iterations.get(run.id, [])
     config = run.run_config

@@ -305,6 +305,10 @@ class Store(JobTables, LeaseMethods):
         self.get_run(run_id)
         self.blobs.put_array(final_texture_key(run_id), arr)
 
+    def has_final_texture(self, run_id: str) -> bool:
+        """Whether the run's final texture is chosen (a blob lookup; nothing read, no query)."""
+        return self.blobs.exists(final_texture_key(run_id))
+
     def final_texture(self, run_id: str) -> np.ndarray | None:
         """The texture the adversarial evaluation renders; None until it is chosen."""
         key = final_texture_key(run_id)
