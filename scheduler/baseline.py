@@ -41,7 +41,7 @@ def run_patch_baseline(config: RunConfig, out: Path, base_dir: Path, force: bool
 
     out = Path(out).resolve()
     check_output_folder(out, scene_source(config, base_dir), force, command="undream baseline", marker=MARK,
-                        inputs=(source,) if source is not None else ())
+                        inputs=(source,))
     victim = preflight(config, base_dir, source, local).victim
     try:
         check_attack(make_attack(config.attack))

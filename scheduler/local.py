@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from scheduler import stages
-from scheduler.preflight import check_output_folder, is_run_output, mark_output, preflight, scene_source
+from scheduler.preflight import check_output_folder, is_run_output, is_scene, mark_output, preflight, scene_source
 from undream.engine.context import RunContext, build_context
 from undream.scenedir.init import InitOptions, init_scene
 from undream.settings import LocalSettings
@@ -41,11 +41,11 @@ def resolve_scene(config: RunConfig, out: Path, base_dir: Path, reuse: bool = Fa
     (``reuse``: the one an earlier start of the run already initialised there, if any;
     ``local``: this process's settings, read at the edge: the memory limit)."""
     src = join_against(config.scene, base_dir)
-    if (src / "sequence.json").is_file():
+    if is_scene(src):
         return src
     if not src.exists():
         raise SpecError(f"scene: {src} is neither a scene directory nor a spec file")
-    if reuse and (out / "scene" / "sequence.json").is_file():
+    if reuse and is_scene(out / "scene"):
         return out / "scene"
     return init_scene(src, out / "scene", InitOptions(force=True, memory_limit=local.memory_limit))
 
@@ -110,8 +110,7 @@ def run_local(config: RunConfig, out: str | Path, base_dir: Path | None = None, 
         if force:
             raise SpecError("--resume continues the run in --out and --force replaces it: give one of them")
         return resume_local(config, out, base_dir, progress, source, local)
-    inputs = (source,) if source is not None else ()
-    check_output_folder(out, scene_source(config, base_dir), force, inputs=inputs)  # cheap refusals first
+    check_output_folder(out, scene_source(config, base_dir), force, inputs=(source,))  # cheap refusals first
     victim = preflight(config, base_dir, source, local).victim  # nothing written or deleted before this passes
     if out.exists() and any(out.iterdir()):
         shutil.rmtree(out)  # check_output_folder: --force and a folder `undream run` wrote
@@ -135,7 +134,7 @@ def check_run(config: RunConfig, out: str | Path, base_dir: Path | None = None,
     """``undream run --check``: every check :func:`run_local` makes before it writes, nothing
     written; the run's estimate (:class:`undream.render.budget.Estimate`)."""
     out, base_dir = Path(out).resolve(), base_dir or Path.cwd()
-    check_output_folder(out, scene_source(config, base_dir), force, inputs=(source,) if source is not None else ())
+    check_output_folder(out, scene_source(config, base_dir), force, inputs=(source,))
     return preflight(config, base_dir, source, local).estimate
 
 

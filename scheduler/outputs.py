@@ -17,7 +17,7 @@ import numpy as np
 from PIL import Image
 
 from scheduler.evaluation import prediction_from_json
-from scheduler.preflight import METADATA, is_run_output, is_scene
+from scheduler.preflight import is_scene, run_metadata
 from undream import charts
 from undream.color import to_uint8
 from undream.errors import StoreError
@@ -135,11 +135,9 @@ def _check_own(out: Path, run_id: str) -> None:
     store, and `undream report` can write them elsewhere)."""
     if not out.is_dir() or not any(out.iterdir()):
         return
-    try:
-        owner = json.loads((out / METADATA).read_text()).get("run_id")
-    except (OSError, ValueError, AttributeError):
-        owner = None
-    if is_scene(out) or not is_run_output(out) or owner not in (None, run_id):
+    meta = run_metadata(out)
+    owner = None if meta is None else meta.get("run_id")
+    if is_scene(out) or meta is None or owner not in (None, run_id):
         raise StoreError(f"output folder {out}: holds files that are not this run's outputs (a scene, a "
                          f"user's files or run {owner}'s outputs); nothing written there; the results are in "
                          f"the store: `undream report {run_id} --out FOLDER` writes them")

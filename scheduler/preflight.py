@@ -100,39 +100,56 @@ def check_frames(config: RunConfig, n_frames: int) -> None:
 
 
 def _sequence(src: Path, memory_limit: int | None = None) -> "Sequence":
-    if (src / "sequence.json").is_file():
-        seq = load_sequence(src / "sequence.json")
+    if is_scene(src):
+        seq = load_sequence(src / SCENE_MARKER)
         check_visible(src, [f.index for f in seq.frames])  # a spec file: `undream init` checks it
         return seq
     if not src.is_file():
         raise SpecError(f"scene: {src} is neither a scene directory nor a spec file")
-    return check_source(src, InitOptions(memory_limit=memory_limit)).sequence  # what `undream init` checks before writing OUT/scene
+    # what `undream init` checks before writing OUT/scene
+    return check_source(src, InitOptions(memory_limit=memory_limit)).sequence
+
+
+def run_metadata(folder: Path) -> dict | None:
+    """The ``metadata.json`` of an output folder of ``undream run`` (written when the run starts,
+    replaced when it ends); None when ``folder`` has none that says it is one."""
+    try:
+        meta = json.loads((Path(folder) / METADATA).read_text())
+    except (OSError, ValueError):
+        return None
+    return meta if isinstance(meta, dict) and (MARKER in meta or "run_id" in meta) else None
 
 
 def is_run_output(folder: Path) -> bool:
     """Whether ``folder`` is an output folder of ``undream run`` (its ``metadata.json`` says so)."""
-    try:
-        meta = json.loads((Path(folder) / METADATA).read_text())
-    except (OSError, ValueError):
-        return False
-    return isinstance(meta, dict) and (MARKER in meta or "run_id" in meta)
+    return run_metadata(folder) is not None
+
+
+def run_store_url(folder: Path) -> str | None:
+    """The store URL a run's output folder records (None: the SQLite store inside it; with its
+    password masked when it had one)."""
+    return ((run_metadata(folder) or {}).get("config") or {}).get("store")
+
+
+SCENE_MARKER = "sequence.json"  # what `undream init` writes last: a scene directory
 
 
 def is_scene(folder: Path) -> bool:
     """Whether ``folder`` is a scene directory (``undream init`` wrote its ``sequence.json``)."""
-    return (Path(folder) / "sequence.json").is_file()
+    return (Path(folder) / SCENE_MARKER).is_file()
 
 
 def check_output_folder(out: Path, scene_src: Path | None, force: bool, command: str = "undream run",
-                        marker: str = METADATA, inputs: tuple[Path, ...] = ()) -> None:
+                        marker: str = METADATA, inputs: tuple[Path | None, ...] = ()) -> None:
     """The one output-folder rule of every command that writes: refuse an ``--out`` that must not be
     used, in one line; nothing is touched.
 
     ``out`` may be written when it is absent or empty. It is replaced (``force``) only when
     ``command`` wrote it (``marker``: ``undream run``'s run metadata unless another command names
-    its own file; ``undream init``'s scenes are recognised by their ``sequence.json``), when no
+    its own file, :data:`SCENE_MARKER` for ``undream init``'s scenes), when no
     live process holds the lease of a run recorded in it (:func:`live_owner`), and when it holds
-    none of the command's inputs (``scene_src`` and ``inputs``: a spec, a run config, a scene) —
+    none of the command's inputs (``scene_src`` and ``inputs``: a spec, a run config, a scene; None
+    entries are skipped) —
     so neither a project folder holding them nor the folder of an earlier output is lost.
     """
     out = Path(out).resolve()
@@ -145,17 +162,12 @@ def check_output_folder(out: Path, scene_src: Path | None, force: bool, command:
         return
     if not force:
         raise already_exists(out)
-    if command == "undream init":
-        written = is_scene(out)
-    else:
-        if is_scene(out):
-            raise SpecError(f"--out {out}: is a scene directory (it holds sequence.json); `{command}` never "
-                            "replaces a scene; choose another output folder")
-        written = is_run_output(out) if marker == METADATA else (out / marker).is_file()
-    if not written:
+    if marker != SCENE_MARKER and is_scene(out):
+        raise SpecError(f"--out {out}: is a scene directory (it holds {SCENE_MARKER}); `{command}` never "
+                        "replaces a scene; choose another output folder")
+    if not (is_run_output(out) if marker == METADATA else (out / marker).is_file()):
         raise SpecError(f"--out {out}: --force only replaces a folder that `{command}` wrote "
-                        f"(one with its {'sequence.json' if command == 'undream init' else marker}); "
-                        "this one has none, so it is left as it is")
+                        f"(one with its {marker}); this one has none, so it is left as it is")
     owner = live_owner(out)
     if owner is not None:
         raise SpecError(f"--out {out}: {owner} is writing it now; wait for it to end (or stop it) "
@@ -173,10 +185,7 @@ def live_owner(out: Path) -> str | None:
 
     if not (out / "store").is_dir():
         return None
-    try:
-        url = (json.loads((out / METADATA).read_text()).get("config") or {}).get("store")
-    except (OSError, ValueError, AttributeError):
-        url = None
+    url = run_store_url(out)
     if url and MASK in url:
         return "a run whose store needs a password this folder does not keep (cannot check its lease)"
     try:

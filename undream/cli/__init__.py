@@ -46,7 +46,7 @@ def init_cmd(spec: Path, out: Path, force: bool, verify_spp: int, scene_spp: int
              camera: str | None, actors: tuple[str, ...], check: bool, progress: bool) -> None:
     """Write the scene directory of SPEC (trajectory YAML, Unreal export JSON, sequence.json, or a
     Blender .blend with --object NAME)."""
-    from scheduler.preflight import check_output_folder
+    from scheduler.preflight import SCENE_MARKER, check_output_folder
     from undream.bridge.blender_import import BlendSource
     from undream.scenedir.init import InitOptions, Source, check_init, init_scene
 
@@ -59,7 +59,8 @@ def init_cmd(spec: Path, out: Path, force: bool, verify_spp: int, scene_spp: int
         raise SpecError(f"{spec}: --object, --camera and --actor are for .blend files only")
     options = InitOptions(force=force, verify_spp=verify_spp, scene_spp=scene_spp, progress=progress,
                           memory_limit=local.memory_limit)
-    check_output_folder(out, None, force, command="undream init", inputs=(spec,))  # the one output-folder rule
+    check_output_folder(out, None, force, command="undream init", marker=SCENE_MARKER,
+                        inputs=(spec,))  # the one output-folder rule
     if check:
         click.echo(f"ok: {spec} can be written to {out}: {check_init(source, out, options).describe()}; "
                    "nothing written")

@@ -10,7 +10,6 @@ from __future__ import annotations
 import csv
 import functools
 import io
-import json
 import os
 import tempfile
 from pathlib import Path
@@ -191,12 +190,12 @@ def status_cmd(run: str | None, out: Path | None, settings: Callable[..., "Setti
 def _run_store(out: Path, database: str | None = None) -> "Store":
     """The store of an `undream run` output folder: its database URL from the folder's metadata.json,
     or ``database`` (``--database``) where that URL's password was redacted there."""
-    from scheduler.preflight import METADATA, is_run_output
+    from scheduler.preflight import METADATA, is_run_output, run_store_url
     from undream.store import open_store
 
     if not is_run_output(out) or not (out / "store").is_dir():
         raise SpecError(f"--out {out}: not an output folder of `undream run` (no {METADATA} and store/)")
-    url = (json.loads((out / METADATA).read_text()).get("config") or {}).get("store")
+    url = run_store_url(out)
     if url and MASK in url:
         if not database:
             raise SpecError(f"--out {out}: the run's store URL is kept without its password ({url}); "
