@@ -6,12 +6,14 @@ the line of a syntax error), whichever reader finds them.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
 import secrets
+import shutil
 from pathlib import Path
-from typing import IO, Any, Callable
+from typing import IO, Any, Callable, Iterator
 
 from undream.errors import SpecError
 from undream.spec.limits import FILE_LIMITS
@@ -240,3 +242,19 @@ def check_new_folder(out: str | Path, option: str = "--out", inputs: tuple[str |
         raise SpecError(f"{option} {out}: already holds files; this command writes only into a new or "
                         "empty folder, so nothing in it is replaced; choose another folder")
     return target
+
+
+@contextlib.contextmanager
+def restored_on_failure(folder: str | Path) -> Iterator[None]:
+    """For a command that writes into a new or empty ``folder`` (:func:`check_new_folder`): whatever
+    ends the block with an exception (Ctrl-C, SIGTERM, a full disk) removes what it wrote, and the
+    folder is left as it was found, absent or empty."""
+    folder = Path(folder)
+    existed = folder.is_dir()
+    try:
+        yield
+    except BaseException:
+        shutil.rmtree(folder, ignore_errors=True)
+        if existed:
+            folder.mkdir(exist_ok=True)
+        raise

@@ -32,7 +32,6 @@ from __future__ import annotations
 import contextlib
 import json
 import math
-import shutil
 import tempfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -51,7 +50,7 @@ from undream.scene.mitsuba_scene import OBJECT_ID, ScenePaths, scene_dict
 from undream.scene.poses import look_at, object_pose, yaw_rotation
 from undream.scene.xml import to_mitsuba
 from undream.scenedir.verify import mask_box
-from undream.spec.io import check_new_folder
+from undream.spec.io import check_new_folder, restored_on_failure
 from undream.spec import Asset, Camera, Environment, Frame, Sequence, TextureParam, Transform
 from undream.variant import mitsuba
 from undream.versions import versions
@@ -375,10 +374,9 @@ def make_dataset(out: str | Path, cfg: DatasetConfig, progress: bool = True,
     if (out / LABELS_FILE).exists():
         raise DatasetError(f"{out}: already holds a dataset ({LABELS_FILE}); choose another folder")
     check_new_folder(out)
-    existed = out.is_dir()
-    (out / "images").mkdir(parents=True, exist_ok=True)
     partial = out / (LABELS_FILE + ".partial")  # renamed when complete
-    try:
+    with restored_on_failure(out):  # Ctrl-C, SIGTERM, a full disk: the folder goes back to how it was found
+        (out / "images").mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory(prefix="undream-meshes-") as tmp, \
                 _mitsuba_variant(variant) as mi, open(partial, "w", encoding="utf-8") as fh:
             meshes = _Meshes(Path(tmp))
@@ -386,11 +384,6 @@ def make_dataset(out: str | Path, cfg: DatasetConfig, progress: bool = True,
                 image, rec = render_sample(mi, meshes, cfg, i)
                 Image.fromarray(image).save(out / rec["file"])
                 fh.write(json.dumps(rec) + "\n")
-    except BaseException:  # Ctrl-C, SIGTERM, a full disk: the folder goes back to how it was found
-        shutil.rmtree(out, ignore_errors=True)
-        if existed:
-            out.mkdir(exist_ok=True)
-        raise
     partial.replace(out / LABELS_FILE)
     meta = {"version": DATASET_VERSION, "config": asdict(cfg), "classes": list(CLASSES),
             "bands": {k: list(v) for k, v in BANDS.items()},

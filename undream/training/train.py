@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import json
 import math
-import shutil
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -42,7 +41,7 @@ import torch
 
 from undream.errors import VictimError
 from undream.metrics import classification_report, is_detected, per_class_ap
-from undream.spec.io import check_new_folder
+from undream.spec.io import check_new_folder, restored_on_failure
 from undream.versions import versions
 from undream.training.dataset import CLASSES, Dataset, load_dataset
 from undream.victims.preprocess import PreprocessConfig, preprocess_images
@@ -334,14 +333,8 @@ def train(data: str | Path, test: str | Path, out: str | Path, cfg: TrainConfig,
     seconds = fit(model, train_ds, cfg, log)
     out = Path(out)
     check_new_folder(out, inputs=inputs)  # still new after training (another command may have written it)
-    existed = out.is_dir()
-    try:
+    with restored_on_failure(out):  # the folder goes back to how it was found
         return _save_and_evaluate(model, out, cfg, seconds, train_ds, test_ds, data, test, command)
-    except BaseException:  # the folder goes back to how it was found
-        shutil.rmtree(out, ignore_errors=True)
-        if existed:
-            out.mkdir(exist_ok=True)
-        raise
 
 
 def _save_and_evaluate(model: Any, out: Path, cfg: TrainConfig, seconds: float, train_ds: Dataset,
