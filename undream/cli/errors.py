@@ -61,9 +61,8 @@ class OneLineGroup(click.Group):
 @contextlib.contextmanager
 def signals_end_commands() -> Iterator[None]:
     """While a command runs, SIGTERM and SIGHUP end it as Ctrl-C does: as an exception, so every
-    ``finally`` and ``except BaseException`` on the way out runs (temporary folders and a new
-    ``--out`` removed; a run already recorded keeps its lease, found stale and resumable later).
-    Handlers set by others (Celery's) are left alone."""
+    ``finally`` and ``except BaseException`` on the way out runs (temporary folders removed, a run's
+    lease given up and the run marked failed). Handlers set by others (Celery's) are left alone."""
     def stop(signum: int, _frame: Any) -> None:
         raise SystemExit(128 + signum)
 
