@@ -80,11 +80,13 @@ def main(argv: list[str] | None = None) -> int:
         seed(blobs, args.runs)
         print(f"seeded {args.runs} runs in {time.perf_counter() - t0:.1f} s; load average "
               f"{os.getloadavg()[0]:.2f} on {os.cpu_count()} cores\n")
-        print("| code | runs | `undream status` s | output bytes | exit |")
-        print("|---|---|---|---|---|")
+        print("| code | runs | `undream status` s | × the first code's time | output bytes | exit |")
+        print("|---|---|---|---|---|---|")
+        first = None
         for repo in repos:
             seconds, size, rc = time_status(repo.resolve(), blobs)
-            print(f"| {repo} | {args.runs} | {seconds:.2f} | {size} | {rc} |")
+            first = first or seconds
+            print(f"| {repo} | {args.runs} | {seconds:.2f} | {seconds / first:.2f} | {size} | {rc} |")
     return 0
 
 
