@@ -163,6 +163,95 @@ def test_per_image_targets(victims):
         v.loss(x, [Target(0)], "vanish")
 
 
+# --------------------------------------------------------------------------- one pass per batch
+
+@pytest.fixture(scope="module")
+def batch_victims(victims):
+    """Victims built here (torch and tiny HF) and the bundled classifier."""
+    bundled = load_victim("bundled:classifier", device="cpu", task="classification")
+    return {**victims, "bundled_classifier": bundled}
+
+
+BATCH_CASES = [(name, kind) for name in ("torch_classifier", "hf_classifier", "bundled_classifier")
+               for kind in ("ce", "targeted_ce", "dlr")]
+BATCH_CASES += [(name, kind) for name in ("torch_detector", "torch_detector_sigmoid", "hf_detr")
+                for kind in ("vanish", "mislabel", "box")]
+BOXES = [BOX, (4.0, 4.0, 30.0, 36.0), (20.0, 10.0, 52.0, 38.0)]
+
+
+def _targets(victim, batch: int = 3) -> list[Target]:
+    """A different label, target label and box per image."""
+    c = victim.num_classes
+    return [Target(i % c, target_label=(i + 1) % c, box=BOXES[i % len(BOXES)]) for i in range(batch)]
+
+
+@pytest.mark.parametrize("name,kind", BATCH_CASES)
+def test_per_image_losses_equal_each_image_alone(batch_victims, name, kind):
+    v = batch_victims[name]
+    x, ts = _images(3, seed=1), _targets(batch_victims[name])
+    per = v.losses(x, ts, kind)
+    assert per.shape == (3,)
+    alone = torch.stack([v.losses(x[i:i + 1], ts[i], kind)[0] for i in range(3)])
+    assert torch.allclose(per, alone, rtol=1e-5, atol=1e-7)
+    assert torch.allclose(per.mean(), v.loss(x, ts, kind), rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.parametrize("name,kind", BATCH_CASES)
+def test_batched_gradient_equals_per_image_gradient(batch_victims, name, kind):
+    """d losses(X).sum() / dX, image by image, is the gradient of loss(x_i) alone."""
+    v = batch_victims[name]
+    x, ts = _images(3, seed=1).requires_grad_(True), _targets(v)
+    (g,) = torch.autograd.grad(v.losses(x, ts, kind).sum(), x)
+    scale = float(g.abs().max())  # one image may have none: 3-class DLR is 1 when y is the least logit
+    assert scale > 0
+    for i in range(3):
+        xi = x[i:i + 1].detach().clone().requires_grad_(True)
+        (gi,) = torch.autograd.grad(v.loss(xi, ts[i], kind), xi)
+        assert float((g[i] - gi[0]).abs().max()) <= 1e-6 * scale
+
+
+def _same_predictions(a, b) -> None:
+    assert len(a) == len(b)
+    for p, q in zip(a, b):
+        if hasattr(p, "probs"):
+            assert p.label == q.label and torch.allclose(p.probs, q.probs, atol=1e-6)
+            assert not p.probs.requires_grad
+        else:
+            assert torch.equal(p.labels, q.labels)
+            assert torch.allclose(p.scores, q.scores, atol=1e-6)
+            assert torch.allclose(p.boxes, q.boxes, atol=1e-5)
+            assert not (p.scores.requires_grad or p.boxes.requires_grad)
+
+
+@pytest.mark.parametrize("name,kind", BATCH_CASES)
+def test_loss_and_predict_runs_the_model_once(batch_victims, name, kind, monkeypatch):
+    v = batch_victims[name]
+    if v.task == "detection":  # keep every query, so the comparison has boxes to compare
+        monkeypatch.setattr(v, "score_threshold", 0.0)
+    x, ts = _images(3, seed=2).requires_grad_(True), _targets(v)
+    calls = []
+    hook = v.module.register_forward_hook(lambda *_: calls.append(1))
+    try:
+        per, preds = v.loss_and_predict(x, ts, kind)
+    finally:
+        hook.remove()
+    assert len(calls) == 1
+    assert per.shape == (3,) and per.requires_grad
+    assert torch.allclose(per, v.losses(x, ts, kind), rtol=1e-6, atol=1e-7)
+    _same_predictions(preds, v.predict(x))
+    if v.task == "detection":
+        assert all(len(p.scores) > 0 for p in preds)
+
+
+def test_loss_and_predict_checks_like_loss(victims):
+    with pytest.raises(VictimError, match=r"'vanish'.*does classification"):
+        victims["torch_classifier"].loss_and_predict(_images(), Target(0), "vanish")
+    with pytest.raises(VictimError, match="needs Target.box"):
+        victims["torch_detector"].loss_and_predict(_images(), Target(0), "box")
+    with pytest.raises(VictimError, match="one per image"):
+        victims["torch_detector"].losses(_images(2), [Target(0)], "vanish")
+
+
 # --------------------------------------------------------------------------- predict
 
 def test_classifier_predict(victims):
@@ -297,6 +386,36 @@ def test_detection_losses_known_answers():
     far = torch.tensor([[[0.6, 0.1, 1.0, 0.5], [0.6, 0.6, 0.9, 0.9]]])
     # disjoint, same size: L1 = mean(|0.5|, 0, |0.5|, 0) = 0.25; GIoU = 0 - (0.36 - 0.32)/0.36
     assert float(losses.det_box(far, true, w)) == pytest.approx(0.25 + 1 + 0.04 / 0.36)
+
+
+def _loss_calls() -> dict:
+    """Each loss function with arguments for a batch of 3 images."""
+    g = torch.Generator().manual_seed(3)
+    z = torch.randn(3, 4, generator=g)
+    y, t = torch.tensor([0, 1, 2]), torch.tensor([3, 0, 1])
+    lp = losses.class_log_probs(torch.randn(3, 5, 3, generator=g), "softmax")
+    boxes = losses.cxcywh_to_xyxy(0.25 + 0.5 * torch.rand(3, 5, 4, generator=g))
+    true = torch.tensor([[0.1, 0.1, 0.5, 0.5], [0.2, 0.3, 0.9, 0.8], [0.0, 0.0, 0.4, 0.9]])
+    w = losses.match_weights(lp, boxes, 0, true)
+    return {"ce_untargeted": (losses.ce_untargeted, (z, y)),
+            "ce_targeted": (losses.ce_targeted, (z, t)),
+            "dlr": (losses.dlr, (z, y)),
+            "det_vanish": (losses.det_vanish, (lp, 0, w)),
+            "det_vanish_max": (losses.det_vanish, (lp, 0, w, "max")),
+            "det_mislabel": (losses.det_mislabel, (lp, 1, w)),
+            "det_box": (losses.det_box, (boxes, true, w))}
+
+
+@pytest.mark.parametrize("name", list(_loss_calls()))
+def test_loss_reductions_agree(name):
+    fn, args = _loss_calls()[name]
+    per = fn(*args, reduction="none")
+    assert per.shape == (3,)
+    assert torch.allclose(per.mean(), fn(*args), rtol=1e-6)
+    assert torch.equal(fn(*args), fn(*args, reduction="mean"))
+    with pytest.raises(VictimError, match=rf"{fn.__name__}\.reduction: must be one of mean, none, "
+                                          r"got 'sum'"):
+        fn(*args, reduction="sum")
 
 
 def test_iou_giou_known_answer():

@@ -6,8 +6,13 @@ simulator frame as rendered). A victim
 - preprocesses them differentiably (:meth:`Victim.preprocess`),
 - runs its model (:meth:`Victim.forward_raw`),
 - predicts (:meth:`Victim.predict`): labels or boxes in the input's pixels,
-- and gives a task loss (:meth:`Victim.loss`) that the attack MAXIMISES:
-  larger means a more successful attack.
+- and gives a task loss per image (:meth:`Victim.losses`; :meth:`Victim.loss`
+  is their mean) that the attack MAXIMISES: larger means a more successful
+  attack. :meth:`Victim.loss_and_predict` gives both from one forward pass.
+
+A concrete victim implements :meth:`~Victim.forward_raw` and turns its raw
+output into per-image losses (``_losses_from``) and predictions
+(``_predictions_from``); every public method goes through those two.
 
 Concrete victims: :class:`undream.victims.classifier.Classifier` and
 :class:`undream.victims.detector.Detector` wrap any ``torch.nn.Module``; the
@@ -125,7 +130,7 @@ class Victim(ABC):
 
     Attributes: ``name`` (where it came from), ``task`` (``classification`` or
     ``detection``), ``labels`` (class names, index = class id),
-    ``loss_kinds`` (the kinds :meth:`loss` accepts), ``preprocess_config``,
+    ``loss_kinds`` (the kinds :meth:`losses` accepts), ``preprocess_config``,
     ``device``.
     """
 
@@ -155,26 +160,57 @@ class Victim(ABC):
     def forward_raw(self, images: torch.Tensor) -> Any:
         """The model's raw output for sRGB [0, 1] ``images`` (differentiable)."""
 
-    @abstractmethod
     def predict(self, images: torch.Tensor) -> list[Any]:
         """One prediction per image (no gradient)."""
+        with torch.no_grad():
+            return self._predictions_from(self.forward_raw(images), images)
 
-    def loss(self, images: torch.Tensor, target: "Target | Sequence[Target]",
-             kind: str) -> torch.Tensor:
-        """Scalar attack loss of ``kind`` for ``images``; larger = more successful.
+    def losses(self, images: torch.Tensor, target: "Target | Sequence[Target]",
+               kind: str) -> torch.Tensor:
+        """``B`` attack losses of ``kind``, one per image (differentiable); larger =
+        more successful.
 
         ``target`` is one :class:`Target` for every image or one per image.
         """
+        targets = self._checked(images, target, kind)
+        return self._losses_from(self.forward_raw(images), images, targets, kind)
+
+    def loss(self, images: torch.Tensor, target: "Target | Sequence[Target]",
+             kind: str) -> torch.Tensor:
+        """Scalar attack loss: the mean over the images of :meth:`losses`."""
+        return self.losses(images, target, kind).mean()
+
+    def loss_and_predict(self, images: torch.Tensor, target: "Target | Sequence[Target]",
+                         kind: str) -> tuple[torch.Tensor, list[Any]]:
+        """:meth:`losses` and :meth:`predict` of ``images`` from ONE forward pass.
+
+        The ``B`` losses carry the gradient; the predictions are those of
+        :meth:`predict` (default settings), computed from the same raw output
+        without gradient.
+        """
+        targets = self._checked(images, target, kind)
+        raw = self.forward_raw(images)
+        per_image = self._losses_from(raw, images, targets, kind)
+        with torch.no_grad():
+            preds = self._predictions_from(raw, images)
+        return per_image, preds
+
+    @abstractmethod
+    def _losses_from(self, raw: Any, images: torch.Tensor, targets: list[Target],
+                     kind: str) -> torch.Tensor:
+        """``B`` losses of checked ``kind`` and ``targets`` from ``raw`` = ``forward_raw(images)``."""
+
+    @abstractmethod
+    def _predictions_from(self, raw: Any, images: torch.Tensor) -> list[Any]:
+        """One prediction per image from ``raw`` = ``forward_raw(images)``; called without gradient."""
+
+    def _checked(self, images: torch.Tensor, target: Any, kind: str) -> list[Target]:
+        """The per-image targets, after checking ``kind``, ``images`` and ``target``."""
         if kind not in self.loss_kinds:
             raise VictimError(f"loss kind {kind!r}: victim {self.name!r} does {self.task}; "
                               f"valid kinds are {', '.join(self.loss_kinds)}")
         check_images(images)
-        targets = self._targets(target, images.shape[0])
-        return self._loss(images, targets, kind)
-
-    @abstractmethod
-    def _loss(self, images: torch.Tensor, targets: list[Target], kind: str) -> torch.Tensor:
-        ...
+        return self._targets(target, images.shape[0])
 
     def _targets(self, target: Any, batch: int) -> list[Target]:
         targets = [target] * batch if isinstance(target, Target) else list(target)

@@ -55,18 +55,18 @@ class Classifier(Victim):
                               f"({b}, {self.num_classes}) (batch, classes), got {got}")
         return logits
 
-    @torch.no_grad()
-    def predict(self, images: torch.Tensor) -> list[ClassPrediction]:
+    def _predictions_from(self, raw: torch.Tensor, images: torch.Tensor) -> list[ClassPrediction]:
         """The arg-max class and the softmax probabilities, per image."""
-        probs = self.forward_raw(images).float().softmax(-1).cpu()
+        probs = raw.float().softmax(-1).cpu()
         return [ClassPrediction(int(p.argmax()), p) for p in probs]
 
-    def _loss(self, images: torch.Tensor, targets: list[Target], kind: str) -> torch.Tensor:
-        logits = self.forward_raw(images)
-        y = torch.tensor([t.label for t in targets], dtype=torch.long)
+    def _losses_from(self, raw: torch.Tensor, images: torch.Tensor, targets: list[Target],
+                     kind: str) -> torch.Tensor:
+        """``B`` losses of ``kind`` from the ``B×C`` logits ``raw``."""
+        y = torch.tensor([t.label for t in targets], dtype=torch.long, device=raw.device)
         if kind == "ce":
-            return losses.ce_untargeted(logits, y.to(logits.device))
+            return losses.ce_untargeted(raw, y, reduction="none")
         if kind == "dlr":
-            return losses.dlr(logits, y.to(logits.device))
+            return losses.dlr(raw, y, reduction="none")
         t = require_target_label(targets, kind)
-        return losses.ce_targeted(logits, t.to(logits.device))
+        return losses.ce_targeted(raw, t.to(raw.device), reduction="none")

@@ -117,17 +117,21 @@ class Detector(Victim):
                               f"with no-object) or {want['sigmoid']} (sigmoid)")
         return act
 
-    @torch.no_grad()
     def predict(self, images: torch.Tensor, threshold: float | None = None) -> list[DetPrediction]:
         """Per image: each query's best class and score, kept if the score is at
         least ``threshold`` (default ``score_threshold``); boxes in pixels of
         the input image, xyxy, sorted by decreasing score."""
-        out = self.forward_raw(images)
+        with torch.no_grad():
+            return self._predictions_from(self.forward_raw(images), images, threshold)
+
+    def _predictions_from(self, raw: DetectionOutput, images: torch.Tensor,
+                          threshold: float | None = None) -> list[DetPrediction]:
+        """:meth:`predict` from ``raw`` = ``forward_raw(images)``."""
         thr = self.score_threshold if threshold is None else float(threshold)
         h, w = images.shape[-2:]
         scale = torch.tensor([w, h, w, h], dtype=torch.float32)
-        scores, labels = out.log_probs.float().exp().max(-1)
-        boxes = out.boxes_xyxy.float().cpu() * scale
+        scores, labels = raw.log_probs.float().exp().max(-1)
+        boxes = raw.boxes_xyxy.float().cpu() * scale
         preds = []
         for s, lab, bx in zip(scores.cpu(), labels.cpu(), boxes):
             keep = (s >= thr).nonzero().squeeze(1)
@@ -135,21 +139,22 @@ class Detector(Victim):
             preds.append(DetPrediction(bx[keep], s[keep], lab[keep]))
         return preds
 
-    def _loss(self, images: torch.Tensor, targets: list[Target], kind: str) -> torch.Tensor:
-        out = self.forward_raw(images)
-        log_probs, boxes = out.log_probs, out.boxes_xyxy
+    def _losses_from(self, raw: DetectionOutput, images: torch.Tensor, targets: list[Target],
+                     kind: str) -> torch.Tensor:
+        """``B`` losses of ``kind`` from ``raw`` = ``forward_raw(images)``."""
+        log_probs, boxes = raw.log_probs, raw.boxes_xyxy
         dev = log_probs.device
         y = torch.tensor([t.label for t in targets], dtype=torch.long, device=dev)
         true_boxes = self._true_boxes(targets, images.shape[-2:], kind)
         weights = losses.match_weights(log_probs, boxes, y,
                                        None if true_boxes is None else true_boxes.to(dev))
         if kind == "vanish":
-            return losses.det_vanish(log_probs, y, weights, self.vanish_reduce)
+            return losses.det_vanish(log_probs, y, weights, self.vanish_reduce, reduction="none")
         if kind == "mislabel":
             t = require_target_label(targets, kind).to(dev)
-            return losses.det_mislabel(log_probs, t, weights)
+            return losses.det_mislabel(log_probs, t, weights, reduction="none")
         boxes_true = cast(torch.Tensor, true_boxes)  # _true_boxes raised if any was missing
-        return losses.det_box(boxes, boxes_true.to(dev, boxes.dtype), weights)
+        return losses.det_box(boxes, boxes_true.to(dev, boxes.dtype), weights, reduction="none")
 
     @staticmethod
     def _true_boxes(targets: list[Target], hw: Sequence[int], kind: str) -> torch.Tensor | None:

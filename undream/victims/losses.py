@@ -5,7 +5,9 @@ value means a more successful attack (the true class is less likely, the
 target class more likely, the object's boxes further off). Gradient ascent on
 the image or texture is the attack; nothing here needs negating.
 
-Each loss returns a scalar: the mean over the batch of a per-image value.
+Each loss computes one value per image; ``reduction="mean"`` (the default)
+returns their mean over the batch, a scalar, and ``reduction="none"`` the
+``B`` values themselves.
 
 Classification losses take logits ``B×C``. Detection losses take the outputs
 of a DETR-style detector, already turned into
@@ -26,6 +28,7 @@ import torch.nn.functional as F
 from undream.errors import VictimError
 
 ACTIVATIONS = ("softmax", "sigmoid")
+REDUCTIONS = ("mean", "none")
 
 
 def _labels(y: torch.Tensor | int, batch: int, classes: int, device: torch.device,
@@ -42,21 +45,32 @@ def _labels(y: torch.Tensor | int, batch: int, classes: int, device: torch.devic
     return t
 
 
+def _reduce(values: torch.Tensor, reduction: str, what: str) -> torch.Tensor:
+    """The ``B`` per-image ``values`` as asked: their mean (``mean``) or as they are (``none``)."""
+    if reduction == "mean":
+        return values.mean()
+    if reduction == "none":
+        return values
+    raise VictimError(f"{what}.reduction: must be one of {', '.join(REDUCTIONS)}, got {reduction!r}")
+
+
 # --------------------------------------------------------------------------- classification
 
-def ce_untargeted(logits: torch.Tensor, y: torch.Tensor | int) -> torch.Tensor:
+def ce_untargeted(logits: torch.Tensor, y: torch.Tensor | int, *,
+                  reduction: str = "mean") -> torch.Tensor:
     """Cross-entropy of the true class ``y``: maximise to move away from it."""
     yt = _labels(y, logits.shape[0], logits.shape[1], logits.device)
-    return F.cross_entropy(logits, yt)
+    return _reduce(F.cross_entropy(logits, yt, reduction="none"), reduction, "ce_untargeted")
 
 
-def ce_targeted(logits: torch.Tensor, t: torch.Tensor | int) -> torch.Tensor:
+def ce_targeted(logits: torch.Tensor, t: torch.Tensor | int, *,
+                reduction: str = "mean") -> torch.Tensor:
     """Negative cross-entropy of the target class ``t``: maximise to reach it."""
     tt = _labels(t, logits.shape[0], logits.shape[1], logits.device, "target_label")
-    return -F.cross_entropy(logits, tt)
+    return _reduce(-F.cross_entropy(logits, tt, reduction="none"), reduction, "ce_targeted")
 
 
-def dlr(logits: torch.Tensor, y: torch.Tensor | int) -> torch.Tensor:
+def dlr(logits: torch.Tensor, y: torch.Tensor | int, *, reduction: str = "mean") -> torch.Tensor:
     """Difference of Logits Ratio (Croce & Hein, ICML 2020, eq. 5).
 
     ``DLR = -(z_y - max_{i != y} z_i) / (z_pi1 - z_pi3 + 1e-12)`` with ``z``
@@ -72,7 +86,7 @@ def dlr(logits: torch.Tensor, y: torch.Tensor | int) -> torch.Tensor:
     others = logits.masked_fill(F.one_hot(yt, logits.shape[1]).bool(), float("-inf"))
     z_other = others.max(dim=1).values
     ratio = (z_y - z_other) / (z_sorted[:, 0] - z_sorted[:, 2] + 1e-12)
-    return (-ratio).mean()
+    return _reduce(-ratio, reduction, "dlr")
 
 
 # --------------------------------------------------------------------------- detection helpers
@@ -147,29 +161,31 @@ def match_weights(log_probs: torch.Tensor, boxes: torch.Tensor, labels: torch.Te
 # --------------------------------------------------------------------------- detection losses
 
 def det_vanish(log_probs: torch.Tensor, labels: torch.Tensor | int, weights: torch.Tensor,
-               reduce: str = "mean") -> torch.Tensor:
+               reduce: str = "mean", *, reduction: str = "mean") -> torch.Tensor:
     """Suppress the true class: ``-sum_q w_q p_q(y)`` (``reduce="mean"``).
 
     ``reduce="max"``: ``-max_q p_q(y)`` over the queries with ``w_q > 0`` (the
     strongest detection of the object only). Maximising drives the object's
     true-class score down wherever the detector finds it. In [-1, 0].
+    ``reduce`` combines the queries of one image; ``reduction`` the images.
     """
     p = _query_log_prob(log_probs, labels).exp()
     if reduce == "mean":
-        return -(weights * p).sum(1).mean()
+        return _reduce(-(weights * p).sum(1), reduction, "det_vanish")
     if reduce == "max":
-        return -p.masked_fill(weights <= 0, 0.0).max(1).values.mean()
+        return _reduce(-p.masked_fill(weights <= 0, 0.0).max(1).values, reduction, "det_vanish")
     raise VictimError(f"det_vanish.reduce: must be 'mean' or 'max', got {reduce!r}")
 
 
 def det_mislabel(log_probs: torch.Tensor, target_labels: torch.Tensor | int,
-                 weights: torch.Tensor) -> torch.Tensor:
+                 weights: torch.Tensor, *, reduction: str = "mean") -> torch.Tensor:
     """Push the object's queries to the target class: ``sum_q w_q log p_q(t)``. <= 0."""
     lp = _query_log_prob(log_probs, target_labels, "target_label")
-    return (weights * lp).sum(1).mean()
+    return _reduce((weights * lp).sum(1), reduction, "det_mislabel")
 
 
-def det_box(boxes: torch.Tensor, true_boxes: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+def det_box(boxes: torch.Tensor, true_boxes: torch.Tensor, weights: torch.Tensor, *,
+            reduction: str = "mean") -> torch.Tensor:
     """Move the object's boxes off it: ``sum_q w_q (L1(b_q, b) + 1 - GIoU(b_q, b))``.
 
     ``boxes`` ``B×Q×4`` and ``true_boxes`` ``B×4`` normalised xyxy; L1 is the
@@ -178,4 +194,4 @@ def det_box(boxes: torch.Tensor, true_boxes: torch.Tensor, weights: torch.Tensor
     """
     l1 = (boxes - true_boxes[:, None, :]).abs().mean(-1)
     _, giou = box_iou_giou(boxes, true_boxes[:, None, :])
-    return (weights * (l1 + 1.0 - giou)).sum(1).mean()
+    return _reduce((weights * (l1 + 1.0 - giou)).sum(1), reduction, "det_box")
