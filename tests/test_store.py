@@ -19,13 +19,13 @@ import numpy as np
 import pytest
 
 from conftest import service_missing
-from sqlalchemy import create_engine, text
+from sqlalchemy import create_engine, event, text
 from sqlalchemy.engine import make_url
 from sqlalchemy.exc import SQLAlchemyError
 
 from undream.errors import StoreError
 from undream.store import (
-    BlobStore, Store, attack_state_key, grad_key, open_store, texture_blob_key,
+    BlobStore, EvalResult, JobResult, Store, attack_state_key, grad_key, open_store, texture_blob_key,
 )
 from undream.store import blobs as blobs_module
 
@@ -230,6 +230,148 @@ def test_concurrent_job_starts_count_every_attempt(store: Store, run_id: str):
         t.join()
     (job,) = store.jobs(run_id, 0)
     assert (job.status, job.attempts) == ("started", 6)
+
+
+# -- batches of frame jobs ------------------------------------------------------
+
+
+def _results(n: int) -> list[JobResult]:
+    """``n`` attack outcomes: frame 1 not finite, frame 2 without a result."""
+    rng = np.random.default_rng(7)
+    out = []
+    for f in range(n):
+        grad = rng.normal(size=(4, 5, 3)).astype(np.float32)
+        if f == 1:
+            grad[0, 0, 0] = np.nan
+        out.append(JobResult(f, grad, float("inf") if f == 1 else 0.1 * f, f != 1,
+                             {"render_s": 0.5 + f}, None if f == 2 else {"label": f"car{f}"}))
+    return out
+
+
+def _evals(n: int) -> list[EvalResult]:
+    return [EvalResult(f, {"prediction": {"label": "car", "score": 0.1 * f}},
+                       np.full((3, 2, 3), 10 * f, np.uint8), {"render_s": 0.25 * f}) for f in range(n)]
+
+
+def _job_fields(store: Store, run_id: str, phase: str = "attack") -> list[tuple]:
+    """What a reader sees of each job of iteration 0, times and the run's id left out."""
+    return [(j.frame, j.status, j.attempts, j.loss, j.finite, j.timings, j.result, j.error, j.worker,
+             None if j.grad_ref is None else j.grad_ref.replace(run_id, "RUN"),
+             None if j.image_ref is None else j.image_ref.replace(run_id, "RUN"))
+            for j in store.jobs(run_id, 0, phase)]
+
+
+def _batch_run(store: Store, n_frames: int = 8) -> str:
+    return store.create_run("batch", {}, n_frames=n_frames, seed=1, texture0=_texture())
+
+
+def test_a_batch_reads_back_as_the_same_frames_one_by_one(store: Store):
+    single, batch, results = _batch_run(store), _batch_run(store), _results(8)
+    for r in results:
+        store.job_started(single, 0, r.frame, worker="w:1")
+        store.job_succeeded(single, 0, r.frame, r.grad, r.loss, r.finite, r.timings, r.result)
+    store.jobs_started(batch, 0, range(8), worker="w:1")
+    store.jobs_succeeded(batch, 0, results)
+
+    assert _job_fields(store, batch) == _job_fields(store, single)
+    assert [j.status for j in store.jobs(batch, 0)] == ["succeeded"] * 8
+    for one, many in zip(store.frame_grads(single, 0), store.frame_grads(batch, 0)):
+        assert (many.frame, many.loss, many.finite) == (one.frame, one.loss, one.finite)
+        assert many.grad.dtype == np.float32 and np.array_equal(many.grad, one.grad, equal_nan=True)
+    assert np.isnan(store.frame_grads(batch, 0)[1].grad[0, 0, 0])
+
+
+def test_an_evaluation_batch_reads_back_as_the_same_frames_one_by_one(store: Store):
+    single, batch, evals = _batch_run(store), _batch_run(store), _evals(8)
+    for e in evals:
+        store.job_started(single, 2, e.frame, "pre")
+        store.eval_succeeded(single, 2, e.frame, "pre", e.result, e.image, e.timings)
+    store.jobs_started(batch, 2, range(8), "pre")
+    store.evals_succeeded(batch, 2, "pre", evals)
+
+    def fields(run: str) -> list[tuple]:
+        return [(j.frame, j.status, j.attempts, j.result, j.timings) for j in store.jobs(run, 2, "pre")]
+
+    assert fields(batch) == fields(single)
+    for job, e in zip(store.jobs(batch, 2, "pre"), evals):
+        assert np.array_equal(store.blobs.get_array(job.image_ref), e.image)
+
+
+def test_each_batch_start_counts_one_attempt(store: Store):
+    run = _batch_run(store)
+    store.queue_jobs(run, 0, range(8))
+    store.queue_jobs(run, 0, [0, 0, 5])  # queued jobs are left alone, a repeated frame is one job
+    store.jobs_started(run, 0, [0, 1, 2], worker="a:1")
+    store.jobs_started(run, 0, [1, 2, 3], worker="b:2")  # 1 and 2 redelivered
+    store.jobs_succeeded(run, 0, _results(3))
+    jobs = store.jobs(run, 0)
+    assert [(j.status, j.attempts) for j in jobs[:5]] == [
+        ("succeeded", 1), ("succeeded", 2), ("succeeded", 2), ("started", 1), ("queued", 0)]
+    assert [j.worker for j in jobs[:4]] == ["a:1", "b:2", "b:2", "b:2"]
+    store.jobs_started(run, 0, [2])
+    assert store.jobs(run, 0)[2].attempts == 3 and store.jobs(run, 0)[2].finished is None
+
+
+def _bad(results: list, i: int, **change) -> list:
+    return [dataclasses.replace(r, **change) if j == i else r for j, r in enumerate(results)]
+
+
+@pytest.mark.parametrize("record, field", [
+    (lambda s, run: s.jobs_started(run, 0, [0, 1, 8]), r"frame: must be an integer in \[0, 7\], got 8"),
+    (lambda s, run: s.jobs_started(run, 0, [0, 1, 1]), "frames: frame 1 is given more than once"),
+    (lambda s, run: s.jobs_started(run, 0, [0], phase="train"), "phase: 'train' is not a job phase"),
+    (lambda s, run: s.queue_jobs(run, 0, [3, -1]), r"frame: must be an integer in \[0, 7\], got -1"),
+    (lambda s, run: s.jobs_succeeded(run, 0, _bad(_results(8), 7, frame=8)),
+     r"frame: must be an integer in \[0, 7\], got 8"),
+    (lambda s, run: s.jobs_succeeded(run, 0, _bad(_results(8), 6, frame=3)), "frames: frame 3 is given"),
+    (lambda s, run: s.jobs_succeeded(run, 0, _bad(_results(8), 5, grad=np.zeros((4, 5, 3), np.int32))),
+     "grad: must be a float array, got dtype int32 .frame 5."),
+    (lambda s, run: s.jobs_succeeded(run, 0, _bad(_results(8), 4, finite=1)),
+     "finite: must be true or false"),
+    (lambda s, run: s.jobs_succeeded(run, 0, _bad(_results(8), 3, timings={"t": object()})),
+     "timings: not JSON"),
+    (lambda s, run: s.jobs_succeeded(run, 0, [*_results(2), {"frame": 2}]),
+     "results: each item must be a JobResult"),
+    (lambda s, run: s.evals_succeeded(run, 0, "attack", _evals(8)), "phase: evaluation results belong"),
+    (lambda s, run: s.evals_succeeded(run, 0, "pre", _bad(_evals(8), 7, frame=9)),
+     r"frame: must be an integer in \[0, 7\], got 9"),
+    (lambda s, run: s.evals_succeeded(run, 0, "pre", _bad(_evals(8), 2, image=np.zeros((3, 2, 3)))),
+     "image: must be an H×W×3 uint8 sRGB frame, got float64"),
+])
+def test_a_bad_item_writes_nothing(store: Store, record, field: str):
+    run = _batch_run(store)
+    with pytest.raises(StoreError, match=field):
+        record(store, run)
+    assert store.jobs(run, 0) == [] and store.jobs(run, 0, "pre") == []
+    assert not (store.blobs.root / "runs" / run / "grad").exists()
+    assert not (store.blobs.root / "runs" / run / "eval").exists()
+
+
+def test_a_batch_takes_the_same_number_of_statements_as_one_frame(store: Store):
+    """Recording a batch is a constant number of SQL statements, whatever its size."""
+    seen: list[str] = []
+
+    def count(conn, cursor, statement, parameters, context, executemany):  # noqa: ANN001
+        seen.append(statement)
+
+    def statements(n: int) -> list[int]:
+        run, counts = _batch_run(store, n_frames=8), []
+        for record in (lambda: store.queue_jobs(run, 0, range(n)),
+                       lambda: store.jobs_started(run, 0, range(n)),
+                       lambda: store.jobs_succeeded(run, 0, _results(n)),
+                       lambda: store.jobs_started(run, 3, range(n), "adversarial"),
+                       lambda: store.evals_succeeded(run, 3, "adversarial", _evals(n))):
+            seen.clear()
+            record()
+            counts.append(len(seen))
+        return counts
+
+    event.listen(store.engine, "before_cursor_execute", count)
+    try:
+        one, eight = statements(1), statements(8)
+    finally:
+        event.remove(store.engine, "before_cursor_execute", count)
+    assert eight == one and max(eight) <= 4, (one, eight)  # BEGIN, SELECT n_frames; BEGIN, INSERT
 
 
 # -- compare-and-set --------------------------------------------------------------

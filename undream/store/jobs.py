@@ -5,10 +5,18 @@ A job is keyed by (run, phase, k, frame): ``phase`` ``attack`` for iteration
 sequence), ``pre`` / ``adversarial`` for the evaluation's render-and-predict
 jobs. Writes are upserts, so a redelivered job is recorded, not duplicated;
 ``attempts`` counts every start.
+
+A batch of frames (``queue_jobs``, ``jobs_started``, ``jobs_succeeded``,
+``evals_succeeded``) is written in one transaction by one executemany
+``INSERT … ON CONFLICT``, after every item is checked; the one-frame methods are
+batches of one.
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Iterator, Mapping, Sequence
+import datetime as dt
+from collections import Counter
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Iterable, Iterator, Mapping, Sequence
 
 import numpy as np
 from sqlalchemy import func, select, update
@@ -35,6 +43,70 @@ def _phase(phase: Any) -> str:
     return phase
 
 
+@dataclass(frozen=True)
+class JobResult:
+    """An attack job's outcome, one item of :meth:`JobTables.jobs_succeeded`.
+
+    ``frame``: the frame's position in the sequence; ``grad``: dL/dT, a float
+    array with the texture's shape (H×W×3 for an sRGB 0–1 texture; non-finite
+    values are kept); ``loss``: the frame's loss (None or non-finite: unknown);
+    ``finite``: whether loss and gradient are finite; ``timings``: seconds per
+    stage (plain JSON); ``result``: small plain JSON kept with the job (the
+    victim's prediction on the frame), or None.
+    """
+
+    frame: int
+    grad: np.ndarray
+    loss: float | None
+    finite: bool
+    timings: Mapping[str, Any]
+    result: Mapping[str, Any] | None = None
+
+
+@dataclass(frozen=True)
+class EvalResult:
+    """An evaluation job's outcome, one item of :meth:`JobTables.evals_succeeded`: frame
+    ``frame``'s ``result`` (plain JSON: prediction, loss), its rendered ``image`` (H×W×3 uint8
+    sRGB, 0–255) and ``timings`` (seconds per stage)."""
+
+    frame: int
+    result: Mapping[str, Any]
+    image: np.ndarray
+    timings: Mapping[str, Any]
+
+
+def _row(run_id: str, phase: str, k: int, frame: int, values: Mapping[str, Any]) -> dict[str, Any]:
+    return {"run_id": run_id, "phase": phase, "k": k, "frame": frame, **values}
+
+
+def _attack_values(item: Any, now: dt.datetime) -> dict[str, Any]:
+    """The columns of a succeeded attack job but its gradient key (known once the blob is written)."""
+    if not isinstance(item, JobResult):
+        raise StoreError(f"results: each item must be a JobResult, got {type(item).__name__}")
+    dtype = np.asarray(item.grad).dtype
+    if not np.issubdtype(dtype, np.floating):
+        raise StoreError(f"grad: must be a float array, got dtype {dtype} (frame {item.frame!r})")
+    if not isinstance(item.finite, (bool, np.bool_)):
+        raise StoreError(f"finite: must be true or false, got {item.finite!r} (frame {item.frame!r})")
+    return {"status": "succeeded", "loss": number("loss", item.loss), "finite": bool(item.finite),
+            "timings_json": dumps("timings", dict(item.timings)), "error": None,
+            "result_json": None if item.result is None else dumps("result", dict(item.result)),
+            "finished": now}
+
+
+def _eval_values(item: Any, now: dt.datetime) -> dict[str, Any]:
+    """The columns of a succeeded evaluation job but its image key (known once the blob is written)."""
+    if not isinstance(item, EvalResult):
+        raise StoreError(f"results: each item must be an EvalResult, got {type(item).__name__}")
+    img = np.asarray(item.image)
+    if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
+        raise StoreError(f"image: must be an H×W×3 uint8 sRGB frame, got {img.dtype} {img.shape} "
+                         f"(frame {item.frame!r})")
+    return {"status": "succeeded", "result_json": dumps("result", dict(item.result)),
+            "timings_json": dumps("timings", dict(item.timings)), "error": None, "finished": now,
+            "finite": True}
+
+
 class JobTables:
     """The frame-job methods of :class:`undream.store.Store` (a mixin: needs ``_tx``, ``_run``, ``blobs``)."""
 
@@ -47,81 +119,130 @@ class JobTables:
     def _run(session: Session, run_id: str) -> Run:  # pragma: no cover
         raise NotImplementedError
 
-    def get_run(self, run_id: str) -> Any:  # pragma: no cover
-        raise NotImplementedError
+    @staticmethod
+    def _n_frames(s: Session, run_id: str) -> int:
+        """The run's number of frames, the one column a job write needs; StoreError if no such run."""
+        n = s.scalar(select(Run.n_frames).where(Run.id == run_id)) if isinstance(run_id, str) else None
+        if n is None:
+            raise StoreError(f"run {run_id!r}: not found")
+        return n
 
-    def _upsert_job(self, op: str, run_id: str, k: int, frame: int, phase: str,
-                    insert: dict[str, Any], conflict: dict[str, Any] | None) -> None:
-        """Insert the job row with ``insert`` or, if it exists, update it with ``conflict``."""
-        k = integer("k", k, 0)
-        phase = _phase(phase)
-        with self._tx(op, write=True) as s:
-            n_frames = self._run(s, run_id).n_frames
-            integer("frame", frame, 0, n_frames - 1)
-            dialect = postgresql if s.get_bind().dialect.name == "postgresql" else sqlite
-            stmt = dialect.insert(FrameJob.__table__).values(
-                run_id=run_id, phase=phase, k=k, frame=int(frame), **insert)
-            if conflict is None:
-                stmt = stmt.on_conflict_do_nothing(index_elements=list(_JOB_KEY))
-            else:
-                stmt = stmt.on_conflict_do_update(index_elements=list(_JOB_KEY), set_=conflict)
-            s.execute(stmt)
+    def _frames(self, s: Session, run_id: str, frames: Iterable[Any], unique: bool = True) -> list[int]:
+        """``frames`` checked against the run: each an integer in [0, n_frames - 1] and, if
+        ``unique``, given once (a batch records each job once)."""
+        n_frames = self._n_frames(s, run_id)
+        checked = [integer("frame", f, 0, n_frames - 1) for f in frames]
+        twice = [f for f, n in Counter(checked).items() if n > 1] if unique else []
+        if twice:
+            raise StoreError(f"frames: frame {twice[0]} is given more than once; a batch records "
+                             "each frame once")
+        return checked
 
-    def queue_jobs(self, run_id: str, k: int, frames: Sequence[int], phase: str = "attack") -> None:
-        """Record frames ``frames`` of iteration ``k`` as queued (existing jobs are left alone)."""
-        for frame in frames:
-            self._upsert_job("queue_jobs", run_id, k, frame, phase, {"status": "queued"}, None)
+    def _batch_frames(self, op: str, run_id: str, frames: Iterable[Any]) -> list[int]:
+        """:meth:`_frames` in a read transaction of its own (before any blob is written)."""
+        with self._tx(op, write=False) as s:
+            return self._frames(s, run_id, frames)
+
+    @staticmethod
+    def _upsert_jobs(s: Session, rows: list[dict[str, Any]], update: Sequence[str] | None,
+                     attempt: bool = False) -> None:
+        """Insert the job rows ``rows`` (the same columns each) in one executemany
+        ``INSERT … ON CONFLICT``: an existing job is left alone (``update`` None), or takes the
+        new row's columns ``update`` and, if ``attempt``, counts one more attempt."""
+        if not rows:
+            return
+        dialect = postgresql if s.get_bind().dialect.name == "postgresql" else sqlite
+        stmt = dialect.insert(FrameJob.__table__)
+        if update is None:
+            stmt = stmt.on_conflict_do_nothing(index_elements=list(_JOB_KEY))
+        else:
+            set_: dict[str, Any] = {c: stmt.excluded[c] for c in update}
+            if attempt:
+                set_["attempts"] = FrameJob.__table__.c.attempts + 1
+            stmt = stmt.on_conflict_do_update(index_elements=list(_JOB_KEY), set_=set_)
+        s.execute(stmt, rows)
+
+    def queue_jobs(self, run_id: str, k: int, frames: Iterable[int], phase: str = "attack") -> None:
+        """Record frames ``frames`` of iteration ``k`` as queued (existing jobs are left alone),
+        in one transaction and one statement."""
+        k, phase = integer("k", k, 0), _phase(phase)
+        with self._tx("queue_jobs", write=True) as s:
+            checked = dict.fromkeys(self._frames(s, run_id, frames, unique=False))
+            self._upsert_jobs(s, [_row(run_id, phase, k, f, {"status": "queued"}) for f in checked], None)
+
+    def jobs_started(self, run_id: str, k: int, frames: Iterable[int], phase: str = "attack",
+                     worker: str | None = None) -> None:
+        """A worker (``host:pid``) starts the jobs ``frames`` of iteration ``k``: each gets status
+        started and one more attempt, in one transaction; a bad frame writes nothing."""
+        k, phase = integer("k", k, 0), _phase(phase)
+        values = {"status": "started", "attempts": 1, "started": utcnow(), "finished": None,
+                  "worker": worker}
+        with self._tx("jobs_started", write=True) as s:
+            rows = [_row(run_id, phase, k, f, values) for f in self._frames(s, run_id, frames)]
+            self._upsert_jobs(s, rows, ("status", "started", "finished", "worker"), attempt=True)
 
     def job_started(self, run_id: str, k: int, frame: int, phase: str = "attack",
                     worker: str | None = None) -> None:
         """A worker (``host:pid``) starts the job: status started, one more attempt."""
-        now = utcnow()
-        self._upsert_job("job_started", run_id, k, frame, phase,
-                         {"status": "started", "attempts": 1, "started": now, "worker": worker},
-                         {"status": "started", "attempts": FrameJob.__table__.c.attempts + 1,
-                          "started": now, "finished": None, "worker": worker})
+        self.jobs_started(run_id, k, [frame], phase, worker)
+
+    def jobs_succeeded(self, run_id: str, k: int, results: Iterable[JobResult]) -> None:
+        """Store attack jobs' outcomes (:class:`JobResult`): each gradient dL/dT as a blob, then
+        every job's row (status succeeded, loss, finiteness, timings, result) in one transaction.
+
+        Every item is checked first: a bad frame, dtype or value is a StoreError naming the
+        field, and nothing (blob or row) is written.
+        """
+        k, items, now = integer("k", k, 0), list(results), utcnow()
+        rows = [_attack_values(item, now) for item in items]
+        frames = self._batch_frames("jobs_succeeded", run_id, [item.frame for item in items])
+        for row, frame, item in zip(rows, frames, items):
+            row["grad_ref"] = self.blobs.put_array(grad_key(run_id, k, frame), np.asarray(item.grad))
+        self._write_results("jobs_succeeded", run_id, k, "attack", frames, rows)
 
     def job_succeeded(self, run_id: str, k: int, frame: int, grad: np.ndarray, loss: float,
                       finite: bool, timings: Mapping[str, Any],
                       result: Mapping[str, Any] | None = None) -> None:
         """Store an attack job's gradient dL/dT (a blob) and its loss, finiteness and timings (s);
         ``result``: small plain JSON kept with the job (the victim's prediction on the frame)."""
-        arr = np.asarray(grad)
-        if not np.issubdtype(arr.dtype, np.floating):
-            raise StoreError(f"grad: must be a float array, got dtype {arr.dtype}")
-        if not isinstance(finite, (bool, np.bool_)):
-            raise StoreError(f"finite: must be true or false, got {finite!r}")
-        values = {"status": "succeeded", "loss": number("loss", loss), "finite": bool(finite),
-                  "timings_json": dumps("timings", dict(timings)), "error": None,
-                  "result_json": None if result is None else dumps("result", dict(result)),
-                  "finished": utcnow()}
-        key = grad_key(run_id, integer("k", k, 0), integer("frame", frame, 0))
-        self.get_run(run_id)
-        values["grad_ref"] = self.blobs.put_array(key, arr)
-        self._upsert_job("job_succeeded", run_id, k, frame, "attack", {**values, "attempts": 1}, values)
+        self.jobs_succeeded(run_id, k, [JobResult(frame, grad, loss, finite, timings, result)])
+
+    def evals_succeeded(self, run_id: str, k: int, phase: str, results: Iterable[EvalResult]) -> None:
+        """Store evaluation jobs' outcomes (:class:`EvalResult`): each frame as a blob, then every
+        job's row (result JSON, timings) in one transaction; checked first like :meth:`jobs_succeeded`."""
+        k = integer("k", k, 0)
+        if _phase(phase) == "attack":
+            raise StoreError("phase: evaluation results belong to phase 'pre' or 'adversarial'")
+        items, now = list(results), utcnow()
+        rows = [_eval_values(item, now) for item in items]
+        frames = self._batch_frames("evals_succeeded", run_id, [item.frame for item in items])
+        for row, frame, item in zip(rows, frames, items):
+            row["image_ref"] = self.blobs.put_array(eval_image_key(run_id, phase, frame), item.image)
+        self._write_results("evals_succeeded", run_id, k, phase, frames, rows)
 
     def eval_succeeded(self, run_id: str, k: int, frame: int, phase: str, result: Mapping[str, Any],
                        image: np.ndarray, timings: Mapping[str, Any]) -> None:
         """Store an evaluation job's result (plain JSON: prediction, loss), its frame and timings."""
-        if _phase(phase) == "attack":
-            raise StoreError("phase: evaluation results belong to phase 'pre' or 'adversarial'")
-        img = np.asarray(image)
-        if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
-            raise StoreError(f"image: must be an H×W×3 uint8 sRGB frame, got {img.dtype} {img.shape}")
-        values = {"status": "succeeded", "result_json": dumps("result", dict(result)),
-                  "timings_json": dumps("timings", dict(timings)), "error": None, "finished": utcnow(),
-                  "finite": True}
-        self.get_run(run_id)
-        values["image_ref"] = self.blobs.put_array(
-            eval_image_key(run_id, phase, integer("frame", frame, 0)), img)
-        self._upsert_job("eval_succeeded", run_id, k, frame, phase, {**values, "attempts": 1}, values)
+        self.evals_succeeded(run_id, k, phase, [EvalResult(frame, result, image, timings)])
+
+    def _write_results(self, op: str, run_id: str, k: int, phase: str, frames: list[int],
+                       rows: list[dict[str, Any]]) -> None:
+        """Upsert finished jobs' rows (a new job counts one attempt) in one transaction."""
+        if not rows:
+            return
+        with self._tx(op, write=True) as s:
+            new = [_row(run_id, phase, k, f, {**r, "attempts": 1}) for f, r in zip(frames, rows)]
+            self._upsert_jobs(s, new, tuple(rows[0]))
 
     def job_failed(self, run_id: str, k: int, frame: int, error: str, will_retry: bool = False,
                    phase: str = "attack") -> None:
         """The job's attempt failed with ``error``; status retried if ``will_retry``, else failed."""
+        k, phase = integer("k", k, 0), _phase(phase)
         values = {"status": "retried" if will_retry else "failed", "error": str(error),
                   "finished": utcnow()}
-        self._upsert_job("job_failed", run_id, k, frame, phase, {**values, "attempts": 1}, values)
+        with self._tx("job_failed", write=True) as s:
+            (frame,) = self._frames(s, run_id, [frame])
+            self._upsert_jobs(s, [_row(run_id, phase, k, frame, {**values, "attempts": 1})], tuple(values))
 
     def jobs(self, run_id: str, k: int | None = None, phase: str = "attack") -> list[JobSnapshot]:
         """The recorded jobs of ``phase`` (of iteration ``k``, or all), by k and frame.
