@@ -5,12 +5,14 @@ evaluation seed (:func:`undream.engine.algorithm.eval_render`, the one evaluatio
 `undream run`, the farm, the baseline and the scripts share):
 
 - ``pre``: the benign frame (the scene's texture, 8-bit) and its prediction,
-  and the attack loss of the last iteration's texture (APGD's final pick
-  needs it);
+  and, when the attack's final pick needs it (APGD), the attack loss of the
+  last iteration's texture;
 - ``adversarial``: the frame with the final 8-bit texture and its prediction.
 
-Predictions are stored as JSON in the job rows and frames as uint8 blobs;
-nothing is held in memory between jobs.
+A batch of jobs renders its frames, runs the victim once per batch of
+frames and records the results in one transaction. Predictions are stored
+as JSON in the job rows and frames as uint8 blobs; nothing is held in memory
+between batches.
 """
 from __future__ import annotations
 
@@ -30,13 +32,6 @@ if TYPE_CHECKING:
     from undream.store import Store
 
 
-def prediction_json(ctx: "RunContext", image: np.ndarray) -> dict[str, Any]:
-    """The victim's prediction on one sRGB frame as plain JSON (class id and score, or boxes)."""
-    from undream.engine.algorithm import eval_predict
-
-    return eval_predict(ctx, image).to_dict()
-
-
 def prediction_from_json(task: str, data: dict[str, Any]) -> Any:
     """A stored prediction in the shape the metrics read (``.label`` and its ``.score``, or
     ``.boxes/.scores/.labels``)."""
@@ -48,37 +43,51 @@ def prediction_from_json(task: str, data: dict[str, Any]) -> Any:
                            labels=np.asarray(data["labels"], np.int64))
 
 
+def eval_jobs(store: "Store", ctx: "RunContext", run_id: str, phase: str, k: int, positions: list[int],
+              textures: dict[str, np.ndarray]) -> None:
+    """Evaluation jobs of frames ``positions`` in ``phase`` (see the module docstring); k = the steps.
+
+    Each frame is rendered, the victim judges them once per batch of frames, and the results
+    are recorded in one transaction. ``textures``: ``benign`` (and ``last`` when the attack's final
+    pick reads the last texture's loss, :attr:`undream.attacks.base.Attack.needs_final_loss`) for
+    ``pre``, ``final`` for ``adversarial`` (sRGB H×W×3; the caller reads them once per batch).
+    """
+    from undream.engine.algorithm import eval_losses, eval_predictions, eval_render
+    from undream.store import EvalResult
+
+    store.jobs_started(run_id, k, positions, phase, worker=worker_name())
+    t0 = time.perf_counter()
+    texture = textures["benign" if phase == "pre" else "final"]
+    images = [eval_render(ctx, p, texture) for p in positions]
+    results: list[dict[str, Any]] = [{"prediction": pred.to_dict()} for pred in eval_predictions(ctx, images)]
+    if phase == "pre" and "last" in textures:
+        losses = eval_losses(ctx, positions, [eval_render(ctx, p, textures["last"]) for p in positions])
+        for result, loss in zip(results, losses):
+            result["loss"] = loss
+    share = (time.perf_counter() - t0) / len(positions)
+    store.evals_succeeded(run_id, k, phase, [EvalResult(frame=p, result=r, image=to_uint8(im),
+                                                        timings={"total": share})
+                                             for p, r, im in zip(positions, results, images)])
+
+
 def eval_job(store: "Store", ctx: "RunContext", run_id: str, phase: str, k: int, position: int,
              textures: dict[str, np.ndarray]) -> None:
-    """Evaluation job of frame ``position`` in ``phase`` (see the module docstring); k = the steps.
-
-    ``textures``: ``benign`` and ``last`` for ``pre``, ``final`` for
-    ``adversarial`` (sRGB H×W×3; the caller reads them once per batch).
-    """
-    from undream.engine.algorithm import eval_loss, eval_render
-
-    store.job_started(run_id, k, position, phase, worker=worker_name())
-    t0 = time.perf_counter()
-    if phase == "pre":
-        image = eval_render(ctx, position, textures["benign"])
-        result = {"prediction": prediction_json(ctx, image),
-                  "loss": eval_loss(ctx, position, eval_render(ctx, position, textures["last"]))}
-    else:
-        image = eval_render(ctx, position, textures["final"])
-        result = {"prediction": prediction_json(ctx, image)}
-    store.eval_succeeded(run_id, k, position, phase, result, to_uint8(image),
-                         {"total": time.perf_counter() - t0})
+    """:func:`eval_jobs` of the one frame ``position``."""
+    eval_jobs(store, ctx, run_id, phase, k, [position], textures)
 
 
-def eval_textures(store: "Store", run_id: str, phase: str, k: int) -> dict[str, np.ndarray]:
-    """The textures the evaluation jobs of ``phase`` render (see :func:`eval_job`)."""
+def eval_textures(store: "Store", run_id: str, phase: str, k: int,
+                  needs_final_loss: bool = True) -> dict[str, np.ndarray]:
+    """The textures the evaluation jobs of ``phase`` render (see :func:`eval_jobs`); ``last`` only
+    when ``needs_final_loss`` (the attack's final pick reads the last texture's loss)."""
     from undream.engine.algorithm import quantise
 
     if phase == "pre":
         state0 = store.attack_state(run_id, 0) or {}
         if not isinstance(state0.get("T0"), np.ndarray):
             raise StoreError(f"run {run_id!r}: its starting attack state has no T0 array")
-        return {"benign": quantise(state0["T0"]), "last": store.texture(run_id, k)}
+        benign = {"benign": quantise(state0["T0"])}
+        return {**benign, "last": store.texture(run_id, k)} if needs_final_loss else benign
     final = store.final_texture(run_id)
     if final is None:
         raise StoreError(f"run {run_id!r}: no final texture yet (the 'pre' evaluation has not finished)")
@@ -93,7 +102,7 @@ def select_final(store: "Store", attack: Any, run_id: str, k: int) -> np.ndarray
 
     losses = [float("nan") if (j.result or {}).get("loss") is None else j.result["loss"]  # type: ignore[index]
               for j in store.jobs(run_id, k, "pre")]
-    final_loss = float(np.mean(losses))
+    final_loss = float(np.mean(losses)) if losses else float("nan")  # NaN: not measured (not needed)
     T_last = store.texture(run_id, k)
     T_final = attack.final(torch.from_numpy(T_last), final_loss,
                            decode_state(store.attack_state(run_id, k) or {})).numpy()

@@ -59,24 +59,33 @@ def worker_name() -> str:
     return f"{socket.gethostname()}:{os.getpid()}"
 
 
+def frame_jobs(store: "Store", ctx: "RunContext", run_id: str, k: int, positions: list[int],
+               texture: np.ndarray | None = None) -> list[dict[str, Any]]:
+    """Render-and-grad frames ``positions`` of iteration ``k`` with texture ``k``; store the results.
+
+    The frames are computed together (:func:`undream.engine.algorithm.frame_jobs`: the victim once
+    per batch) and recorded in one transaction each for their start and their results.
+    ``texture``: texture ``k`` when the caller already holds it. Returns each job's small JSON
+    summary (the gradients go to the blob store); a job's row keeps the victim's prediction on the
+    frame it rendered at ``sim_spp`` (``{"prediction": ...}``, see
+    :func:`undream.engine.job.prediction_record`), from which the dashboard charts accuracy per
+    iteration. Errors propagate: the caller records the failed attempt of every frame.
+    """
+    from undream.engine.algorithm import frame_jobs as render_and_grad
+    from undream.store import JobResult
+
+    store.jobs_started(run_id, k, positions, worker=worker_name())
+    res = render_and_grad(ctx, positions, store.texture(run_id, k) if texture is None else texture, k)
+    store.jobs_succeeded(run_id, k, [JobResult(frame=f, grad=r.grad, loss=r.loss, finite=r.finite,
+                                               timings=r.timings, result={"prediction": r.prediction})
+                                     for f, r in zip(positions, res)])
+    return [r.summary() for r in res]
+
+
 def frame_job(store: "Store", ctx: "RunContext", run_id: str, k: int, position: int,
               texture: np.ndarray | None = None) -> dict[str, Any]:
-    """Render-and-grad frame ``position`` of iteration ``k`` with texture ``k``; store the result.
-
-    ``texture``: texture ``k`` when the caller already holds it. Returns the
-    job's small JSON summary (the gradient goes to the blob store); the job's
-    row keeps the victim's prediction on the frame it rendered at ``sim_spp``
-    (``{"prediction": ...}``, see :func:`undream.engine.job.prediction_record`),
-    from which the dashboard charts accuracy per iteration. Errors propagate:
-    the caller records the failed attempt.
-    """
-    from undream.engine.algorithm import frame_job as render_and_grad
-
-    store.job_started(run_id, k, position, worker=worker_name())
-    res = render_and_grad(ctx, position, store.texture(run_id, k) if texture is None else texture, k)
-    store.job_succeeded(run_id, k, position, res.grad, res.loss, res.finite, res.timings,
-                        result={"prediction": res.prediction})
-    return res.summary()
+    """:func:`frame_jobs` of the one frame ``position``."""
+    return frame_jobs(store, ctx, run_id, k, [position], texture)[0]
 
 
 def reduce_and_step(store: "Store", attack: "Attack", run_id: str, k: int) -> bool:

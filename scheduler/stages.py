@@ -34,8 +34,8 @@ from typing import TYPE_CHECKING, Any, Callable, Protocol, Sequence
 
 import numpy as np
 
-from scheduler.evaluation import eval_job, eval_textures, select_final
-from scheduler.iteration import MissingResults, expected_frames, frame_job, reduce_and_step
+from scheduler.evaluation import eval_jobs, eval_textures, select_final
+from scheduler.iteration import MissingResults, expected_frames, frame_jobs, reduce_and_step
 from scheduler.outputs import default_out_dir, results, write_outputs
 from scheduler.state import encode_state
 from undream import attacks  # lazy: make_attack loads torch when first called
@@ -153,7 +153,8 @@ def plan(store: "Store", run: "RunSnapshot", phase: str, k: int, dispatch: Dispa
 
 def run_batch(store: "Store", contexts: Contexts, run_id: str, phase: str, k: int,
               frames: Sequence[int], textures: "LRU[tuple, dict] | None" = None) -> dict[str, Any]:
-    """The header task's body: the jobs of ``frames`` that have no result yet, failures recorded.
+    """The header task's body: the jobs of ``frames`` that have no result yet, computed together
+    (the victim once per batch of them), failures recorded.
 
     ``textures``: the process's cache of the textures each (run, phase, k)
     renders, so a process reads a texture version once however many of its
@@ -173,35 +174,39 @@ def run_batch(store: "Store", contexts: Contexts, run_id: str, phase: str, k: in
     read0, written0 = store.blobs.bytes_read, store.blobs.bytes_written
     cache: LRU[tuple, dict] = textures if textures is not None else LRU(TEXTURE_VERSIONS)
     key = (run_id, phase, k)
+    todo = []
     for f in frames:
         job = jobs.get(f)
         if job is not None and job.status == "succeeded":
             summary["done"].append(f)
-            continue
-        if job is not None and job.attempts >= max_attempts:  # e.g. it killed its worker each time
+        elif job is not None and job.attempts >= max_attempts:  # e.g. it killed its worker each time
             why = job.error or "its worker was lost"
             store.job_failed(run_id, k, f, f"gave up after {job.attempts} attempts: {why}", phase=phase)
             summary["failed"].append(f)
-            continue
-        try:
+        else:
+            todo.append(f)
+    if todo:
+        try:  # the frames are computed together: a failure is every frame's failed attempt
             ctx = contexts(run_id)
             if key in cache:
                 read = cache.touch(key)
             else:
                 read = cache.put(key, {"k": store.texture(run_id, k)} if phase == "attack"
-                                 else eval_textures(store, run_id, phase, k))
+                                 else eval_textures(store, run_id, phase, k, ctx.attack.needs_final_loss))
             if phase == "attack":
-                frame_job(store, ctx, run_id, k, f, read["k"])
+                frame_jobs(store, ctx, run_id, k, todo, read["k"])
             else:
-                eval_job(store, ctx, run_id, phase, k, f, read)
-            summary["done"].append(f)
+                eval_jobs(store, ctx, run_id, phase, k, todo, read)
+            summary["done"].extend(todo)
         except Exception as exc:  # any failure of a job is recorded with it, then retried or counted
-            again = (job.attempts if job is not None else 0) + 1 < max_attempts
             error = f"{type(exc).__name__}: {' '.join(str(exc).split())}"
-            log.warning("run %s %s k=%d frame %d failed (%s): %s", run_id, phase, k, f,
-                        "will retry" if again else "giving up", error)
-            store.job_failed(run_id, k, f, error, will_retry=again, phase=phase)
-            summary["retry" if again else "failed"].append(f)
+            for f in todo:
+                job = jobs.get(f)
+                again = (job.attempts if job is not None else 0) + 1 < max_attempts
+                log.warning("run %s %s k=%d frame %d failed (%s): %s", run_id, phase, k, f,
+                            "will retry" if again else "giving up", error)
+                store.job_failed(run_id, k, f, error, will_retry=again, phase=phase)
+                summary["retry" if again else "failed"].append(f)
     summary["bytes_read"] = store.blobs.bytes_read - read0
     summary["bytes_written"] = store.blobs.bytes_written - written0
     return summary

@@ -105,7 +105,7 @@ def _file_exists(name: str) -> bool:
 
 def test_the_page_cites_the_stages_of_algorithm_1():
     cited = _cited()
-    for stage in ("scheduler.iteration.frame_job", "undream.engine.job.render_and_grad",
+    for stage in ("scheduler.iteration.frame_jobs", "undream.engine.job.render_and_grad_many",
                   "scheduler.iteration.reduce_and_step", "Store.advance"):
         assert stage in cited, stage
 

@@ -82,22 +82,24 @@ def test_unseen_texels_keep_their_value(scene_dir, victim_dir, tmp_path):
 def _fake_job(bad_positions):
     from undream.engine import job
 
-    real = job.render_and_grad
+    real = job.render_and_grad_many
 
-    def fake(ctx, position, texture, iteration):
-        res = real(ctx, position, texture, iteration)
-        if position in bad_positions:
-            grad = res.grad.copy()
-            grad[0, 0, 0] = np.nan
-            return FrameResult(grad, res.loss, False, res.prediction, res.timings)
-        return res
+    def fake(ctx, positions, texture, iteration):
+        out = []
+        for position, res in zip(positions, real(ctx, positions, texture, iteration)):
+            if position in bad_positions:
+                grad = res.grad.copy()
+                grad[0, 0, 0] = np.nan
+                res = FrameResult(grad, res.loss, False, res.prediction, res.timings)
+            out.append(res)
+        return out
     return fake
 
 
 def test_a_nan_frame_is_dropped_with_a_warning(scene_dir, victim_dir, tmp_path, monkeypatch, caplog):
     from undream.engine import job
 
-    monkeypatch.setattr(job, "render_and_grad", _fake_job({1}))
+    monkeypatch.setattr(job, "render_and_grad_many", _fake_job({1}))
     with caplog.at_level(logging.WARNING):
         res = _run(_config(scene_dir, victim_dir), tmp_path / "n")
     assert res["frames_dropped_per_iteration"] == [1, 1, 1]
@@ -109,7 +111,7 @@ def test_all_frames_bad_fails_the_run_clearly(scene_dir, victim_dir, tmp_path, m
     from undream.engine import job
     from undream.store import open_store
 
-    monkeypatch.setattr(job, "render_and_grad", _fake_job({0, 1, 2}))
+    monkeypatch.setattr(job, "render_and_grad_many", _fake_job({0, 1, 2}))
     with pytest.raises(AllFramesFailed, match="all 3 frames gave a non-finite gradient"):
         _run(_config(scene_dir, victim_dir), tmp_path / "f")
     store = open_store(None, tmp_path / "f" / "store")

@@ -129,26 +129,27 @@ def test_reduce_refuses_to_step_while_a_job_has_no_result(tiny, tmp_path):
 def _failing(frames, exc=RuntimeError("the GPU fell off")):
     from undream.engine import job
 
-    real = job.render_and_grad
+    real = job.render_and_grad_many
 
-    def fake(ctx, position, texture, iteration):
-        if position in frames:
+    def fake(ctx, positions, texture, iteration):
+        if set(positions) & set(frames):
             raise exc
-        return real(ctx, position, texture, iteration)
+        return real(ctx, positions, texture, iteration)
     return fake
 
 
 def test_a_failing_job_is_retried_then_counted_against_the_budget(tiny, tmp_path, monkeypatch):
     from undream.engine import job
 
-    monkeypatch.setattr(job, "render_and_grad", _failing({1}))
+    monkeypatch.setattr(job, "render_and_grad_many", _failing({1}))
     store, run_id, ctx = _local_run(tiny, tmp_path, _config(tiny))
     dispatch = LocalDispatch()
     dispatch.start(run_id)
     drain(store, lambda _: ctx, dispatch)
     run = store.get_run(run_id)
     assert run.status == "failed" and run.iteration == 0 and run.failures == 2
-    assert "frame(s) 1 failed" in run.error and "the GPU fell off" in run.error
+    # frames 0 and 1 are one task (frames_per_task 2), computed together: frame 1's error is both's
+    assert "frame(s) 0, 1 failed" in run.error and "the GPU fell off" in run.error
     assert "failure budget of 1 used up" in run.error
     jobs = {j.frame: j for j in store.jobs(run_id, 0)}
     assert jobs[1].status == "queued" and "RuntimeError: the GPU fell off" in jobs[1].error
@@ -220,7 +221,7 @@ def test_attack_state_keeps_scalars_in_json_and_arrays_once(tiny, tmp_path):
 def test_a_crashed_job_fails_the_local_run_with_its_error(tiny, tmp_path, monkeypatch):
     from undream.engine import job
 
-    monkeypatch.setattr(job, "render_and_grad", _failing({0}, ValueError("bad frame")))
+    monkeypatch.setattr(job, "render_and_grad_many", _failing({0}, ValueError("bad frame")))
     with pytest.raises(RunFailed, match="ValueError: bad frame"):
         run_local(_config(tiny), tmp_path / "out", progress=False)
     (run,) = open_store(None, tmp_path / "out" / "store").runs()

@@ -36,15 +36,16 @@ def _nan_victim_gradient(monkeypatch, positions: set[int]) -> None:
     from the right half, which must not be averaged in."""
     from undream.engine import job
 
-    real = job.victim_loss_and_grad
+    real = job.victim_pass
 
-    def nan_half(ctx, position, image_srgb):
-        loss, g, record = real(ctx, position, image_srgb)
-        if position in positions:
-            g = g.copy()
-            g[:, : g.shape[1] // 2] = np.nan
-        return loss, g, record
-    monkeypatch.setattr(job, "victim_loss_and_grad", nan_half)
+    def nan_half(ctx, batch, images_srgb):
+        losses, grads, records = real(ctx, batch, images_srgb)
+        for i, position in enumerate(batch):
+            if position in positions:
+                grads[i] = grads[i].copy()
+                grads[i][:, : grads[i].shape[1] // 2] = np.nan
+        return losses, grads, records
+    monkeypatch.setattr(job, "victim_pass", nan_half)
 
 
 def _config(tiny, steps: int = 1) -> RunConfig:

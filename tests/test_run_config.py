@@ -18,6 +18,7 @@ def test_round_trip():
     ("loss", "hinge", "loss: must be one of"),
     ("sim_spp", 0, "sim_spp: 0 is out of range (valid: 1 ≤ sim_spp ≤ 65536)"),
     ("torch_threads", 0, "torch_threads"),
+    ("victim_batch", 0, "victim_batch"),
     ("attack", {"eps": 3}, "attack.name: "),
     ("seed", -1, "seed"),
 ])

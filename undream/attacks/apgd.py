@@ -96,6 +96,7 @@ class APGD(Attack):
     """Auto-PGD (L∞); ``config.steps`` is N, ``config.rho`` is ρ; η starts at 2ε."""
 
     name = "apgd"
+    needs_final_loss = True  # the best point seen counts the last texture's loss
 
     def _random_delta(self, T0: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
         t = 2 * torch.rand(T0.shape, generator=gen, dtype=T0.dtype, device=T0.device) - 1

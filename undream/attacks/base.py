@@ -123,6 +123,7 @@ class Attack:
     """
 
     name: ClassVar[str] = ""
+    needs_final_loss: ClassVar[bool] = False  # does :meth:`final` read the last texture's loss?
 
     def __init__(self, config: AttackConfig) -> None:
         self.config = config

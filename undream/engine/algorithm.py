@@ -9,12 +9,14 @@ only reads and writes run state.
 1. **start**: :func:`start_texture` (T0, the scene's texture) and :func:`visibility` (the texels some
    frame sees, for a random start and the report);
 2. **plan**: :func:`plan` (the frames of iteration k: all attacked ones or a seeded minibatch);
-3. **per-frame job**: :func:`frame_job` (simulator render → victim loss → texture gradient);
+3. **per-frame job**: :func:`frame_jobs` (simulator render → victim loss → texture gradient, the
+   victim once per batch of frames; :func:`frame_job` for one frame);
 4. **reduce**: :func:`reduce` (mean gradient and loss over the finite frames);
 5. **step**: :func:`step` (the attack's projected step);
-6. **evaluate**: :func:`quantise` (the 8-bit texture), :func:`eval_render` and :func:`eval_predict`
-   per frame (:func:`render_frames` and :func:`predict` over a list), :func:`eval_loss`, and
-   :func:`judge` (accuracy or AP@0.5 over attacked and held-out frames).
+6. **evaluate**: :func:`quantise` (the 8-bit texture), :func:`eval_render` per frame,
+   :func:`eval_predictions` and :func:`eval_losses` (the victim once per batch of frames;
+   :func:`render_frames` and :func:`predict` over a whole sequence), and :func:`judge` (accuracy
+   or AP@0.5 over attacked and held-out frames).
 """
 from __future__ import annotations
 
@@ -72,11 +74,17 @@ def plan(attacked: Sequence[int], frames_per_step: int | None, k: int, seed: int
 
 # --------------------------------------------------------------------------- 3. per-frame job
 
+def frame_jobs(ctx: RunContext, positions: Sequence[int], texture: np.ndarray, k: int) -> list[FrameResult]:
+    """Frames ``positions`` of iteration ``k`` with texture ``k``: each frame's simulator render at
+    ``sim_spp``, the victim's losses and image gradients in one pass per batch of frames
+    (``victim_batch``), and each gradient carried back to the texture
+    (:func:`undream.engine.job.render_and_grad_many`, where each part is timed)."""
+    return job.render_and_grad_many(ctx, positions, texture, k)
+
+
 def frame_job(ctx: RunContext, position: int, texture: np.ndarray, k: int) -> FrameResult:
-    """Frame ``position`` of iteration ``k`` with texture ``k``: the simulator's render at ``sim_spp``,
-    the victim's loss and image gradient, and that gradient carried back to the texture
-    (:func:`undream.engine.job.render_and_grad`, where each part is timed)."""
-    return job.render_and_grad(ctx, position, texture, k)
+    """:func:`frame_jobs` of the one frame ``position``."""
+    return frame_jobs(ctx, [position], texture, k)[0]
 
 
 # --------------------------------------------------------------------------- 4. reduce
@@ -113,20 +121,43 @@ def eval_render(ctx: RunContext, position: int, texture: np.ndarray) -> np.ndarr
                                          frame_seed(ctx.config.seed, EVAL_ITERATION, index)))
 
 
-def _batch(image: np.ndarray) -> torch.Tensor:
-    return torch.from_numpy(image.transpose(2, 0, 1)[None].astype(np.float32))
+def _stacks(ctx: RunContext, images: Sequence[np.ndarray]) -> list[tuple[list[int], torch.Tensor]]:
+    """The images as victim batches (:func:`undream.engine.job.victim_batches`): (indices, B×3×H×W)."""
+    groups = job.victim_batches([im.shape for im in images], ctx.config.victim_batch)
+    return [(g, torch.from_numpy(np.stack([np.asarray(images[i], np.float32).transpose(2, 0, 1) for i in g])))
+            for g in groups]
+
+
+def eval_predictions(ctx: RunContext, images: Sequence[np.ndarray]) -> list[Any]:
+    """The victim's prediction on each sRGB frame (a class and its score, or boxes), one pass per batch."""
+    out: list[Any] = [None] * len(images)
+    with torch.no_grad():
+        for group, x in _stacks(ctx, images):
+            for i, pred in zip(group, ctx.victim.predict(x)):
+                out[i] = pred
+    return out
 
 
 def eval_predict(ctx: RunContext, image: np.ndarray) -> Any:
-    """The victim's prediction on one sRGB frame (a class and its score, or boxes)."""
+    """The victim's prediction on one sRGB frame."""
+    return eval_predictions(ctx, [image])[0]
+
+
+def eval_losses(ctx: RunContext, positions: Sequence[int], images: Sequence[np.ndarray]) -> list[float]:
+    """The attack's loss on each frame ``positions[i]`` rendered as ``images[i]`` (APGD's final pick
+    reads them), one pass per batch."""
+    out = [float("nan")] * len(images)
     with torch.no_grad():
-        return ctx.victim.predict(_batch(image))[0]
+        for group, x in _stacks(ctx, images):
+            values = ctx.victim.losses(x, [ctx.targets[positions[i]] for i in group], ctx.config.loss)
+            for i, v in zip(group, values.double().tolist()):
+                out[i] = v
+    return out
 
 
 def eval_loss(ctx: RunContext, position: int, image: np.ndarray) -> float:
-    """The attack's loss on frame ``position`` rendered as ``image`` (APGD's final pick reads it)."""
-    with torch.no_grad():
-        return float(ctx.victim.loss(_batch(image), ctx.targets[position], ctx.config.loss))
+    """The attack's loss on frame ``position`` rendered as ``image``."""
+    return eval_losses(ctx, [position], [image])[0]
 
 
 def render_frames(ctx: RunContext, texture: np.ndarray, out_dir: Path | None) -> list[np.ndarray]:
@@ -142,8 +173,8 @@ def render_frames(ctx: RunContext, texture: np.ndarray, out_dir: Path | None) ->
 
 
 def predict(ctx: RunContext, images: list[np.ndarray]) -> list[Any]:
-    """:func:`eval_predict` of each image."""
-    return [eval_predict(ctx, im) for im in images]
+    """:func:`eval_predictions` of the images."""
+    return eval_predictions(ctx, images)
 
 
 def ground_truths(ctx: RunContext) -> list[Any]:

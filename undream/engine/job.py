@@ -4,7 +4,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -76,34 +76,88 @@ def prediction_record(ctx: RunContext, position: int, pred: Any) -> dict[str, An
 def victim_loss_and_grad(ctx: RunContext, position: int,
                          image_srgb: np.ndarray) -> tuple[float, np.ndarray, dict[str, Any]]:
     """The victim's loss on one H×W×3 sRGB frame, d loss / d image (H×W×3), and its prediction
-    (:func:`prediction_record`)."""
+    (:func:`prediction_record`): :func:`victim_pass` on a batch of one."""
+    (loss,), (grad,), (record,) = victim_pass(ctx, [position], [image_srgb])
+    return loss, grad, record
+
+
+def victim_pass(ctx: RunContext, positions: Sequence[int],
+                images_srgb: Sequence[np.ndarray]) -> tuple[list[float], list[np.ndarray], list[dict[str, Any]]]:
+    """The victim ONCE on the frames at ``positions`` (H×W×3 sRGB images of one size, stacked into
+    a batch), forward and backward: each frame's loss, d loss / d image (H×W×3) and prediction record.
+
+    The backward pass is that of the SUM of the per-frame losses, so each frame's image gradient is
+    its own loss's (images do not interact in an eval-mode model), equal to a pass on the frame
+    alone up to float rounding; the predictions come from the same forward pass.
+    """
     import torch
 
-    x = torch.from_numpy(np.ascontiguousarray(image_srgb.transpose(2, 0, 1)))[None].requires_grad_(True)
-    loss = ctx.victim.loss(x, ctx.targets[position], ctx.config.loss)
-    (g,) = torch.autograd.grad(loss, x)
-    with torch.no_grad():
-        pred = ctx.victim.predict(x.detach())[0]
-    record = prediction_record(ctx, position, pred)
-    return float(loss.detach()), g[0].permute(1, 2, 0).numpy().astype(np.float32), record
+    x = torch.from_numpy(np.stack([np.asarray(im, np.float32).transpose(2, 0, 1) for im in images_srgb]))
+    x.requires_grad_(True)
+    losses, preds = ctx.victim.loss_and_predict(x, [ctx.targets[p] for p in positions], ctx.config.loss)
+    (g,) = torch.autograd.grad(losses.sum(), x)
+    grads = np.ascontiguousarray(g.permute(0, 2, 3, 1).numpy(), dtype=np.float32)
+    values = losses.detach().double().tolist()
+    return values, list(grads), [prediction_record(ctx, p, pred) for p, pred in zip(positions, preds)]
+
+
+def victim_batches(shapes: Sequence[tuple[int, ...]], size: int) -> list[list[int]]:
+    """Indices of frames (images of ``shapes``) in batches for the victim: consecutive ones of equal shape,
+    at most ``size`` per batch (the run's ``victim_batch``)."""
+    out: list[list[int]] = []
+    for i, shape in enumerate(shapes):
+        if out and len(out[-1]) < size and shapes[out[-1][0]] == shape:
+            out[-1].append(i)
+        else:
+            out.append([i])
+    return out
 
 
 def render_and_grad(ctx: RunContext, position: int, texture: np.ndarray, iteration: int) -> FrameResult:
-    """Algorithm 1's inner body for the frame at ``position`` with texture ``texture`` (sRGB H×W×3)."""
+    """Algorithm 1's inner body for the frame at ``position`` with texture ``texture`` (sRGB H×W×3):
+    :func:`render_and_grad_many` of one frame."""
+    return render_and_grad_many(ctx, [position], texture, iteration)[0]
+
+
+def render_and_grad_many(ctx: RunContext, positions: Sequence[int], texture: np.ndarray,
+                         iteration: int) -> list[FrameResult]:
+    """Algorithm 1's inner body for the frames at ``positions`` with texture ``texture``: each frame
+    rendered by the simulator, the victim once per batch of frames (:func:`victim_pass`), then each
+    frame's image gradient carried back to the texture. One :class:`FrameResult` per frame, in order;
+    a frame's ``timings`` hold its own render and gradient time and its share of its batch's victim pass.
+    """
     cfg = ctx.config
-    index = ctx.frame_indices[position]
-    seed = frame_seed(cfg.seed, iteration, index)
-    conditions = draw_conditions(cfg.eot, cfg.seed, iteration, index)  # None without eot
-    t0 = time.perf_counter()
-    linear = ctx.sim.render(index, texture, cfg.sim_spp, seed, conditions=conditions)
-    t1 = time.perf_counter()
-    loss, g_image, pred = victim_loss_and_grad(ctx, position, linear_to_srgb(linear))
-    t2 = time.perf_counter()
-    g_linear = srgb_encode_grad(linear, g_image)
-    grad = ctx.gradients.texture_gradient(index, texture, g_linear, cfg.grad_spp, iteration, seed, conditions)
-    t3 = time.perf_counter()
-    # A NaN in the victim's image gradient must not hide behind the renderer: Mitsuba's
-    # backward pass turns it into zeros, which would pass as a finite frame.
-    finite = bool(np.isfinite(g_image).all() and np.isfinite(grad).all()) and math.isfinite(loss)
-    timings = {"sim_render": t1 - t0, "victim": t2 - t1, "grad_render": t3 - t2, "total": t3 - t0}
-    return FrameResult(grad, loss, finite, pred, timings)
+    n = len(positions)
+    indices = [ctx.frame_indices[p] for p in positions]
+    seeds = [frame_seed(cfg.seed, iteration, index) for index in indices]
+    conditions = [draw_conditions(cfg.eot, cfg.seed, iteration, index) for index in indices]  # None without eot
+    linear, srgb, t_sim = [], [], []
+    for index, seed, cond in zip(indices, seeds, conditions):
+        t0 = time.perf_counter()
+        img = ctx.sim.render(index, texture, cfg.sim_spp, seed, conditions=cond)
+        t_sim.append(time.perf_counter() - t0)
+        linear.append(img)
+        srgb.append(linear_to_srgb(img))
+    losses: list[float] = [math.nan] * n
+    g_images: list[np.ndarray] = [np.empty(0)] * n
+    preds: list[dict[str, Any]] = [{}] * n
+    t_victim = [0.0] * n
+    for batch in victim_batches([im.shape for im in srgb], cfg.victim_batch):
+        t0 = time.perf_counter()
+        values, grads, records = victim_pass(ctx, [positions[i] for i in batch], [srgb[i] for i in batch])
+        share = (time.perf_counter() - t0) / len(batch)
+        for i, v, g, r in zip(batch, values, grads, records):
+            losses[i], g_images[i], preds[i], t_victim[i] = v, g, r, share
+    out = []
+    for i, (index, seed, cond) in enumerate(zip(indices, seeds, conditions)):
+        t0 = time.perf_counter()
+        g_linear = srgb_encode_grad(linear[i], g_images[i])
+        grad = ctx.gradients.texture_gradient(index, texture, g_linear, cfg.grad_spp, iteration, seed, cond)
+        t_grad = time.perf_counter() - t0
+        # A NaN in the victim's image gradient must not hide behind the renderer: Mitsuba's
+        # backward pass turns it into zeros, which would pass as a finite frame.
+        finite = bool(np.isfinite(g_images[i]).all() and np.isfinite(grad).all()) and math.isfinite(losses[i])
+        timings = {"sim_render": t_sim[i], "victim": t_victim[i], "grad_render": t_grad,
+                   "total": t_sim[i] + t_victim[i] + t_grad}
+        out.append(FrameResult(grad, losses[i], finite, preds[i], timings))
+    return out

@@ -34,13 +34,26 @@ def _linear_texture(scenes: SceneCache, active: ActiveFrame, texture_srgb: np.nd
     return scenes.mi.TensorXf(srgb_to_linear(_check_texture(texture_srgb, active.params[active.texture_key].shape)))
 
 
+def _render_texture(scenes: SceneCache, active: ActiveFrame, texture_srgb: np.ndarray) -> Any:
+    """:func:`_linear_texture`, converted once for the frames that render the same texture in a row
+    (the cache keeps the last sRGB texture and its tensor; a texture equal to it reuses the tensor)."""
+    tex = np.asarray(texture_srgb, dtype=np.float32)
+    held = scenes.render_texture
+    if (held is not None and held[0].shape == tex.shape == tuple(active.params[active.texture_key].shape)
+            and np.array_equal(held[0], tex)):
+        return held[1]
+    linear = _linear_texture(scenes, active, tex)
+    scenes.render_texture = (tex.copy(), linear)
+    return linear
+
+
 def render_linear(scenes: SceneCache, index: int, texture_srgb: np.ndarray, spp: int, seed: int,
                   kind: str = "sim", conditions: Any = None) -> np.ndarray:
     """The render of frame ``index``'s ``kind`` scene (simulation by default): H×W×3 LINEAR radiance
     (unclipped); ``conditions``: the camera and light moved for this render (:mod:`undream.render.jitter`)."""
     mi = scenes.mi
     active = scenes.frame(kind, index, conditions)
-    active.params[active.texture_key] = _linear_texture(scenes, active, texture_srgb)
+    active.params[active.texture_key] = _render_texture(scenes, active, texture_srgb)
     active.params.update()
     if scenes.frozen:
         img = scenes.frozen_call(f"render/{kind}", _render, active.scene, mi.UInt32(seed), spp)

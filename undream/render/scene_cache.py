@@ -92,6 +92,7 @@ class SceneCache:
         self.share = share
         self.frozen = bool(frozen)
         self._frozen: dict[str, Any] = {}
+        self.render_texture: tuple[np.ndarray, Any] | None = None  # the last sRGB texture rendered, its tensor
         self._groups: dict[tuple[str, tuple[str, int]], _Group] = {}
         self._states: dict[tuple[str, int], _FrameState] = {}
         # the loaded groups; _make_room drops the least recently used before a load, so put() drops none
@@ -102,6 +103,7 @@ class SceneCache:
         for f in self._frozen.values():
             f.clear()
         self._frozen.clear()
+        self.render_texture = None
         for group in self._groups.values():
             group.loaded = None
         self._lru.clear()

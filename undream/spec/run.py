@@ -45,7 +45,10 @@ class RunConfig:
     simulator that renders the frames the victim sees, during the attack and
     in the evaluation (``mitsuba``, embedded; ``blender``: Cycles, needs
     Blender's Python, see :mod:`undream.sim.blender`); the texture gradient
-    always comes from Mitsuba's gradient scene.
+    always comes from Mitsuba's gradient scene. ``victim_batch``: the most
+    frames the victim sees in one pass (forward and backward) during the
+    attack and the evaluation (a job's frames in order; results agree to float
+    rounding whatever the batches).
     """
 
     scene: str
@@ -63,6 +66,7 @@ class RunConfig:
     seed: int = 0
     device: str = "cpu"
     torch_threads: int = 1  # the victim's CPU threads; Dr.Jit renders on the rest
+    victim_batch: int = 32  # frames per victim pass (forward and backward), at most: a memory bound
     store: str | None = None  # SQLAlchemy URL; default: SQLite in the output directory
     gradient: str = "auto"  # auto | transport | prb
     transport_refresh: int = 5
@@ -87,6 +91,7 @@ class RunConfig:
             bounded(f, getattr(self, f))
         object.__setattr__(self, "attack", self._typed_attack())
         c.integer("torch_threads", self.torch_threads, 1, 1024)
+        c.integer("victim_batch", self.victim_batch, 1, 4096)
         c.choice("gradient", self.gradient, ("auto", "transport", "prb"))
         c.integer("transport_refresh", self.transport_refresh, 1, 10**6)
         if not isinstance(self.device, str):

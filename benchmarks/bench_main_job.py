@@ -1,0 +1,121 @@
+#!/usr/bin/env python
+"""The main job before and after, measured in one run: a table per component and the ratios.
+
+    .venv/bin/python benchmarks/bench_main_job.py --before c9c2dfa [--repeats 1] [--config FILE]
+
+Runs ``undream run`` on the main job (``examples/runs/bin_orbit_pgd.yaml``: 24
+frames at 64 px, 18 attacked, 100 PGD iterations) as a user would (a
+subprocess, a fresh output folder) with the engine pinned at commit
+``--before`` (a git worktree, removed afterwards) and with this checkout,
+alternating, ``--repeats`` times each. Per component the table gives the
+seconds that ``results.json`` reports (``wall_time_seconds``: the sum over
+frames of the simulator renders, the victim, the texture gradients; the
+reduce-and-step callbacks; the evaluation jobs; the run's wall time from
+its record to its results) and the process's own wall time, the median over
+repeats, and after/before. It also prints the results both runs reached
+(accuracies on the attacked and held-out frames, the last iteration's mean
+loss) and whether the final textures are bit-identical. Run it alone: the
+machine's load average is printed before and after.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+PARTS = ("sim_render", "victim", "grad_render", "reduce_step", "evaluation", "wall")
+
+
+def _parse(argv: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--before", default="c9c2dfa", help="commit of the engine before ('' skips it)")
+    p.add_argument("--config", default="examples/runs/bin_orbit_pgd.yaml")
+    p.add_argument("--repeats", type=int, default=1)
+    return p.parse_args(argv)
+
+
+def run_once(tree: Path, config: str, out: Path) -> dict:
+    """``undream run`` with the code of ``tree``; its results.json, the process wall time and texture."""
+    env = {**os.environ, "PYTHONPATH": str(tree), "HF_HUB_OFFLINE": "1"}
+    t0 = time.perf_counter()
+    res = subprocess.run([sys.executable, "-m", "undream.cli", "run", config, "--out", str(out), "--no-progress"],
+                         cwd=tree, env=env, capture_output=True, text=True)
+    process = time.perf_counter() - t0
+    if res.returncode != 0:
+        raise SystemExit(f"undream run failed in {tree}:\n{res.stdout[-2000:]}\n{res.stderr[-2000:]}")
+    results = json.loads((out / "results.json").read_text())
+    return {"results": results, "process": process, "texture": np.load(out / "texture_final.npy")}
+
+
+def _summary(results: dict) -> str:
+    def acc(split: str, side: str) -> str:
+        block = results.get(split) or {}
+        value = (block.get(side) or {}).get("value")
+        return "–" if value is None else f"{value:.3f}"
+
+    losses = results["loss_per_iteration"]
+    return (f"attacked {acc('attacked', 'benign')} → {acc('attacked', 'adversarial')}, held out "
+            f"{acc('held_out', 'benign')} → {acc('held_out', 'adversarial')}, last mean loss {losses[-1]:.4f}")
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = _parse(argv)
+    load = os.getloadavg()
+    print(f"{os.cpu_count()} cores, load average before: {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
+    trees: dict[str, Path] = {"after": ROOT}
+    with tempfile.TemporaryDirectory(prefix="undream-main-job-") as tmp:
+        if args.before:
+            trees = {"before": Path(tmp) / "before", **trees}
+            subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "-q", "--detach", str(trees["before"]),
+                            args.before], check=True)
+        try:
+            runs: dict[str, list[dict]] = {name: [] for name in trees}
+            for r in range(args.repeats):
+                for name, tree in trees.items():
+                    runs[name].append(run_once(tree, args.config, Path(tmp) / f"{name}{r}"))
+                    print(f"  {name} #{r + 1}: {runs[name][-1]['results']['wall_time_seconds']['wall']:.1f} s",
+                          flush=True)
+        finally:
+            if args.before:
+                subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(trees["before"])],
+                               check=False)
+    med = {name: {part: statistics.median(x["results"]["wall_time_seconds"][part] for x in rs) for part in PARTS}
+           for name, rs in runs.items()}
+    for name, rs in runs.items():
+        med[name]["process"] = statistics.median(x["process"] for x in rs)
+    names = list(trees)
+    print(f"\nmain job ({args.config}), seconds, median of {args.repeats}:\n")
+    print("| part | " + " | ".join(names) + (" | after / before |" if "before" in med else " |"))
+    print("|---|" + "---|" * len(names) + ("---|" if "before" in med else ""))
+    for part in (*PARTS[:-1], "in between", "wall", "process"):
+        row = {}
+        for name in names:
+            m = med[name]
+            row[name] = m["wall"] - sum(m[p] for p in PARTS[:-1]) if part == "in between" else m[part]
+        ratio = f" {row['after'] / row['before']:.2f} |" if "before" in med and row["before"] else ""
+        print(f"| {part} | " + " | ".join(f"{row[n]:.2f}" for n in names) + " |" + ratio)
+    if "before" in med:
+        print(f"\nrun wall time before / after: {med['before']['wall'] / med['after']['wall']:.2f}× faster; "
+              f"evaluation {med['before']['evaluation'] / med['after']['evaluation']:.2f}× faster")
+    for name, rs in runs.items():
+        for i, x in enumerate(rs):
+            print(f"{name} #{i + 1}: {_summary(x['results'])}")
+    if "before" in runs:
+        same = all(np.array_equal(a["texture"], b["texture"]) for a, b in zip(runs["before"], runs["after"]))
+        diff = max(float(np.abs(a["texture"] - b["texture"]).max()) for a, b in zip(runs["before"], runs["after"]))
+        print(f"final textures before and after bit-identical: {same} (largest difference {diff * 255:.0f}/255)")
+    load = os.getloadavg()
+    print(f"load average after: {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
+
+
+if __name__ == "__main__":
+    main()
