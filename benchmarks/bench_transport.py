@@ -3,12 +3,13 @@
     python benchmarks/bench_transport.py --px 64 256 [512] --frames 3 --grad-spp 8
 
 A builtin trash bin (256×256 texture), the camera orbiting it. For each
-resolution and frame: the capture time (one prb primal pass with a white
-texture + sparse assembly), the transport's bytes, prb's texture gradient
-(``texture_gradient``: median of ``--repeats`` after a warm-up), the cached
-one (``texture_gradient_cached``), their ratio, and the cached gradient's
-cosine and relative L2 error against prb at the same seed and spp (they
-should agree to float rounding). Medians over the frames are printed.
+resolution and frame: the capture time (prb's primal pass with a white
+texture on the samples that hit the object + sparse assembly), the
+transport's bytes, prb's texture gradient (``texture_gradient``: median of
+``--repeats`` after a warm-up), the cached one (``texture_gradient_cached``),
+their ratio, and the cached gradient's cosine and relative L2 error against
+prb at the same seed and spp (they should agree to float rounding). Medians
+over the frames are printed.
 
 The bias question: a cached J keeps one sample pattern (seed_grad) for every
 iteration. ``cos(J,ref)`` is the cosine between the cached gradient and a

@@ -18,7 +18,12 @@ over every sample, ``B`` (samples × texels) the bilinear weights. The capture
 replays ``prb``'s own primal pass for ``(seed_grad, spp)`` (same sampler
 seeding, same rays, same splat positions as ``render_backward``), so ``Jᵀ·g``
 equals prb's backward pass at that seed and spp up to float rounding, and
-``J·t + b`` equals ``mi.render(scene, spp=spp, seed=seed_grad)``.
+``J·t + b`` equals ``mi.render(scene, spp=spp, seed=seed_grad)``. prb runs
+only on the lanes whose first hit is the object (each lane draws from its own
+random stream, so theirs are the full render's), as one Dr.Jit frozen function
+per scene group (with ``SceneCache.frozen``: traced once, then replayed with
+the frame's parameters and the seed as inputs). The three channels share
+``F`` and ``B``'s pattern and are multiplied in one sparse product.
 
 The matrices are stored transposed (texels × pixels, CSR, float32) so the
 gradient is one sparse mat-vec per channel. A fixed ``seed_grad`` means a
@@ -195,8 +200,9 @@ def _xml_problem(scenes: SceneCache, index: int) -> str | None:
 def capture_transport(scenes: SceneCache, index: int, spp: int, seed_grad: int) -> Transport:
     """Capture frame ``index``'s gradient-scene transport at ``(seed_grad, spp)``.
 
-    Replays prb's primal pass with a white texture (one render's cost), then
-    builds the sparse matrices. The scene's texture is put back afterwards.
+    Replays prb's primal pass with a white texture (at most one render's cost:
+    prb runs on the samples that hit the object), then builds the sparse
+    matrices. The scene's texture is put back afterwards.
     Raises :class:`RenderError` when the scene is not linear in the texture by
     construction (see :func:`check_linear`; this does not run its numerical check).
     """
@@ -214,7 +220,7 @@ def capture_transport(scenes: SceneCache, index: int, spp: int, seed_grad: int) 
         with dr.suspend_grad():
             params[key] = mi.TensorXf(np.ones((th, tw, 3), np.float32))
             params.update()
-            arrays = _replay(mi, scene, spp, seed_grad)
+            arrays = _replay(scenes, scene, spp, seed_grad)
     finally:
         params[key] = saved
         params.update()
@@ -224,63 +230,85 @@ def capture_transport(scenes: SceneCache, index: int, spp: int, seed_grad: int) 
     return Transport(jt, (h, w), (th, tw), int(seed_grad), int(arrays["spp"]), index)
 
 
-def _replay(mi: Any, scene: Any, spp: int, seed: int) -> dict[str, np.ndarray]:
-    """prb's primal pass at (seed, spp), per sample: splat position, radiance, first hit."""
+def _replay(scenes: SceneCache, scene: Any, spp: int, seed: int) -> dict[str, np.ndarray]:
+    """prb's primal pass at (seed, spp), per object sample: splat position, radiance, uv, filter taps.
+
+    One Dr.Jit evaluation over every camera sample (:func:`_trace`, a frozen function
+    with ``scenes.frozen``: traced once per scene group, then replayed with the frame's
+    parameters and the seed as inputs), then the samples kept are picked out in numpy.
+    """
     import drjit as dr
+
+    mi = scenes.mi
+    sensor = scene.sensors()[0]
+    film = sensor.film()
+    rfilter = film.rfilter()
+    taps = 1 if rfilter.is_box_filter() else 2 * int(np.ceil(rfilter.radius() - 0.5)) + 1
+    obj_index, _ = _object_shape(scene)
+    obj_ptr = mi.UInt32(dr.reinterpret_array(mi.UInt32, scene.shapes_dr())[obj_index])
+    args = (scene, mi.UInt32(seed), spp, obj_ptr, taps)
+    value, keep, uv, base, wx, wy, weights = (scenes.frozen_call("transport/replay", _trace, *args)
+                                              if scenes.frozen else _trace(*args))
+    idx = np.flatnonzero(np.array(keep, dtype=bool))
+    wsum = np.array(weights, np.float64)
+    b = (wsum.shape[0] - int(film.crop_size()[1])) // 2  # the block's border (0 unless the film samples it)
+    out = {
+        "value": np.stack([np.array(value.x, np.float32)[idx], np.array(value.y, np.float32)[idx],
+                           np.array(value.z, np.float32)[idx]], axis=1),
+        "uv": np.stack([np.array(uv.x, np.float32)[idx], np.array(uv.y, np.float32)[idx]], axis=1),
+        "base": np.stack([np.array(base.x, np.float32)[idx], np.array(base.y, np.float32)[idx]],
+                         axis=1).astype(np.int64),
+        "wx": np.stack([np.array(v, np.float32)[idx] for v in wx], axis=1),
+        "wy": np.stack([np.array(v, np.float32)[idx] for v in wy], axis=1),
+        "wsum": wsum[b:wsum.shape[0] - b, b:wsum.shape[1] - b, -1].ravel(),
+        "crop_offset": np.array([int(v) for v in film.crop_offset()], np.int64),
+        "spp": np.array(_sample_count(sensor, spp)),
+    }
+    del value, keep, uv, base, wx, wy, weights
+    return out
+
+
+def _trace(scene: Any, seed: Any, spp: int, obj_ptr: Any, taps: int) -> tuple:
+    """The Dr.Jit part of :func:`_replay`, per camera sample: radiance × sensor weight, whether the
+    sample is kept (first hit the object, non-zero radiance), its uv, its footprint's first pixel and
+    filter weights; and the film's weight channel (every sample's filter weights summed per pixel:
+    texture-independent)."""
+    import drjit as dr
+    import mitsuba as mi
 
     integrator = scene.integrator()
     sensor = scene.sensors()[0]
     film = sensor.film()
-    sampler, spp_used = integrator.prepare(sensor, seed, spp, integrator.aov_names())
+    sampler, _ = integrator.prepare(sensor, seed, spp, integrator.aov_names())
     ray, weight, pos = integrator.sample_rays(scene, sensor, sampler)
-    L, _, _, _ = integrator.sample(mode=dr.ADMode.Primal, scene=scene, sampler=sampler.clone(), ray=ray,
-                                   depth=mi.UInt32(0), δL=None, δaovs=None, state_in=None,
-                                   active=mi.Bool(True))
-    value = L * weight
     si = scene.ray_intersect(mi.Ray3f(ray))
-    obj_index, _ = _object_shape(scene)
-    obj_ptr = dr.reinterpret_array(mi.UInt32, scene.shapes_dr())[obj_index]
     hit = si.is_valid() & (dr.reinterpret_array(mi.UInt32, si.shape) == obj_ptr)
-    # The film's weight channel: every sample's filter weights summed per pixel (texture-independent).
+    # Only the samples that hit the object carry the texture: prb runs on those lanes alone
+    # (each lane draws from its own random stream, so theirs are the full render's).
+    L, _, _, _ = integrator.sample(mode=dr.ADMode.Primal, scene=scene, sampler=sampler.clone(), ray=ray,
+                                   depth=mi.UInt32(0), δL=None, δaovs=None, state_in=None, active=hit)
+    value = L * weight
     block = film.create_block()
     block.put(pos, ray.wavelengths, mi.Color3f(0.0), mi.Float(0.0), mi.Float(1.0))
-    weights = block.tensor()
-    # One kernel for the integrator's samples and the first hits (evaluated apart, each
-    # gather below would trace and run the whole primal pass again).
-    dr.eval(value, hit, si.uv, pos, weights)
-    # Only samples whose first hit is the object carry the texture: keep those.
-    keep = dr.compress(hit & dr.any(value != 0))
     rfilter = film.rfilter()
-    b = block.border_size()
-    common = {"wsum": np.array(weights, np.float64)[b:weights.shape[0] - b, b:weights.shape[1] - b, -1].ravel(),
-              "crop_offset": np.array([int(v) for v in film.crop_offset()], np.int64), "spp": np.array(spp_used)}
-    if dr.width(keep) == 0:  # the object is hidden in this frame: an empty transport, a zero gradient
-        taps = 1 if rfilter.is_box_filter() else 2 * int(np.ceil(rfilter.radius() - 0.5)) + 1
-        return {"value": np.zeros((0, 3), np.float32), "uv": np.zeros((0, 2), np.float32),
-                "base": np.zeros((0, 2), np.int64), "wx": np.zeros((0, taps), np.float32),
-                "wy": np.zeros((0, taps), np.float32), **common}
-    value, uv, pos = dr.gather(type(value), value, keep), dr.gather(mi.Point2f, si.uv, keep), \
-        dr.gather(mi.Point2f, pos, keep)
     if rfilter.is_box_filter():  # the image block drops it: one pixel, weight 1
         base = dr.floor(pos)
         wx = wy = [dr.full(mi.Float, 1.0, dr.width(pos))]
     else:  # the image block's footprint: pixels floor(pos) - n .. floor(pos) + n
-        n = int(np.ceil(rfilter.radius() - 0.5))
-        base = dr.floor(pos) - n
-        wx = [rfilter.eval(base.x + k + 0.5 - pos.x) for k in range(2 * n + 1)]
-        wy = [rfilter.eval(base.y + k + 0.5 - pos.y) for k in range(2 * n + 1)]
-    dr.eval(value, uv, base, wx, wy)
-    out = {
-        "value": np.stack([np.array(value.x, np.float32), np.array(value.y, np.float32),
-                           np.array(value.z, np.float32)], axis=1),
-        "uv": np.stack([np.array(uv.x, np.float32), np.array(uv.y, np.float32)], axis=1),
-        "base": np.stack([np.array(base.x, np.float64), np.array(base.y, np.float64)], axis=1).astype(np.int64),
-        "wx": np.stack([np.array(v, np.float32) for v in wx], axis=1),
-        "wy": np.stack([np.array(v, np.float32) for v in wy], axis=1),
-        **common,
-    }
-    del sampler, ray, weight, pos, L, value, si, block
+        base = dr.floor(pos) - (taps - 1) // 2
+        wx = [rfilter.eval(base.x + k + 0.5 - pos.x) for k in range(taps)]
+        wy = [rfilter.eval(base.y + k + 0.5 - pos.y) for k in range(taps)]
+    out = (value, hit & dr.any(value != 0), si.uv, base, wx, wy, block.tensor())
+    dr.eval(out)
     return out
+
+
+def _sample_count(sensor: Any, spp: int) -> int:
+    """The samples per pixel prb's ``prepare`` uses for ``spp`` (0: the scene's own)."""
+    sampler = sensor.sampler().clone()
+    if spp != 0:
+        sampler.set_sample_count(spp)
+    return int(sampler.sample_count())
 
 
 def _to_uv(params: Any, key: str) -> np.ndarray:
@@ -293,31 +321,56 @@ def _to_uv(params: Any, key: str) -> np.ndarray:
 
 def _assemble(a: dict[str, np.ndarray], image_hw: tuple[int, int], tex_hw: tuple[int, int],
               to_uv: np.ndarray) -> tuple[sp.csr_matrix, sp.csr_matrix, sp.csr_matrix]:
+    """``Jᵀ_c = Bᵀ · diag(value_c) · Fᵀ`` of the three channels in one sparse product.
+
+    The channels share ``F`` and ``B``'s pattern: their ``Bᵀ · diag(value_c)`` are stacked
+    (rows ``c·texels + texel``), multiplied once (float64), then split into the channels'
+    float32 CSR matrices (texels × pixels, sorted indices).
+    """
     h, w = image_hw
-    th, tw = tex_hw
-    n_pix = h * w
-    value = a["value"]  # the object samples only (first hit on the object, non-zero radiance)
+    n_tex = tex_hw[0] * tex_hw[1]
+    s = len(a["value"])  # the object samples only (first hit on the object, non-zero radiance)
+    texels, bilinear = _bilinear(a["uv"], tex_hw, to_uv)  # (s, 4) each
+    value = a["value"].astype(np.float64)
+    data = (bilinear[:, None, :] * value[:, :, None]).reshape(-1)  # (s, channel, corner)
+    rows = (texels[:, None, :] + n_tex * np.arange(3)[:, None]).reshape(-1)
+    bt = sp.csc_matrix((data, rows, np.arange(0, 12 * s + 1, 12)), shape=(3 * n_tex, s)).tocsr()
+    jt = bt @ _filter_t(a, image_hw)  # (3 texels) × pixels
+    jt.eliminate_zeros()
+    jt.sort_indices()
+    out = []
+    for c in range(3):  # each channel's rows, copied out as float32 / int32
+        lo, hi = int(jt.indptr[c * n_tex]), int(jt.indptr[(c + 1) * n_tex])
+        ptr = (jt.indptr[c * n_tex:(c + 1) * n_tex + 1] - lo).astype(np.int32 if hi - lo < 2**31 else np.int64)
+        out.append(sp.csr_matrix((jt.data[lo:hi].astype(np.float32), jt.indices[lo:hi].astype(np.int32), ptr),
+                                 shape=(n_tex, h * w)))
+    return tuple(out)  # type: ignore[return-value]
+
+
+def _filter_t(a: dict[str, np.ndarray], image_hw: tuple[int, int]) -> sp.csr_matrix:
+    """``Fᵀ`` (object samples × pixels, CSR, float64): each sample's filter weights on the pixels of its
+    footprint inside the crop, divided by those pixels' weight sums over every sample (the film's)."""
+    h, w = image_hw
+    s, k = a["wx"].shape
     px0 = a["base"][:, 0] - a["crop_offset"][0]  # footprint's first pixel column, crop-relative
     py0 = a["base"][:, 1] - a["crop_offset"][1]
-    wx, wy = a["wx"].astype(np.float64), a["wy"].astype(np.float64)
-    k = wx.shape[1]
-    wsum = a["wsum"]  # per-pixel filter-weight sums over every sample (the film's weight channel)
-    # F: pixels × (object samples), normalised by the weight sums.
-    s = len(value)
-    rows, cols, vals = [], [], []
-    for ky in range(k):
-        py = py0 + ky
-        for kx in range(k):
-            px = px0 + kx
-            wv = wx[:, kx] * wy[:, ky]
-            ok = (py >= 0) & (py < h) & (px >= 0) & (px < w) & (wv > 0)
-            pix = py[ok] * w + px[ok]
-            rows.append(pix)
-            cols.append(np.nonzero(ok)[0])
-            vals.append(wv[ok] / wsum[pix])
-    F = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n_pix, s))
-    # B: (object samples) × texels, bilinear as Mitsuba's bitmap (Dr.Jit texture, wrap repeat).
-    uv = a["uv"].astype(np.float64)
+    taps = np.arange(k)
+    in_x = (0 <= px0[:, None] + taps) & (px0[:, None] + taps < w)  # (s, k)
+    in_y = (0 <= py0[:, None] + taps) & (py0[:, None] + taps < h)
+    # (s, ky, kx) flattened to (s, k²): the footprint's taps row by row; float32 products are exact in float64
+    wv = (a["wy"].astype(np.float64)[:, :, None] * a["wx"].astype(np.float64)[:, None, :]).reshape(s, k * k)
+    ok = (in_y[:, :, None] & in_x[:, None, :]).reshape(s, k * k) & (wv > 0)
+    pix = ((py0 * w + px0)[:, None] + (taps[:, None] * w + taps).ravel())[ok]
+    indptr = np.zeros(s + 1, np.int64)
+    np.cumsum(ok.sum(axis=1), out=indptr[1:])
+    return sp.csr_matrix((wv[ok] / a["wsum"][pix], pix, indptr), shape=(s, h * w))
+
+
+def _bilinear(uv: np.ndarray, tex_hw: tuple[int, int], to_uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each sample's 4 texels (C-order indices) and bilinear weights (float64), both (samples, 4),
+    as Mitsuba's bitmap looks them up (Dr.Jit texture, bilinear, wrap repeat) at ``to_uv · uv``."""
+    th, tw = tex_hw
+    uv = uv.astype(np.float64)
     u = to_uv[0, 0] * uv[:, 0] + to_uv[0, 1] * uv[:, 1] + to_uv[0, 2]
     v = to_uv[1, 0] * uv[:, 0] + to_uv[1, 1] * uv[:, 1] + to_uv[1, 2]
     x = (u * tw - 0.5).astype(np.float32)
@@ -325,24 +378,9 @@ def _assemble(a: dict[str, np.ndarray], image_hw: tuple[int, int], tex_hw: tuple
     x0, y0 = np.floor(x), np.floor(y)
     fx, fy = (x - x0).astype(np.float64), (y - y0).astype(np.float64)
     x0, y0 = x0.astype(np.int64), y0.astype(np.int64)
-    b_rows = np.tile(np.arange(s), 4)
-    b_cols, b_w = [], []
-    for dy, wyb in ((0, 1 - fy), (1, fy)):
-        for dx, wxb in ((0, 1 - fx), (1, fx)):
-            b_cols.append(np.mod(y0 + dy, th) * tw + np.mod(x0 + dx, tw))
-            b_w.append(wxb * wyb)
-    b_cols_a, b_w_a = np.concatenate(b_cols), np.concatenate(b_w)
-    jt = []
-    for c in range(3):
-        B = sp.csr_matrix((b_w_a * np.tile(value[:, c].astype(np.float64), 4), (b_rows, b_cols_a)),
-                          shape=(s, th * tw))
-        J = (F @ B).tocsr()  # pixels × texels
-        J.eliminate_zeros()
-        Jt = J.T.tocsr()
-        Jt.sort_indices()
-        jt.append(sp.csr_matrix((Jt.data.astype(np.float32), Jt.indices.astype(np.int32),
-                                 Jt.indptr.astype(np.int32 if Jt.nnz < 2**31 else np.int64)), shape=Jt.shape))
-    return tuple(jt)  # type: ignore[return-value]
+    texels = np.stack([np.mod(y0 + dy, th) * tw + np.mod(x0 + dx, tw) for dy in (0, 1) for dx in (0, 1)], axis=1)
+    weights = np.stack([wxb * wyb for wyb in (1 - fy, fy) for wxb in (1 - fx, fx)], axis=1)
+    return texels, weights
 
 
 # -- checks ----------------------------------------------------------------------
