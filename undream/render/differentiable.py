@@ -52,9 +52,9 @@ def render_linear(scenes: SceneCache, index: int, texture_srgb: np.ndarray, spp:
     """The render of frame ``index``'s ``kind`` scene (simulation by default): H×W×3 LINEAR radiance
     (unclipped); ``conditions``: the camera and light moved for this render (:mod:`undream.render.jitter`)."""
     mi = scenes.mi
-    active = scenes.frame(kind, index, conditions)
-    active.params[active.texture_key] = _render_texture(scenes, active, texture_srgb)
-    active.params.update()
+    # the texture written with the frame's own values: one scene update (the conditions, if any, after)
+    texture = _render_texture(scenes, scenes.loaded(kind, index), texture_srgb)
+    active = scenes.frame(kind, index, conditions, texture=texture)
     if scenes.frozen:
         img = scenes.frozen_call(f"render/{kind}", _render, active.scene, mi.UInt32(seed), spp)
     else:
@@ -74,10 +74,16 @@ def srgb_encode_grad(linear: np.ndarray, grad_srgb: np.ndarray) -> np.ndarray:
     return (np.asarray(grad_srgb, np.float32) * deriv * inside).astype(np.float32)
 
 
-def srgb_decode_grad(texture_srgb: np.ndarray, grad_linear: np.ndarray) -> np.ndarray:
-    """d(loss)/d(sRGB texture) from d(loss)/d(linear texture), at the sRGB texture."""
+def srgb_decode_deriv(texture_srgb: np.ndarray) -> np.ndarray:
+    """d(linear texture)/d(sRGB texture) at the sRGB texture, per texel and channel."""
     t = np.asarray(texture_srgb, np.float32)
-    deriv = np.where(t <= 0.04045, 1 / 12.92, 2.4 / 1.055 * np.power((np.maximum(t, 0.04045) + 0.055) / 1.055, 1.4))
+    return np.where(t <= 0.04045, 1 / 12.92, 2.4 / 1.055 * np.power((np.maximum(t, 0.04045) + 0.055) / 1.055, 1.4))
+
+
+def srgb_decode_grad(texture_srgb: np.ndarray, grad_linear: np.ndarray, deriv: np.ndarray | None = None) -> np.ndarray:
+    """d(loss)/d(sRGB texture) from d(loss)/d(linear texture), at the sRGB texture (``deriv``: its
+    :func:`srgb_decode_deriv`, when the caller holds it)."""
+    deriv = srgb_decode_deriv(texture_srgb) if deriv is None else deriv
     return (np.asarray(grad_linear, np.float32) * deriv).astype(np.float32)
 
 

@@ -131,12 +131,20 @@ class SceneCache:
         """How many groups of ``kind`` the frames seen so far fall into."""
         return sum(k == kind for k, _ in self._groups)
 
-    def frame(self, kind: str, index: int, conditions: Any = None) -> ActiveFrame:
+    def loaded(self, kind: str, index: int) -> ActiveFrame:
+        """The loaded scene of frame ``index``'s group, as it is (showing whichever frame it shows)."""
+        if kind not in KINDS:
+            raise RenderError(f"scene kind must be one of {KINDS}, got {kind!r}")
+        gkey = (kind, self._state(kind, index).group)
+        return self._ensure_loaded(kind, gkey, self._groups[gkey])
+
+    def frame(self, kind: str, index: int, conditions: Any = None, texture: Any = None) -> ActiveFrame:
         """The scene of ``kind`` ('sim' or 'grad') showing frame ``index``.
 
         ``conditions`` (:class:`undream.render.jitter.Conditions`): the frame's
         camera and light moved by them for the next render only; the next call
-        writes the frame's own values back.
+        writes the frame's own values back. ``texture``: a tensor for the
+        texture parameter, written in the same scene update as the frame's values.
         """
         if kind not in KINDS:
             raise RenderError(f"scene kind must be one of {KINDS}, got {kind!r}")
@@ -144,9 +152,13 @@ class SceneCache:
         gkey = (kind, state.group)
         group = self._groups[gkey]
         active = self._ensure_loaded(kind, gkey, group)
+        extra = {} if texture is None else {active.texture_key: texture}
         if active.index != index:  # already showing it: nothing to write, no BVH to rebuild
-            self._apply(group, active, state)
+            self._apply(group, active, state, extra)
             active.index = index
+        elif extra:
+            active.params[active.texture_key] = texture
+            active.params.update()
         if conditions is not None:
             self._jitter(group, active, conditions)
         return active
@@ -233,12 +245,15 @@ class SceneCache:
             f.clear()
         group.loaded = None
 
-    def _apply(self, group: _Group, active: ActiveFrame, state: _FrameState) -> None:
+    def _apply(self, group: _Group, active: ActiveFrame, state: _FrameState,
+               extra: dict[str, Any] | None = None) -> None:
         keys = set(state.values) | group.applied
-        if not keys:
+        if not keys and not extra:
             return
         for key in keys:
             active.params[key] = state.values.get(key, group.base[key])
+        for key, value in (extra or {}).items():
+            active.params[key] = value
         active.params.update()
         group.applied = set(state.values)
 

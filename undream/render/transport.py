@@ -124,13 +124,14 @@ class Transport:
 
 
 def texture_gradient_cached(transport: Transport, texture_srgb: np.ndarray,
-                            grad_linear_image: np.ndarray) -> np.ndarray:
+                            grad_linear_image: np.ndarray, deriv: np.ndarray | None = None) -> np.ndarray:
     """d(loss)/d(sRGB texture) (Ht×Wt×3) at ``texture_srgb`` from d(loss)/d(LINEAR image) (H×W×3).
 
     The cached counterpart of :func:`undream.render.differentiable.texture_gradient`
-    at the transport's ``seed_grad`` and ``spp``.
+    at the transport's ``seed_grad`` and ``spp``; ``deriv``: the texture's
+    :func:`~undream.render.differentiable.srgb_decode_deriv`, when the caller holds it.
     """
-    return srgb_decode_grad(texture_srgb, transport.vjp(grad_linear_image))
+    return srgb_decode_grad(texture_srgb, transport.vjp(grad_linear_image), deriv)
 
 
 # -- structure -----------------------------------------------------------------
