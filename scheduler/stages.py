@@ -40,6 +40,7 @@ from scheduler.outputs import default_out_dir, results, write_outputs
 from scheduler.state import encode_state
 from undream import attacks  # lazy: make_attack loads torch when first called
 from undream.lru import LRU
+from undream.spec.run import split_frames
 from undream.store import ACTIVE, UNFINISHED
 
 if TYPE_CHECKING:
@@ -68,8 +69,13 @@ class FarmOptions:
         return cls(**{k: v for k, v in run.farm.items() if k in cls.__dataclass_fields__})
 
     @classmethod
-    def from_settings(cls, settings: "Settings", n_frames: int) -> "FarmOptions":
-        return cls(settings.frames_per_task_for(n_frames), settings.max_attempts, settings.failure_budget)
+    def from_settings(cls, settings: "Settings", config: "RunConfig", n_frames: int) -> "FarmOptions":
+        """The settings' options for a run of ``config`` over ``n_frames`` frames: tasks sized for the
+        frames an iteration renders (the attacked ones, or ``frames_per_step`` of them), so each
+        iteration's frames spread evenly over the farm's slots."""
+        attacked = len(split_frames(config.holdout, n_frames)[0])
+        per_iteration = min(config.attack.frames_per_step or attacked, attacked)
+        return cls(settings.frames_per_task_for(per_iteration), settings.max_attempts, settings.failure_budget)
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
@@ -86,9 +92,12 @@ class Dispatch(Protocol):
 
 
 def batches(frames: Sequence[int], size: int) -> list[list[int]]:
-    """``frames`` in consecutive batches of ``size``."""
+    """``frames`` in as few consecutive batches of at most ``size`` as hold them, their sizes
+    differing by one at most (24 frames by 9: 8, 8, 8; not 9, 9, 6), so no task is the phase's straggler."""
     frames = list(frames)
-    return [frames[i:i + size] for i in range(0, len(frames), size)]
+    n = -(-len(frames) // max(1, size))
+    cuts = [-(-len(frames) * i // n) for i in range(n + 1)] if n else [0]  # the larger batches first
+    return [frames[a:b] for a, b in zip(cuts, cuts[1:])]
 
 
 def expected(run: "RunSnapshot", phase: str, k: int) -> list[int]:

@@ -94,7 +94,7 @@ def record(store: "Store", runs: Sequence[Prepared], settings: "Settings", out: 
             keys[p.scene_dir] = store_scene(store.blobs, p.scene_dir)
         folder = None if out is None else Path(out).resolve() / (p.config.name if out_per_run else "")
         ids.append(stages.create(store, p.config, p.n_frames,
-                                 stages.FarmOptions.from_settings(settings, p.n_frames),
+                                 stages.FarmOptions.from_settings(settings, p.config, p.n_frames),
                                  scene_ref=keys[p.scene_dir], out_dir=None if folder is None else str(folder),
                                  sweep_id=sweep_id))
     return ids

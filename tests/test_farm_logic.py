@@ -431,3 +431,20 @@ def test_a_stage_that_crashes_on_a_worker_fails_the_run(eager, tiny, tmp_path):
     CeleryDispatch(eager["app"]).start(run_id)
     run = eager["store"].get_run(run_id)
     assert run.status == "failed" and run.iteration == 3 and "NotADirectoryError" in run.error
+
+
+def test_tasks_split_an_iterations_frames_evenly_over_the_slots():
+    """The main job's 24 frames hold 6 out: its 18 attacked frames make two tasks of 9 on two slots
+    (sized by the 24 frames they were 12 and 6, and the second worker waited on the first)."""
+    from undream.spec.run import RunConfig
+
+    s = load_settings(env={})
+    cfg = RunConfig(scene="s", holdout="auto")
+    assert stages.FarmOptions.from_settings(s, cfg, 24).frames_per_task == 9
+    minibatch = RunConfig(scene="s", holdout="none", attack={"name": "pgd", "frames_per_step": 4})
+    assert stages.FarmOptions.from_settings(s, minibatch, 24).frames_per_task == 2
+    assert stages.batches(range(18), 9) == [list(range(9)), list(range(9, 18))]
+    assert [len(b) for b in stages.batches(range(24), 9)] == [8, 8, 8]  # the evaluation's 24 frames
+    assert stages.batches([4, 7, 9], 10) == [[4, 7, 9]] and stages.batches([], 3) == []
+    assert sum(stages.batches(range(101), 7), []) == list(range(101))
+    assert max(len(b) for b in stages.batches(range(101), 7)) <= 7

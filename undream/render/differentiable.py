@@ -51,10 +51,15 @@ def render_linear(scenes: SceneCache, index: int, texture_srgb: np.ndarray, spp:
                   kind: str = "sim", conditions: Any = None) -> np.ndarray:
     """The render of frame ``index``'s ``kind`` scene (simulation by default): H×W×3 LINEAR radiance
     (unclipped); ``conditions``: the camera and light moved for this render (:mod:`undream.render.jitter`)."""
-    mi = scenes.mi
     # the texture written with the frame's own values: one scene update (the conditions, if any, after)
     texture = _render_texture(scenes, scenes.loaded(kind, index), texture_srgb)
-    active = scenes.frame(kind, index, conditions, texture=texture)
+    return render_frozen(scenes, kind, scenes.frame(kind, index, conditions, texture=texture), spp, seed)
+
+
+def render_frozen(scenes: SceneCache, kind: str, active: ActiveFrame, spp: int, seed: int) -> np.ndarray:
+    """``mi.render`` of ``active`` as it is set up: H×W×3 linear radiance; a Dr.Jit frozen function
+    (one recording per kind and spp, replayed) when ``scenes.frozen``."""
+    mi = scenes.mi
     if scenes.frozen:
         img = scenes.frozen_call(f"render/{kind}", _render, active.scene, mi.UInt32(seed), spp)
     else:

@@ -43,7 +43,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from undream.errors import RenderError
-from undream.render.differentiable import srgb_decode_grad
+from undream.render.differentiable import render_frozen, srgb_decode_grad
 from undream.render.scene_cache import ActiveFrame, SceneCache
 from undream.scene.layout import frame_xml
 from undream.scene.mitsuba_scene import OBJECT_ID
@@ -390,7 +390,8 @@ def _bilinear(uv: np.ndarray, tex_hw: tuple[int, int], to_uv: np.ndarray) -> tup
 def render_grad_scene(scenes: SceneCache, index: int, texture_linear: np.ndarray, spp: int, seed: int) -> np.ndarray:
     """Frame ``index``'s gradient scene rendered with a LINEAR texture (Ht×Wt×3): H×W×3 linear radiance.
 
-    A plain ``mi.render`` (not frozen), for checks; the scene's texture is put back afterwards.
+    A forward render (frozen when the cache is: the checks of every frame replay one recording),
+    for checks; the scene's texture is put back afterwards.
     """
     mi = scenes.mi
     active = scenes.frame("grad", index)
@@ -399,7 +400,7 @@ def render_grad_scene(scenes: SceneCache, index: int, texture_linear: np.ndarray
     try:
         params[key] = mi.TensorXf(np.asarray(texture_linear, np.float32))
         params.update()
-        return np.array(mi.render(active.scene, spp=spp, seed=seed), dtype=np.float32)
+        return render_frozen(scenes, "grad", active, spp, seed)
     finally:
         params[key] = saved
         params.update()
