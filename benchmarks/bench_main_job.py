@@ -1,20 +1,21 @@
 #!/usr/bin/env python
 """The main job before and after, measured in one run: a table per component and the ratios.
 
-    .venv/bin/python benchmarks/bench_main_job.py --before c9c2dfa [--repeats 1] [--config FILE]
+    .venv/bin/python benchmarks/bench_main_job.py --before c9c2dfa [--seeds 0 1 2] [--config FILE]
 
 Runs ``undream run`` on the main job (``examples/runs/bin_orbit_pgd.yaml``: 24
 frames at 64 px, 18 attacked, 100 PGD iterations) as a user would (a
 subprocess, a fresh output folder) with the engine pinned at commit
 ``--before`` (a git worktree, removed afterwards) and with this checkout,
-alternating, ``--repeats`` times each. Per component the table gives the
+alternating, once per seed in ``--seeds`` (the config's ``seed`` replaced). Per component the table gives the
 seconds that ``results.json`` reports (``wall_time_seconds``: the sum over
 frames of the simulator renders, the victim, the texture gradients; the
 reduce-and-step callbacks; the evaluation jobs; the run's wall time from
 its record to its results) and the process's own wall time, the median over
-repeats, and after/before. It also prints the results both runs reached
+seeds, and after/before. It also prints the results each run reached
 (accuracies on the attacked and held-out frames, the last iteration's mean
-loss) and whether the final textures are bit-identical. Run it alone: the
+loss; their mean ± standard deviation over seeds) and whether the final
+textures of each seed are bit-identical. Run it alone: the
 machine's load average is printed before and after.
 """
 from __future__ import annotations
@@ -39,16 +40,28 @@ def _parse(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--before", default="c9c2dfa", help="commit of the engine before ('' skips it)")
     p.add_argument("--config", default="examples/runs/bin_orbit_pgd.yaml")
-    p.add_argument("--repeats", type=int, default=1)
+    p.add_argument("--seeds", type=int, nargs="+", default=[0])
     return p.parse_args(argv)
 
 
-def run_once(tree: Path, config: str, out: Path) -> dict:
+def seeded(config: str, seed: int) -> Path:
+    """A copy of the run config ``config`` (a path in the repository) with ``seed``, next to it so
+    its relative scene path still resolves; removed by the caller."""
+    import yaml
+
+    src = ROOT / config
+    data = yaml.safe_load(src.read_text())
+    out = src.parent / f".bench-seed{seed}-{os.getpid()}.yaml"
+    out.write_text(yaml.safe_dump({**data, "seed": seed}))
+    return out
+
+
+def run_once(tree: Path, config: Path, out: Path) -> dict:
     """``undream run`` with the code of ``tree``; its results.json, the process wall time and texture."""
     env = {**os.environ, "PYTHONPATH": str(tree), "HF_HUB_OFFLINE": "1"}
     t0 = time.perf_counter()
-    res = subprocess.run([sys.executable, "-m", "undream.cli", "run", config, "--out", str(out), "--no-progress"],
-                         cwd=tree, env=env, capture_output=True, text=True)
+    res = subprocess.run([sys.executable, "-m", "undream.cli", "run", str(config), "--out", str(out),
+                          "--no-progress"], cwd=tree, env=env, capture_output=True, text=True)
     process = time.perf_counter() - t0
     if res.returncode != 0:
         raise SystemExit(f"undream run failed in {tree}:\n{res.stdout[-2000:]}\n{res.stderr[-2000:]}")
@@ -79,11 +92,15 @@ def main(argv: list[str] | None = None) -> None:
                             args.before], check=True)
         try:
             runs: dict[str, list[dict]] = {name: [] for name in trees}
-            for r in range(args.repeats):
-                for name, tree in trees.items():
-                    runs[name].append(run_once(tree, args.config, Path(tmp) / f"{name}{r}"))
-                    print(f"  {name} #{r + 1}: {runs[name][-1]['results']['wall_time_seconds']['wall']:.1f} s",
-                          flush=True)
+            for seed in args.seeds:
+                config = seeded(args.config, seed)
+                try:
+                    for name, tree in trees.items():
+                        runs[name].append(run_once(tree, config, Path(tmp) / f"{name}{seed}"))
+                        print(f"  {name} seed {seed}: {runs[name][-1]['results']['wall_time_seconds']['wall']:.1f} s",
+                              flush=True)
+                finally:
+                    config.unlink()
         finally:
             if args.before:
                 subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(trees["before"])],
@@ -93,7 +110,7 @@ def main(argv: list[str] | None = None) -> None:
     for name, rs in runs.items():
         med[name]["process"] = statistics.median(x["process"] for x in rs)
     names = list(trees)
-    print(f"\nmain job ({args.config}), seconds, median of {args.repeats}:\n")
+    print(f"\nmain job ({args.config}), seconds, median over seeds {args.seeds}:\n")
     print("| part | " + " | ".join(names) + (" | after / before |" if "before" in med else " |"))
     print("|---|" + "---|" * len(names) + ("---|" if "before" in med else ""))
     for part in (*PARTS[:-1], "in between", "wall", "process"):
@@ -107,12 +124,17 @@ def main(argv: list[str] | None = None) -> None:
         print(f"\nrun wall time before / after: {med['before']['wall'] / med['after']['wall']:.2f}× faster; "
               f"evaluation {med['before']['evaluation'] / med['after']['evaluation']:.2f}× faster")
     for name, rs in runs.items():
-        for i, x in enumerate(rs):
-            print(f"{name} #{i + 1}: {_summary(x['results'])}")
+        for seed, x in zip(args.seeds, rs):
+            print(f"{name} seed {seed}: {_summary(x['results'])}")
+        last = [x["results"]["loss_per_iteration"][-1] for x in rs]
+        held = [(x["results"].get("held_out") or {}).get("adversarial", {}).get("value") for x in rs]
+        print(f"{name}: last mean loss {np.mean(last):.4f} ± {np.std(last):.4f}, held-out adversarial accuracy "
+              f"{np.mean([h for h in held if h is not None]):.3f} over {len(rs)} seed(s)")
     if "before" in runs:
         same = all(np.array_equal(a["texture"], b["texture"]) for a, b in zip(runs["before"], runs["after"]))
         diff = max(float(np.abs(a["texture"] - b["texture"]).max()) for a, b in zip(runs["before"], runs["after"]))
-        print(f"final textures before and after bit-identical: {same} (largest difference {diff * 255:.0f}/255)")
+        print(f"final textures before and after bit-identical (every seed): {same} "
+              f"(largest difference {diff * 255:.0f}/255)")
     load = os.getloadavg()
     print(f"load average after: {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
 

@@ -8,9 +8,11 @@ P×P pixels, texture 128², sim_spp 16, grad_spp 8, the bundled classifier.
 For each configuration the per-frame job (simulator render → victim →
 gradient render) runs over every frame for a warm-up iteration (loads and
 compiles) and then ``--iterations`` timed iterations. Per part, the table
-gives the median wall time per frame and the Dr.Jit kernel execution time
-of the kernels that part launched (``JitFlag.KernelHistory``); the job's
-ratio is its wall time over the kernels' time.
+gives the median wall time per frame (the batched job: every frame
+rendered, the victim once on the batch, every frame's gradient; each part's
+time over the batch divided by its frames) and the Dr.Jit kernel execution
+time of the kernels that part launched (``JitFlag.KernelHistory``); the
+job's ratio is its wall time over the kernels' time.
 
 ``mode``:
 - ``after``: today's engine (one loaded scene per group of equal frames,
@@ -91,7 +93,7 @@ def measure(scene_dir: Path, mode: str, args, start: int = 1) -> dict[str, float
     """
     from undream.engine.algorithm import start_texture as starting_texture
     from undream.engine.context import build_context
-    from undream.engine.job import frame_seed, victim_loss_and_grad
+    from undream.engine.job import frame_seed, victim_pass
     from undream.color import linear_to_srgb
     from undream.engine.gradient import GradientPath
     from undream.render.differentiable import srgb_encode_grad
@@ -112,25 +114,33 @@ def measure(scene_dir: Path, mode: str, args, start: int = 1) -> dict[str, float
     clock = KernelClock()
     parts = {k: [] for k in ("sim_wall", "sim_kernel", "victim_wall", "grad_wall", "grad_kernel", "job_wall")}
     iters, first_grad = [], []
+    positions = list(range(len(ctx.frame_indices)))
     for k in [0, *range(start, start + args.iterations)]:
+        # the batched job (undream.engine.job.render_and_grad_many), each part timed over the batch
         t_iter = time.perf_counter()
+        seeds = [frame_seed(cfg.seed, k, index) for index in ctx.frame_indices]
+        clock.lap()
+        t0 = time.perf_counter()
+        lin = [ctx.sim.render(index, tex, cfg.sim_spp, seed) for index, seed in zip(ctx.frame_indices, seeds)]
+        srgb = [linear_to_srgb(x) for x in lin]
+        t1 = time.perf_counter()
+        ks = clock.lap()
+        _, g_img, _ = victim_pass(ctx, positions, srgb)
+        t2 = time.perf_counter()
+        grad_times = []
         for pos, index in enumerate(ctx.frame_indices):
-            seed = frame_seed(cfg.seed, k, index)
-            clock.lap()
-            t0 = time.perf_counter()
-            lin = ctx.sim.render(index, tex, cfg.sim_spp, seed)
-            t1 = time.perf_counter()
-            ks = clock.lap()
-            _, g_img, _ = victim_loss_and_grad(ctx, pos, linear_to_srgb(lin))
-            t2 = time.perf_counter()
-            ctx.gradients.texture_gradient(index, tex, srgb_encode_grad(lin, g_img), cfg.grad_spp, k, seed)
-            t3 = time.perf_counter()
-            kg = clock.lap()
-            if k == 0:
-                first_grad.append(t3 - t2)
-            if k > 0:  # iteration 0 loads scenes and compiles kernels
-                for name, v in zip(parts, (t1 - t0, ks, t2 - t1, t3 - t2, kg, t3 - t0)):
-                    parts[name].append(v)
+            tg = time.perf_counter()
+            ctx.gradients.texture_gradient(index, tex, srgb_encode_grad(lin[pos], g_img[pos]), cfg.grad_spp, k,
+                                           seeds[pos])
+            grad_times.append(time.perf_counter() - tg)
+        t3 = time.perf_counter()
+        kg = clock.lap()
+        n = len(positions)
+        if k == 0:
+            first_grad.extend(grad_times)
+        if k > 0:  # iteration 0 loads scenes and compiles kernels
+            for name, v in zip(parts, ((t1 - t0) / n, ks / n, (t2 - t1) / n, (t3 - t2) / n, kg / n, (t3 - t0) / n)):
+                parts[name].append(v)
         if k > 0:
             iters.append(time.perf_counter() - t_iter)
     out = {name: statistics.median(v) for name, v in parts.items()}
