@@ -107,9 +107,12 @@ def test_sigkill_of_a_worker_mid_iteration_loses_nothing(tiny):
     farm = Farm(tiny["root"] / "kill", frames_per_task=1)
     farm.root.mkdir()
     try:
-        workers = [farm.start_worker(), farm.start_worker()]
-        cfg = {"steps": 4, "sim_spp": 16, "grad_spp": 16}
+        # Queued first, the workers started after: with batched frames a tiny frame job takes
+        # tens of milliseconds, and the whole run could end before `undream submit` returns.
+        # sim_spp 256 keeps each job long enough to be caught running.
+        cfg = {"steps": 4, "sim_spp": 256, "grad_spp": 16}
         run_id = submit(farm, tiny, "kill", **cfg)
+        workers = [farm.start_worker(), farm.start_worker()]
 
         def started_job():
             run = farm.store.get_run(run_id)

@@ -448,3 +448,34 @@ def test_tasks_split_an_iterations_frames_evenly_over_the_slots():
     assert stages.batches([4, 7, 9], 10) == [[4, 7, 9]] and stages.batches([], 3) == []
     assert sum(stages.batches(range(101), 7), []) == list(range(101))
     assert max(len(b) for b in stages.batches(range(101), 7)) <= 7
+
+
+def test_a_worker_process_loads_the_victims_code_before_its_first_task(monkeypatch, caplog):
+    """workers.runtime.warm_up loads the bundled classifier once (the victims' model code is then
+    imported) and never stops a worker from starting when it cannot."""
+    import logging
+
+    from undream import victims
+    from workers import runtime
+
+    loaded = []
+    monkeypatch.setattr(victims, "load_victim", lambda spec, **kw: loaded.append((spec, kw)))
+    runtime.warm_up()
+    assert loaded == [("bundled:classifier", {"device": "cpu", "task": "classification", "offline": True})]
+
+    def broken(spec, **kw):
+        raise OSError("no weights here")
+
+    monkeypatch.setattr(victims, "load_victim", broken)
+    with caplog.at_level(logging.WARNING, logger="workers.runtime"):
+        runtime.warm_up()  # logged, not raised
+    assert any("warm-up skipped: no weights here" in r.message for r in caplog.records)
+
+
+def test_a_worker_child_has_time_to_start():
+    """A child's start (Mitsuba, torch, the warm-up) took more than Celery's default 4 s on a loaded
+    machine, and Celery killed and re-forked it in a loop, so no job ever ran."""
+    from workers.app import PROCESS_START_TIMEOUT, create_celery_app
+
+    app = create_celery_app(load_settings(env={}))
+    assert app.conf.worker_proc_alive_timeout == PROCESS_START_TIMEOUT >= 60

@@ -21,6 +21,8 @@ from undream.store import mask_url
 from workers.queues import CONTROL_QUEUE, FRAMES_QUEUE, QUEUES
 from workers.tasks import register_tasks
 
+PROCESS_START_TIMEOUT = 120.0  # seconds a worker child may take to start (Celery's worker_proc_alive_timeout)
+
 if TYPE_CHECKING:
     from celery import Celery
 
@@ -64,6 +66,9 @@ def create_celery_app(settings: "Settings", local: "LocalSettings | None" = None
                      "undream.start": {"queue": CONTROL_QUEUE},
                      "undream.collect": {"queue": CONTROL_QUEUE}},
         worker_send_task_events=True, task_send_sent_event=True,  # task events: Flower can watch the farm
+        # A child's start (workers.runtime.init_process: Mitsuba, torch, the victims' code warmed up)
+        # takes seconds, more on a loaded machine; Celery's default 4 s killed children in a loop.
+        worker_proc_alive_timeout=PROCESS_START_TIMEOUT,
     )
     app.undream_settings = settings  # type: ignore[attr-defined]  # read by workers.runtime
     app.undream_local = load_local() if local is None else local  # type: ignore[attr-defined]
