@@ -41,7 +41,7 @@ from scheduler.state import encode_state
 from undream import attacks  # lazy: make_attack loads torch when first called
 from undream.lru import LRU
 from undream.spec.run import split_frames
-from undream.store import ACTIVE, UNFINISHED
+from undream.store import ACTIVE, UNFINISHED, NewRun
 
 if TYPE_CHECKING:
     from undream.engine.context import RunContext
@@ -117,15 +117,30 @@ def _current(run: "RunSnapshot", phase: str, k: int) -> bool:
 # -- stages ---------------------------------------------------------------------------
 
 
+def new_run(config: "RunConfig", n_frames: int, options: FarmOptions, *, scene_ref: str | None = None,
+            out_dir: str | None = None) -> NewRun:
+    """A run of ``config`` to record (:meth:`undream.store.Store.create_runs`), its id chosen."""
+    return NewRun(config.name, config.to_json(), n_frames, config.seed, scene_ref=scene_ref, out_dir=out_dir,
+                  farm=options.to_json())
+
+
 def create(store: "Store", config: "RunConfig", n_frames: int, options: FarmOptions, *,
            scene_ref: str | None = None, out_dir: str | None = None, sweep_id: str | None = None) -> str:
     """Record a run (queued, not yet started); returns its id."""
-    return store.create_run(config.name, config.to_json(), n_frames, config.seed, scene_ref=scene_ref,
-                            out_dir=out_dir, sweep_id=sweep_id, farm=options.to_json())
+    (run_id,) = store.create_runs([new_run(config, n_frames, options, scene_ref=scene_ref, out_dir=out_dir)],
+                                  sweep_id)
+    return run_id
 
 
 def start(store: "Store", contexts: Contexts, run_id: str, dispatch: Dispatch) -> str:
-    """The starting texture and attack state (once), then iteration 0's jobs."""
+    """The starting texture and attack state (once), then iteration 0's jobs (once).
+
+    A start delivered twice (``undream resume SWEEP`` sends the start of every
+    run still queued, including one whose start waits in the broker) plans the
+    run once: the second finds it running with its jobs recorded and is
+    ``stale``. A start retried after moving the run to running but before
+    recording its jobs plans them.
+    """
     import torch
 
     from undream.engine.algorithm import start_texture, visibility
@@ -142,10 +157,12 @@ def start(store: "Store", contexts: Contexts, run_id: str, dispatch: Dispatch) -
         T_start, state = ctx.attack.start(torch.from_numpy(T0), visible=torch.from_numpy(seen))
         scalars, arrays = encode_state(state)
         store.start_run(run_id, T_start.numpy(), scalars, arrays)
-    store.transition(run_id, ("queued",), "running")
+    moved = store.transition(run_id, ("queued",), "running")
     run = store.get_run(run_id)
     if not _current(run, "attack", run.iteration):
         return "stale"
+    if not moved and (run.iteration > 0 or store.jobs(run_id, 0, "attack")):
+        return "stale"  # another delivery of this start planned iteration 0
     plan(store, run, "attack", run.iteration, dispatch)
     return "started"
 
@@ -303,6 +320,16 @@ def cancel(store: "Store", run_id: str) -> bool:
     """Stop a run: its queued jobs and callbacks find it cancelled and do nothing. False if it had ended."""
     return store.transition(run_id, ("queued", "running", "evaluating"), "cancelled",
                             error="cancelled by the user")
+
+
+def resume_sweep(store: "Store", sweep_id: str, dispatch: Dispatch) -> list[str]:
+    """Send the start of every run of the sweep that is still queued (its start never sent, lost
+    with the broker, or waiting in it: :func:`start` plans a run once however often it is
+    delivered); returns their ids. Runs that started, ended or were cancelled are left alone."""
+    run_ids = [run.id for run in store.runs(status="queued", sweep_id=sweep_id)]
+    for run_id in run_ids:
+        dispatch.start(run_id)
+    return run_ids
 
 
 def resume(store: "Store", run_id: str, dispatch: Dispatch) -> str:

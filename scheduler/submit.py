@@ -5,7 +5,9 @@ directory, the sequence, the victim and its classes, the attack), so a run
 that passes cannot fail a worker for a bad config. Only then is the scene
 packed into the blob store, the run recorded and its start dispatched; a run
 recorded but not dispatched (the broker vanished in between) starts with
-``undream resume``.
+``undream resume``. A sweep and all its runs are recorded in one transaction
+(none of them if it is interrupted); runs whose start was not sent stay
+queued, and ``undream resume SWEEP`` sends every queued run's start again.
 """
 from __future__ import annotations
 
@@ -23,8 +25,9 @@ from undream.spec.io import resolve_against
 from undream.spec.run import RunConfig
 
 if TYPE_CHECKING:
+    from scheduler.sweep import Sweep
     from undream.settings import Settings
-    from undream.store import Store
+    from undream.store import NewRun, Store
 
 _SHARED = ("name", "attack", "seed", "sim_spp", "grad_spp", "eval_spp", "store", "transport_refresh")
 
@@ -78,9 +81,10 @@ class Validator:
         return Prepared(config, scene_dir, len(sequence.frames))
 
 
-def record(store: "Store", runs: Sequence[Prepared], settings: "Settings", out: Path | None = None,
-           sweep_id: str | None = None, out_per_run: bool = False) -> list[str]:
-    """Pack the scenes into the blob store and record the runs (queued); returns their ids.
+def new_runs(store: "Store", runs: Sequence[Prepared], settings: "Settings", out: Path | None = None,
+             out_per_run: bool = False) -> list[NewRun]:
+    """Pack the scenes into the blob store (content-addressed: packing one again writes nothing new)
+    and give the runs to record.
 
     ``out``: the output folder (a sweep: ``out/<run name>`` when ``out_per_run``);
     None: ``<blobs>/outputs/<name>-<id>``.
@@ -88,18 +92,34 @@ def record(store: "Store", runs: Sequence[Prepared], settings: "Settings", out: 
     from scheduler.scenes import store_scene
 
     keys: dict[Path, str] = {}
-    ids = []
+    new = []
     for p in runs:
         if p.scene_dir not in keys:
             keys[p.scene_dir] = store_scene(store.blobs, p.scene_dir)
         folder = None if out is None else Path(out).resolve() / (p.config.name if out_per_run else "")
-        ids.append(stages.create(store, p.config, p.n_frames,
-                                 stages.FarmOptions.from_settings(settings, p.config, p.n_frames),
-                                 scene_ref=keys[p.scene_dir], out_dir=None if folder is None else str(folder),
-                                 sweep_id=sweep_id))
-    return ids
+        options = stages.FarmOptions.from_settings(settings, p.config, p.n_frames)
+        new.append(stages.new_run(p.config, p.n_frames, options, scene_ref=keys[p.scene_dir],
+                                  out_dir=None if folder is None else str(folder)))
+    return new
+
+
+def record(store: "Store", runs: Sequence[Prepared], settings: "Settings", out: Path | None = None,
+           sweep_id: str | None = None, out_per_run: bool = False) -> list[str]:
+    """Pack the scenes, then record the runs (queued; in sweep ``sweep_id`` if given) in one
+    transaction: all or none; returns their ids. ``out``, ``out_per_run``: see :func:`new_runs`."""
+    return store.create_runs(new_runs(store, runs, settings, out, out_per_run), sweep_id)
+
+
+def record_sweep(store: "Store", sweep: "Sweep", runs: Sequence[Prepared], settings: "Settings",
+                 out: Path | None = None) -> tuple[str, list[str]]:
+    """Pack the scenes, then record the sweep and its runs (queued; outputs in ``out/<run name>``)
+    in one transaction: an error or an interrupt before it commits leaves no sweep and no run.
+    Returns the sweep's id and its runs' ids, in the order of ``runs``."""
+    new = new_runs(store, runs, settings, out, out_per_run=True)
+    return store.create_sweep(sweep.name, sweep.spec, new), [run.id for run in new]
 
 
 def dispatch_starts(dispatch: Any, run_ids: Sequence[str]) -> None:
+    """Send each run's start; one lost on the way leaves its run queued (``undream resume``)."""
     for run_id in run_ids:
         dispatch.start(run_id)

@@ -125,3 +125,74 @@ def test_a_sweep_is_validated_whole_then_recorded_and_its_results_tabled(farm, t
         [("8", "0", "done"), ("8", "1", "done"), ("16", "0", "done"), ("16", "1", "queued")]
     assert rows[0]["metric"] == "accuracy" and rows[3]["benign"] == ""
     assert stages.cancel(farm.store, runs[3].id)
+
+
+def test_an_interrupted_sweep_records_nothing_and_a_half_sent_one_is_resumed(farm, tiny, monkeypatch):
+    """Ctrl-C while the runs are recorded leaves no sweep and no run; a broker lost after one start
+    leaves every run queued, and `undream resume SWEEP` sends them all: each run starts once."""
+    from collections import Counter
+
+    from click.testing import CliRunner
+    from sqlalchemy import Engine, event
+
+    from scheduler import stages
+    from scheduler.contexts import ContextCache
+    from scheduler.local import LocalDispatch
+    from undream.cli import farm as farm_cli
+    from undream.cli import main
+
+    class Flaky(LocalDispatch):
+        """Starts queued here (a broker lost after ``sent`` of them); each run's planned chords counted."""
+
+        def __init__(self, sent: int | None) -> None:
+            super().__init__()
+            self.sent, self.planned = sent, Counter()
+
+        def start(self, run_id: str) -> None:
+            if self.sent is not None and len(self.queue) >= self.sent:
+                raise ConnectionError("Error 111 connecting to 127.0.0.1:6379. Connection refused.")
+            super().start(run_id)
+
+        def frames(self, run_id: str, phase: str, k: int, batches: list[list[int]]) -> None:
+            self.planned[run_id, phase, k] += 1
+
+    def cli(*args: str):
+        return CliRunner().invoke(main, list(args), env=farm.env)
+
+    def interrupt(conn, cursor, statement, parameters, context, executemany):  # noqa: ANN001
+        if statement.lstrip().upper().startswith("INSERT INTO RUNS"):
+            raise KeyboardInterrupt
+
+    write_yaml(farm.root / "run.yaml", run_config(tiny["scene"], tiny["victim"], steps=1))
+    sweep_yaml = write_yaml(farm.root / "sweep.yaml", {"name": "seeds", "run": "run.yaml",
+                                                       "grid": {"seed": [0, 1, 2]}})
+    event.listen(Engine, "before_cursor_execute", interrupt)
+    try:
+        res = cli("sweep", str(sweep_yaml))
+    finally:
+        event.remove(Engine, "before_cursor_execute", interrupt)
+    assert res.exit_code == 1 and "aborted" in res.stderr, (res.exit_code, res.output)
+    assert farm.store.runs() == [] and redis_client(farm.db).dbsize() == 0
+    _one_line(farm.cli("results", "seeds"), "sweep 'seeds': not found")  # no sweep row either
+
+    dispatch = Flaky(sent=1)
+    monkeypatch.setattr(farm_cli, "_dispatch", lambda app: dispatch)
+    res = cli("sweep", str(sweep_yaml))
+    sweep_id = res.stdout.splitlines()[0]
+    assert res.exit_code == 2 and res.stderr.count("\n") == 1, res.output
+    assert f"sweep {sweep_id} recorded but not sent to the broker (Error 111" in res.stderr
+    assert f"send it with `undream resume {sweep_id}`" in res.stderr
+    runs = farm.store.runs(sweep_id=sweep_id)
+    assert [r.status for r in runs] == ["queued"] * 3 and list(dispatch.queue) == [("start", runs[0].id)]
+
+    dispatch.sent = None
+    res = cli("resume", sweep_id[:8])
+    assert res.exit_code == 0, res.output
+    assert res.stdout.strip() == f"resumed sweep {sweep_id}: 3 queued run(s) sent"
+    assert [item[1] for item in dispatch.queue] == [runs[0].id] + [r.id for r in runs]  # run 0's start twice
+    contexts = ContextCache(farm.store, farm.root / "cache")
+    outcomes = [stages.start(farm.store, contexts, item[1], dispatch) for item in dispatch.queue]
+    assert outcomes == ["started", "stale", "started", "started"]  # run 0's second start plans nothing
+    assert dispatch.planned == Counter({(r.id, "attack", 0): 1 for r in runs})  # iteration 0 planned once
+    assert [r.status for r in farm.store.runs(sweep_id=sweep_id)] == ["running"] * 3
+    assert cli("resume", "seeds").stdout.strip() == f"resumed sweep {sweep_id}: 0 queued run(s) sent"

@@ -19,15 +19,16 @@ import numpy as np
 import pytest
 
 from conftest import service_missing
-from sqlalchemy import create_engine, event, text
+from sqlalchemy import create_engine, event, func, select, text
 from sqlalchemy.engine import make_url
 from sqlalchemy.exc import SQLAlchemyError
 
 from undream.errors import StoreError
 from undream.store import (
-    BlobStore, EvalResult, JobResult, Store, attack_state_key, grad_key, open_store, texture_blob_key,
+    BlobStore, EvalResult, JobResult, NewRun, Store, attack_state_key, grad_key, open_store, texture_blob_key,
 )
 from undream.store import blobs as blobs_module
+from undream.store.models import Run, Sweep
 
 PG_ADMIN_URL = os.environ.get("UNDREAM_TEST_POSTGRES_URL",
                               "postgresql+psycopg://postgres@127.0.0.1:5432/test")
@@ -173,6 +174,80 @@ def test_results_and_delete(store: Store, run_id: str):
     store.delete_run(run_id)
     assert store.runs() == []
     assert not (store.blobs.root / "runs" / run_id).exists()
+
+
+# -- sweeps: recorded all or nothing ------------------------------------------------
+
+
+def _new_runs(n: int) -> list[NewRun]:
+    return [NewRun(f"grid-{i:03d}", {"attack": {"name": "pgd", "eps": 8.0 + i}}, n_frames=4, seed=i,
+                   scene_ref="scenes/abc.tar", farm={"frames_per_task": 2}) for i in range(n)]
+
+
+def _rows(store: Store) -> tuple[int, int]:
+    """How many sweep and run rows the database holds (read past the store's own methods)."""
+    with store.engine.connect() as conn:
+        return tuple(conn.execute(select(func.count()).select_from(table)).scalar_one()
+                     for table in (Sweep.__table__, Run.__table__))
+
+
+def test_a_sweep_is_recorded_with_its_runs_in_order(store: Store):
+    runs = _new_runs(5)
+    sweep_id = store.create_sweep("grid", {"grid": {"attack.eps": [8, 9, 10, 11, 12]}}, runs)
+    got = store.runs(sweep_id=sweep_id)
+    assert [r.id for r in got] == [r.id for r in runs] and [r.name for r in got] == [r.name for r in runs]
+    assert {(r.status, r.iteration, r.scene_ref) for r in got} == {("queued", 0, "scenes/abc.tar")}
+    assert got[3].config == {"attack": {"name": "pgd", "eps": 11.0}} and got[3].farm == {"frames_per_task": 2}
+    assert store.create_runs(_new_runs(2), sweep_id) and len(store.runs(sweep_id=sweep_id)) == 7
+    with pytest.raises(StoreError, match="sweep 'nope': not found"):
+        store.create_runs(_new_runs(1), "nope")
+
+
+@pytest.mark.parametrize("interrupt", [KeyboardInterrupt, SystemExit])
+def test_an_interrupted_sweep_records_no_sweep_and_no_run(store: Store, interrupt):
+    """Ctrl-C (or SIGTERM, which the CLI turns into SystemExit) while the runs are inserted, after
+    the sweep row was: the transaction never commits, so neither the sweep nor any run exists."""
+    def stop(conn, cursor, statement, parameters, context, executemany):  # noqa: ANN001
+        if statement.lstrip().upper().startswith("INSERT INTO RUNS"):
+            raise interrupt()
+
+    event.listen(store.engine, "before_cursor_execute", stop)
+    try:
+        with pytest.raises(interrupt):
+            store.create_sweep("grid", {"grid": {}}, _new_runs(50))
+    finally:
+        event.remove(store.engine, "before_cursor_execute", stop)
+    assert _rows(store) == (0, 0)
+    store.create_sweep("grid", {"grid": {}}, _new_runs(3))  # the store works on afterwards
+    assert _rows(store) == (1, 3)
+
+
+def test_a_sweep_with_a_bad_run_records_nothing(store: Store):
+    runs = _new_runs(4)
+    with pytest.raises(StoreError, match=r"seed: must be an integer .* got -1"):  # checked before any write
+        store.create_sweep("grid", {}, [*runs[:3], dataclasses.replace(runs[3], seed=-1)])
+    with pytest.raises(StoreError, match="create_sweep: database error"):  # refused by the database
+        store.create_sweep("grid", {}, [*runs[:3], dataclasses.replace(runs[3], id=runs[0].id)])
+    assert _rows(store) == (0, 0)
+
+
+def test_recording_a_sweep_takes_the_same_statements_for_5_runs_as_for_50(store: Store):
+    seen: list[str] = []
+
+    def count(conn, cursor, statement, parameters, context, executemany):  # noqa: ANN001
+        seen.append(statement)
+
+    counts = []
+    event.listen(store.engine, "before_cursor_execute", count)
+    try:
+        for n in (5, 50):
+            seen.clear()
+            store.create_sweep("grid", {}, _new_runs(n))
+            counts.append(len(seen))
+    finally:
+        event.remove(store.engine, "before_cursor_execute", count)
+    assert counts[0] == counts[1] <= 4, counts  # (BEGIN,) INSERT sweep, INSERT runs: one transaction
+    assert _rows(store) == (2, 55)
 
 
 # -- frame jobs ---------------------------------------------------------------

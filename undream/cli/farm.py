@@ -73,8 +73,9 @@ def _dispatch(app: "Celery") -> Any:
     return CeleryDispatch(app)
 
 
-def _send(what: str, fn: Callable[[], Any]) -> None:
-    """Publish to the broker; a broker lost since the check is one line (runs stay recorded)."""
+def _send(what: str, ref: str, fn: Callable[[], Any]) -> None:
+    """Publish to the broker; a broker lost since the check is one line (runs stay recorded,
+    queued until ``undream resume REF`` sends them)."""
     from workers.app import BrokerError
 
     try:
@@ -83,7 +84,7 @@ def _send(what: str, fn: Callable[[], Any]) -> None:
         raise
     except Exception as exc:  # kombu's OperationalError and the transport's own errors
         raise BrokerError(f"{what} recorded but not sent to the broker ({' '.join(str(exc).split())}); "
-                          "send it with `undream resume`") from None
+                          f"send it with `undream resume {ref}`") from None
 
 
 def _table(rows: list[dict[str, Any]]) -> str:
@@ -134,7 +135,7 @@ def submit_cmd(run_yaml: Path, out: Path | None, check: bool, settings: Callable
             return
         app = _app(cfg)
         (run_id,) = record(_store(cfg), [prepared], cfg, out)
-    _send(f"run {run_id}", lambda: dispatch_starts(_dispatch(app), [run_id]))
+    _send(f"run {run_id}", run_id, lambda: dispatch_starts(_dispatch(app), [run_id]))
     click.echo(run_id)
 
 
@@ -221,25 +222,46 @@ def cancel_cmd(run: str, settings: Callable[..., "Settings"]) -> None:
 
 
 @click.command("resume")
-@click.argument("run")
+@click.argument("run", metavar="RUN|SWEEP")
 @settings_options
 @one_line_errors
 def resume_cmd(run: str, settings: Callable[..., "Settings"]) -> None:
-    """Send RUN's current work to the farm again, from what the store says (after any crash)."""
+    """Send RUN's current work to the farm again, from what the store says (after any crash).
+
+    RUN may be a sweep (its id, the id's first characters, or its name): every run of it still
+    queued has its start sent again (a start sent twice plans the run once)."""
     from scheduler.lease import expire_stale
     from scheduler.stages import resume
 
     cfg = settings()
     app = _app(cfg)
     store = _store(cfg, create=False)
-    snap = store.find_run(run)
+    try:
+        snap = store.find_run(run)
+    except StoreError as not_a_run:
+        _resume_sweep(store, run, app, not_a_run)
+        return
     expire_stale(store, [snap])
     owner = store.get_run(snap.id).owner
     if owner is not None:
         raise StoreError(f"run {snap.id}: being run by {owner}, which is alive; it needs no resume")
     phase: list[str] = []
-    _send(f"run {snap.id}", lambda: phase.append(resume(store, snap.id, _dispatch(app))))
+    _send(f"run {snap.id}", snap.id, lambda: phase.append(resume(store, snap.id, _dispatch(app))))
     click.echo(f"run {snap.id} is done" if phase == ["done"] else f"resumed {snap.id}: {phase[0]}")
+
+
+def _resume_sweep(store: "Store", ref: str, app: "Celery", not_a_run: StoreError) -> None:
+    """``undream resume SWEEP``: the start of every queued run of the sweep sent again; no sweep
+    ``ref`` either is the run's error (not found, or ambiguous), saying that no sweep matched."""
+    from scheduler.stages import resume_sweep
+
+    try:
+        sweep = store.find_sweep(ref)
+    except StoreError:
+        raise StoreError(f"{not_a_run}; no sweep has that id or name either") from None
+    sent: list[str] = []
+    _send(f"sweep {sweep.id}", sweep.id, lambda: sent.extend(resume_sweep(store, sweep.id, _dispatch(app))))
+    click.echo(f"resumed sweep {sweep.id}: {len(sent)} queued run(s) sent")
 
 
 @click.command("sweep")
@@ -255,7 +277,7 @@ def sweep_cmd(sweep_yaml: Path, out: Path | None, max_runs: int | None, check: b
               settings: Callable[..., "Settings"]) -> None:
     """Expand SWEEP_YAML's grid into runs, validate them all, then queue them; prints the sweep id
     (--check: validate only)."""
-    from scheduler.submit import dispatch_starts, record
+    from scheduler.submit import dispatch_starts, record_sweep
     from scheduler.sweep import load_sweep
 
     cfg = settings()
@@ -271,11 +293,9 @@ def sweep_cmd(sweep_yaml: Path, out: Path | None, max_runs: int | None, check: b
             click.echo(f"ok: {sweep_yaml} is valid: {len(sweep.runs)} runs; nothing written or queued")
             return
         app = _app(cfg)
-        store = _store(cfg)
-        sweep_id = store.create_sweep(sweep.name, sweep.spec)
-        run_ids = record(store, prepared, cfg, out, sweep_id=sweep_id, out_per_run=True)
-    _send(f"sweep {sweep_id}", lambda: dispatch_starts(_dispatch(app), run_ids))
-    click.echo(sweep_id)
+        sweep_id, run_ids = record_sweep(_store(cfg), sweep, prepared, cfg, out)  # all or nothing
+    click.echo(sweep_id)  # first: a sweep whose sending is interrupted is resumed by this id
+    _send(f"sweep {sweep_id}", sweep_id, lambda: dispatch_starts(_dispatch(app), run_ids))
     click.echo(_table([{"run": r, "name": p.config.name, **s.values}
                        for r, p, s in zip(run_ids, prepared, sweep.runs)]))
 

@@ -23,12 +23,13 @@ iterations is written once.
 """
 from __future__ import annotations
 
+import datetime as dt
 import uuid
 from contextlib import contextmanager
 from typing import Any, Iterator, Mapping, Sequence
 
 import numpy as np
-from sqlalchemy import Engine, delete, select, update
+from sqlalchemy import Engine, delete, insert, select, update
 from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.orm import Session
 
@@ -37,10 +38,11 @@ from undream.store.blobs import (
     BlobStore, array_digest, array_key, attack_state_key, final_texture_key, run_prefix,
     texture_blob_key,
 )
-from undream.store.checks import MAX_SEED, RECORD_FIELDS, integer, mapping, record_values, texture
+from undream.store.checks import RECORD_FIELDS, integer, mapping, record_values, texture
 from undream.store.jobs import IN_CHUNK, JobTables
 from undream.store.leases import LeaseMethods
-from undream.store.models import JOB_STATUSES, RUN_STATUSES, FrameJob, IterationRecord, Run, Sweep
+from undream.store.models import JOB_STATUSES, RUN_STATUSES, FrameJob, IterationRecord, Run, Sweep, utcnow
+from undream.store.newrun import NewRun, check_name, run_row
 from undream.store.snapshots import IterationSnapshot, RunSnapshot, SweepSnapshot, dumps
 
 WRITE_OPTION = "undream_begin"  # execution option: the BEGIN statement SQLite writers emit
@@ -127,35 +129,47 @@ class Store(JobTables, LeaseMethods):
         given now or later with :meth:`start_run` (the farm computes them on a
         worker). ``scene_ref``: blob key of the packed scene; ``out_dir``: where
         the run's outputs go; ``sweep_id``: the sweep it belongs to; ``farm``:
-        its scheduling options (plain JSON).
+        its scheduling options (plain JSON). Recorded as :meth:`create_runs` records one.
         """
-        if not isinstance(name, str) or not name.strip() or len(name) > 200:
-            raise StoreError(f"name: must be a non-empty string of at most 200 characters, "
-                             f"got {name!r}")
-        mapping("config", config)
-        values: dict[str, Any] = {
-            "name": name, "config_json": dumps("config", dict(config)),
-            "n_frames": integer("n_frames", n_frames, 1), "seed": integer("seed", seed, 0, MAX_SEED),
-            "scene_ref": scene_ref, "out_dir": None if out_dir is None else str(out_dir),
-            "sweep_id": sweep_id, "farm_json": dumps("farm", dict(farm or {}))}
+        run = NewRun(name, config, n_frames, seed, scene_ref=scene_ref, out_dir=out_dir, farm=farm)
+        row = run_row(run, sweep_id, utcnow())
         tex = None if texture0 is None else texture("texture0", texture0)
         if attack_state0 is not None:
             mapping("attack_state0", attack_state0, " (see state_to_dict) or None")
-        run_id = str(uuid.uuid4())
         try:
             if tex is not None:
-                self.blobs.put_array(texture_blob_key(run_id, 0), tex)
+                self.blobs.put_array(texture_blob_key(run.id, 0), tex)
             if attack_state0 is not None:
-                doc = _state_doc(self.blobs, run_id, "attack_state0", attack_state0, arrays0)
-                values["attack_state_ref"] = self.blobs.put_json(attack_state_key(run_id, 0), doc)
+                doc = _state_doc(self.blobs, run.id, "attack_state0", attack_state0, arrays0)
+                row["attack_state_ref"] = self.blobs.put_json(attack_state_key(run.id, 0), doc)
             with self._tx("create_run", write=True) as s:
-                if sweep_id is not None and s.get(Sweep, sweep_id) is None:
-                    raise StoreError(f"sweep {sweep_id!r}: not found")
-                s.add(Run(id=run_id, status="queued", iteration=0, **values))
+                self._insert_runs(s, [row], sweep_id)
         except BaseException:
-            self.blobs.delete_prefix(run_prefix(run_id))
+            self.blobs.delete_prefix(run_prefix(run.id))
             raise
-        return run_id
+        return run.id
+
+    def create_runs(self, runs: Sequence[NewRun], sweep_id: str | None = None) -> list[str]:
+        """Record ``runs`` (queued, iteration 0, in sweep ``sweep_id`` if given) all or nothing:
+        every row is checked first, then one transaction inserts them (a few statements however
+        many runs); an error or an interrupt before it commits leaves none. Returns their ids."""
+        rows = self._run_rows(runs, sweep_id)
+        with self._tx("create_runs", write=True) as s:
+            self._insert_runs(s, rows, sweep_id)
+        return [row["id"] for row in rows]
+
+    @staticmethod
+    def _run_rows(runs: Sequence[NewRun], sweep_id: str | None) -> list[dict[str, Any]]:
+        """The rows of ``runs``, checked, ``created`` a microsecond apart so they list in this order."""
+        now = utcnow()
+        return [run_row(run, sweep_id, now + dt.timedelta(microseconds=i)) for i, run in enumerate(runs)]
+
+    @staticmethod
+    def _insert_runs(s: Session, rows: list[dict[str, Any]], sweep_id: str | None) -> None:
+        if sweep_id is not None and s.get(Sweep, sweep_id) is None:
+            raise StoreError(f"sweep {sweep_id!r}: not found")
+        if rows:  # one executemany (the same columns in each row), sent as multi-row INSERTs
+            s.execute(insert(Run), rows)
 
     def start_run(self, run_id: str, texture0: np.ndarray, attack_state0: Mapping[str, Any],
                   arrays0: Mapping[str, np.ndarray] | None = None) -> bool:
@@ -256,13 +270,16 @@ class Store(JobTables, LeaseMethods):
 
     # -- sweeps ----------------------------------------------------------------
 
-    def create_sweep(self, name: str, spec: Mapping[str, Any]) -> str:
-        """A new sweep (its runs are created with ``sweep_id``); returns its id."""
-        if not isinstance(name, str) or not name.strip() or len(name) > 200:
-            raise StoreError(f"name: must be a non-empty string of at most 200 characters, got {name!r}")
+    def create_sweep(self, name: str, spec: Mapping[str, Any], runs: Sequence[NewRun] = ()) -> str:
+        """A new sweep and its ``runs``, all or nothing in one transaction (see :meth:`create_runs`);
+        returns the sweep's id (the runs' ids are their ``NewRun.id``)."""
         sweep_id = str(uuid.uuid4())
+        row = Sweep(id=sweep_id, name=check_name(name), spec_json=dumps("spec", dict(spec)))
+        rows = self._run_rows(runs, sweep_id)
         with self._tx("create_sweep", write=True) as s:
-            s.add(Sweep(id=sweep_id, name=name, spec_json=dumps("spec", dict(spec))))
+            s.add(row)
+            s.flush()  # the sweep row before its runs (their foreign key)
+            self._insert_runs(s, rows, None)
         return sweep_id
 
     def find_sweep(self, ref: str) -> SweepSnapshot:
@@ -386,4 +403,4 @@ class Store(JobTables, LeaseMethods):
         return out
 
 
-__all__ = ["JOB_STATUSES", "RECORD_FIELDS", "RUN_STATUSES", "TRANSITIONS", "Store"]
+__all__ = ["JOB_STATUSES", "NewRun", "RECORD_FIELDS", "RUN_STATUSES", "TRANSITIONS", "Store"]
