@@ -133,13 +133,15 @@ def create(store: "Store", config: "RunConfig", n_frames: int, options: FarmOpti
 
 
 def start(store: "Store", contexts: Contexts, run_id: str, dispatch: Dispatch) -> str:
-    """The starting texture and attack state (once), then iteration 0's jobs (once).
+    """The starting texture and attack state (once), then iteration 0's jobs.
 
     A start delivered twice (``undream resume SWEEP`` sends the start of every
-    run still queued, including one whose start waits in the broker) plans the
-    run once: the second finds it running with its jobs recorded and is
-    ``stale``. A start retried after moving the run to running but before
-    recording its jobs plans them.
+    run still queued, including one whose start still waits in the broker)
+    plans the run's current iteration again: the jobs' writes are idempotent
+    and the step is a compare-and-set, so the run steps once; the price is the
+    iteration's duplicate work. It never returns early on jobs already
+    recorded: a worker killed between recording them and sending them would
+    leave the run with nothing in flight.
     """
     import torch
 
@@ -157,12 +159,10 @@ def start(store: "Store", contexts: Contexts, run_id: str, dispatch: Dispatch) -
         T_start, state = ctx.attack.start(torch.from_numpy(T0), visible=torch.from_numpy(seen))
         scalars, arrays = encode_state(state)
         store.start_run(run_id, T_start.numpy(), scalars, arrays)
-    moved = store.transition(run_id, ("queued",), "running")
+    store.transition(run_id, ("queued",), "running")
     run = store.get_run(run_id)
     if not _current(run, "attack", run.iteration):
         return "stale"
-    if not moved and (run.iteration > 0 or store.jobs(run_id, 0, "attack")):
-        return "stale"  # another delivery of this start planned iteration 0
     plan(store, run, "attack", run.iteration, dispatch)
     return "started"
 
@@ -324,8 +324,8 @@ def cancel(store: "Store", run_id: str) -> bool:
 
 def resume_sweep(store: "Store", sweep_id: str, dispatch: Dispatch) -> list[str]:
     """Send the start of every run of the sweep that is still queued (its start never sent, lost
-    with the broker, or waiting in it: :func:`start` plans a run once however often it is
-    delivered); returns their ids. Runs that started, ended or were cancelled are left alone."""
+    with the broker, or waiting in it: a second start is harmless, see :func:`start`); returns
+    their ids. Runs that started, ended or were cancelled are left alone."""
     run_ids = [run.id for run in store.runs(status="queued", sweep_id=sweep_id)]
     for run_id in run_ids:
         dispatch.start(run_id)
