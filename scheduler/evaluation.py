@@ -70,12 +70,6 @@ def eval_jobs(store: "Store", ctx: "RunContext", run_id: str, phase: str, k: int
                                              for p, r, im in zip(positions, results, images)])
 
 
-def eval_job(store: "Store", ctx: "RunContext", run_id: str, phase: str, k: int, position: int,
-             textures: dict[str, np.ndarray]) -> None:
-    """:func:`eval_jobs` of the one frame ``position``."""
-    eval_jobs(store, ctx, run_id, phase, k, [position], textures)
-
-
 def eval_textures(store: "Store", run_id: str, phase: str, k: int,
                   needs_final_loss: bool = True) -> dict[str, np.ndarray]:
     """The textures the evaluation jobs of ``phase`` render (see :func:`eval_jobs`); ``last`` only

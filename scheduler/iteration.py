@@ -1,6 +1,6 @@
 """One iteration through the store: the per-frame job's body and the reduce-and-step callback.
 
-The farm runs :func:`frame_job` inside its per-frame-batch tasks (the
+The farm runs :func:`frame_jobs` inside its per-frame-batch tasks (the
 chord's header) and :func:`reduce_and_step` in the chord's callback
 (:mod:`scheduler.stages`); ``undream run`` calls the same functions in one
 process. The math lives in the library (:mod:`undream.engine`,
@@ -80,12 +80,6 @@ def frame_jobs(store: "Store", ctx: "RunContext", run_id: str, k: int, positions
                                                timings=r.timings, result={"prediction": r.prediction})
                                      for f, r in zip(positions, res)])
     return [r.summary() for r in res]
-
-
-def frame_job(store: "Store", ctx: "RunContext", run_id: str, k: int, position: int,
-              texture: np.ndarray | None = None) -> dict[str, Any]:
-    """:func:`frame_jobs` of the one frame ``position``."""
-    return frame_jobs(store, ctx, run_id, k, [position], texture)[0]
 
 
 def reduce_and_step(store: "Store", attack: "Attack", run_id: str, k: int) -> bool:

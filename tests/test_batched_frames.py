@@ -14,12 +14,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from farm_support import make_victim
+from farm_support import make_scene, make_victim
 from undream.engine.algorithm import frame_job, frame_jobs, start_texture
 from undream.engine.context import build_context
-from undream.scene.poses import look_at
-from undream.scenedir.init import InitOptions, init_scene
-from undream.spec import Asset, Camera, Environment, Frame, Sequence, TextureParam, Transform
 from undream.spec.run import RunConfig
 from undream.victims.classifier import Classifier
 
@@ -33,11 +30,7 @@ def victim_dir(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def scene_dir(tmp_path_factory, mi):
-    frames = tuple(Frame(i, Camera(Transform.from_rows(look_at([2.2 * np.sin(a), 1.2, 2.2 * np.cos(a)], [0, 0.5, 0])),
-                                   40.0, (24, 24)), Transform.identity(), Environment("clear", 14.0))
-                   for i, a in enumerate(np.linspace(0.0, 1.5, N_FRAMES)))
-    seq = Sequence("batch", Asset("ball", "builtin:sphere", texture=TextureParam(resolution=(16, 8))), frames)
-    return init_scene(seq, tmp_path_factory.mktemp("batch") / "scene", InitOptions(verify_spp=1))
+    return make_scene(tmp_path_factory.mktemp("batch") / "scene", N_FRAMES)
 
 
 def _config(scene_dir, victim_dir, **extra):

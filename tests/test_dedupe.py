@@ -42,3 +42,23 @@ def test_the_lru_drops_the_least_recently_used_through_its_hook():
     assert dropped == [("b", 2), ("c", 3), ("d", 4)] and len(cache) == 0
     with pytest.raises(KeyError):
         cache.touch("a")
+
+
+def test_last_array_derives_once_per_value_and_again_when_it_changes():
+    """The render's linear texture and the gradient's sRGB derivative share this one-slot cache:
+    reused while the texture is equal by value, derived again when a texel or the shape changes,
+    and never fooled by the caller changing the array it passed in."""
+    import numpy as np
+
+    from undream.lru import LastArray
+
+    calls = []
+    last: LastArray[float] = LastArray()
+    derive = lambda a: calls.append(a.copy()) or float(a.sum())  # noqa: E731
+    t = np.ones((2, 3), np.float32)
+    assert last.get(t, derive) == 6.0 and last.get(t.copy(), derive) == 6.0 and len(calls) == 1
+    t[0, 0] = 2.0  # changed in place: not the array held
+    assert last.get(t, derive) == 7.0 and len(calls) == 2
+    assert last.get(np.ones((3, 2), np.float32), derive) == 6.0 and len(calls) == 3
+    last.clear()
+    assert last.get(np.ones((3, 2), np.float32), derive) == 6.0 and len(calls) == 4

@@ -4,13 +4,16 @@ One class for the process caches that must drop what was used longest ago:
 loaded Mitsuba scene groups (``undream.render.scene_cache``), run contexts,
 scene caches and victims (``scheduler.contexts``), texture versions
 (``scheduler.stages.run_batch``) and the dashboard's values
-(``undream.dashboard.state``). ``functools.lru_cache`` serves the cases whose
+(``undream.dashboard.state``); :class:`LastArray` the one-slot case keyed by an array's value.
+``functools.lru_cache`` serves the cases whose
 key is a function's arguments and whose dropped values need no hook.
 """
 from __future__ import annotations
 
 from collections import OrderedDict
 from typing import Any, Callable, Generic, Hashable, ItemsView, TypeVar
+
+import numpy as np
 
 K = TypeVar("K", bound=Hashable)
 V = TypeVar("V")
@@ -67,3 +70,22 @@ class LRU(Generic[K, V]):
         """Drop every value, least recently used first, each through the hook."""
         while self._items:
             self.drop_oldest()
+
+
+class LastArray(Generic[V]):
+    """What was derived from the last array seen, reused while the next array equals it by value
+    (the frames of one iteration share one texture: its linear tensor for the renders,
+    ``undream.render.differentiable``, and its sRGB derivative for the gradients,
+    ``undream.engine.gradient``, are each computed once). Holds a copy of that array."""
+
+    def __init__(self) -> None:
+        self._held: tuple[Any, V] | None = None
+
+    def get(self, array: Any, derive: Callable[[Any], V]) -> V:
+        """``derive(array)``, or the value derived from the last array when ``array`` equals it."""
+        if self._held is None or self._held[0].shape != array.shape or not np.array_equal(self._held[0], array):
+            self._held = (np.array(array, copy=True), derive(array))
+        return self._held[1]
+
+    def clear(self) -> None:
+        self._held = None

@@ -124,8 +124,7 @@ def eval_render(ctx: RunContext, position: int, texture: np.ndarray) -> np.ndarr
 def _stacks(ctx: RunContext, images: Sequence[np.ndarray]) -> list[tuple[list[int], torch.Tensor]]:
     """The images as victim batches (:func:`undream.engine.job.victim_batches`): (indices, B×3×H×W)."""
     groups = job.victim_batches([im.shape for im in images], ctx.config.victim_batch)
-    return [(g, torch.from_numpy(np.stack([np.asarray(images[i], np.float32).transpose(2, 0, 1) for i in g])))
-            for g in groups]
+    return [(g, job.stack_images([images[i] for i in g])) for g in groups]
 
 
 def eval_predictions(ctx: RunContext, images: Sequence[np.ndarray]) -> list[Any]:
@@ -138,11 +137,6 @@ def eval_predictions(ctx: RunContext, images: Sequence[np.ndarray]) -> list[Any]
     return out
 
 
-def eval_predict(ctx: RunContext, image: np.ndarray) -> Any:
-    """The victim's prediction on one sRGB frame."""
-    return eval_predictions(ctx, [image])[0]
-
-
 def eval_losses(ctx: RunContext, positions: Sequence[int], images: Sequence[np.ndarray]) -> list[float]:
     """The attack's loss on each frame ``positions[i]`` rendered as ``images[i]`` (APGD's final pick
     reads them), one pass per batch."""
@@ -153,11 +147,6 @@ def eval_losses(ctx: RunContext, positions: Sequence[int], images: Sequence[np.n
             for i, v in zip(group, values.double().tolist()):
                 out[i] = v
     return out
-
-
-def eval_loss(ctx: RunContext, position: int, image: np.ndarray) -> float:
-    """The attack's loss on frame ``position`` rendered as ``image``."""
-    return eval_losses(ctx, [position], [image])[0]
 
 
 def render_frames(ctx: RunContext, texture: np.ndarray, out_dir: Path | None) -> list[np.ndarray]:

@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 from undream.errors import RenderError
+from undream.lru import LastArray
 from undream.render.differentiable import srgb_decode_deriv, texture_gradient
 from undream.render.scene_cache import SceneCache
 
@@ -71,7 +72,7 @@ class GradientPath:
     _transports: dict[int, tuple[int, "Transport"]] = field(default_factory=dict)  # index → (epoch, T)
     _verdicts: dict[int, str | None] = field(default_factory=dict)  # index → None (linear) or why not
     _over_budget: set[int] = field(default_factory=set)  # frames left to prb by MAX_TRANSPORT_BYTES
-    _deriv: tuple[np.ndarray, np.ndarray] | None = None  # the last texture and its sRGB decoding derivative
+    _deriv: LastArray[np.ndarray] = field(default_factory=LastArray)  # the last texture → its sRGB derivative
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -116,14 +117,8 @@ class GradientPath:
                 if self.shelf is not None:
                     self.shelf.put(key, t)
             self._transports[index] = held = (epoch, t)
-        return texture_gradient_cached(held[1], texture_srgb, grad_linear_image, self._decode_deriv(texture_srgb))
-
-    def _decode_deriv(self, texture_srgb: np.ndarray) -> np.ndarray:
-        """The texture's sRGB decoding derivative, computed once for the frames of one texture."""
-        tex = np.asarray(texture_srgb, np.float32)
-        if self._deriv is None or self._deriv[0].shape != tex.shape or not np.array_equal(self._deriv[0], tex):
-            self._deriv = (tex.copy(), srgb_decode_deriv(tex))
-        return self._deriv[1]
+        deriv = self._deriv.get(np.asarray(texture_srgb, np.float32), srgb_decode_deriv)  # once per texture
+        return texture_gradient_cached(held[1], texture_srgb, grad_linear_image, deriv)
 
     def _usable(self, index: int) -> bool:
         if self.mode == "prb" or index in self._over_budget:

@@ -92,13 +92,19 @@ def victim_pass(ctx: RunContext, positions: Sequence[int],
     """
     import torch
 
-    x = torch.from_numpy(np.stack([np.asarray(im, np.float32).transpose(2, 0, 1) for im in images_srgb]))
-    x.requires_grad_(True)
+    x = stack_images(images_srgb).requires_grad_(True)
     losses, preds = ctx.victim.loss_and_predict(x, [ctx.targets[p] for p in positions], ctx.config.loss)
     (g,) = torch.autograd.grad(losses.sum(), x)
     grads = np.ascontiguousarray(g.permute(0, 2, 3, 1).numpy(), dtype=np.float32)
     values = losses.detach().double().tolist()
     return values, list(grads), [prediction_record(ctx, p, pred) for p, pred in zip(positions, preds)]
+
+
+def stack_images(images_srgb: Sequence[np.ndarray]) -> Any:
+    """H×W×3 sRGB images of one size as the victim's input: a float32 B×3×H×W torch tensor."""
+    import torch
+
+    return torch.from_numpy(np.stack([np.asarray(im, np.float32).transpose(2, 0, 1) for im in images_srgb]))
 
 
 def victim_batches(shapes: Sequence[tuple[int, ...]], size: int) -> list[list[int]]:

@@ -36,15 +36,11 @@ def _linear_texture(scenes: SceneCache, active: ActiveFrame, texture_srgb: np.nd
 
 def _render_texture(scenes: SceneCache, active: ActiveFrame, texture_srgb: np.ndarray) -> Any:
     """:func:`_linear_texture`, converted once for the frames that render the same texture in a row
-    (the cache keeps the last sRGB texture and its tensor; a texture equal to it reuses the tensor)."""
+    (``scenes.render_texture`` keeps the last sRGB texture's tensor)."""
     tex = np.asarray(texture_srgb, dtype=np.float32)
-    held = scenes.render_texture
-    if (held is not None and held[0].shape == tex.shape == tuple(active.params[active.texture_key].shape)
-            and np.array_equal(held[0], tex)):
-        return held[1]
-    linear = _linear_texture(scenes, active, tex)
-    scenes.render_texture = (tex.copy(), linear)
-    return linear
+    if tex.shape != tuple(active.params[active.texture_key].shape):
+        return _linear_texture(scenes, active, tex)  # raises, naming both shapes
+    return scenes.render_texture.get(tex, lambda t: _linear_texture(scenes, active, t))
 
 
 def render_linear(scenes: SceneCache, index: int, texture_srgb: np.ndarray, spp: int, seed: int,

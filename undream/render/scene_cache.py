@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from undream.errors import RenderError
-from undream.lru import LRU
+from undream.lru import LRU, LastArray
 from undream.render.loading import load_scene, texture_param_key
 from undream.scene.layout import frame_xml
 from undream.variant import mitsuba
@@ -92,7 +92,7 @@ class SceneCache:
         self.share = share
         self.frozen = bool(frozen)
         self._frozen: dict[str, Any] = {}
-        self.render_texture: tuple[np.ndarray, Any] | None = None  # the last sRGB texture rendered, its tensor
+        self.render_texture: LastArray[Any] = LastArray()  # the last sRGB texture rendered → its tensor
         self._groups: dict[tuple[str, tuple[str, int]], _Group] = {}
         self._states: dict[tuple[str, int], _FrameState] = {}
         # the loaded groups; _make_room drops the least recently used before a load, so put() drops none
@@ -103,7 +103,7 @@ class SceneCache:
         for f in self._frozen.values():
             f.clear()
         self._frozen.clear()
-        self.render_texture = None
+        self.render_texture.clear()
         for group in self._groups.values():
             group.loaded = None
         self._lru.clear()
