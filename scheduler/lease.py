@@ -75,12 +75,12 @@ def stale_reason(run: "RunSnapshot", now: dt.datetime, lease_s: float = LEASE_SE
 
 def expire_stale(store: "Store", runs: Iterable["RunSnapshot"] | None = None,
                  lease_s: float = LEASE_SECONDS) -> list[str]:
-    """Fail every stale run (of ``runs``, default all) with its reason; returns their ids."""
+    """Fail every stale run (of ``runs``, default every owned live run) with its reason; returns their ids."""
     from undream.store.models import utcnow
 
     now = utcnow()
     expired = []
-    for run in store.runs() if runs is None else runs:
+    for run in store.owned_runs() if runs is None else runs:
         reason = stale_reason(run, now, lease_s)
         if reason is not None and store.expire(run.id, run.owner, now, reason):  # type: ignore[arg-type]
             log.warning("run %s marked failed: %s", run.id, reason)

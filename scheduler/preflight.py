@@ -180,7 +180,6 @@ def live_owner(out: Path) -> str | None:
     want of its password counts as live: nothing is replaced that cannot be checked."""
     from scheduler.lease import stale_reason
     from undream.store import open_store
-    from undream.store.leases import LIVE
     from undream.store.models import utcnow
 
     if not (out / "store").is_dir():
@@ -194,8 +193,8 @@ def live_owner(out: Path) -> str | None:
         return None
     try:
         now = utcnow()
-        for run in store.runs():
-            if run.status in LIVE and run.owner is not None and stale_reason(run, now) is None:
+        for run in store.owned_runs():
+            if stale_reason(run, now) is None:
                 return f"run {run.id} ({run.owner}, alive)"
     finally:
         store.close()

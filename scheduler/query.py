@@ -62,12 +62,13 @@ def job_rows(store: "Store", run: "RunSnapshot") -> tuple[str, int, list[dict[st
     return phase, k, rows
 
 
-def result_rows(store: "Store", sweep_id: str, spec: dict[str, Any]) -> list[dict[str, Any]]:
-    """One row per run of a sweep: its grid values, status and headline numbers (fractions in
-    [0, 1]: ``benign`` and ``adversarial`` over every frame, ``held_out_benign`` and
-    ``held_out_adversarial`` over the frames the attack never rendered, None without any)."""
+def result_rows(spec: dict[str, Any], runs: list["RunSnapshot"]) -> list[dict[str, Any]]:
+    """One row per run of a sweep (``runs``, of the sweep whose spec is ``spec``): its grid values,
+    status and headline numbers (fractions in [0, 1]: ``benign`` and ``adversarial`` over every
+    frame, ``held_out_benign`` and ``held_out_adversarial`` over the frames the attack never
+    rendered, None without any)."""
     rows = []
-    for run in store.runs(sweep_id=sweep_id):
+    for run in runs:
         res = run.results or {}
         success = (res.get("attack_success") or {}).get("aggregate") or {}
         held = res.get("held_out") or {}

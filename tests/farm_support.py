@@ -27,6 +27,7 @@ REDIS_START = ["redis-server", "--daemonize", "yes", "--bind", "127.0.0.1", "-::
                "--logfile", "/var/log/redis/ci.log"]
 LABELS = ["car", "sphere", "stop_sign", "traffic_cone", "trash_bin", "umbrella"]
 _used_dbs: set[int] = set()
+DB_CLAIM = "undream-tests:redis-db:"  # + a number: a key in database 0 saying a farm of some session uses it
 
 
 def make_victim(path: Path) -> str:
@@ -99,13 +100,23 @@ def redis_up() -> str | None:
 
 
 def free_db() -> int:
-    """A Redis database number no other farm of this session uses, flushed."""
+    """A Redis database number no other farm uses, of this test session or of another one running
+    beside it (claimed by a key in database 0, which lapses after an hour if a session dies), flushed."""
+    claims = redis_client(0)
     for db in range(15, 0, -1):
-        if db not in _used_dbs:
+        if db not in _used_dbs and claims.set(f"{DB_CLAIM}{db}", os.getpid(), nx=True, ex=3600):
             _used_dbs.add(db)
             redis_client(db).flushdb()
             return db
-    raise RuntimeError("no free Redis database number")
+    raise RuntimeError("no free Redis database number (each is claimed by a farm of a test session)")
+
+
+def release_db(db: int) -> None:
+    """Flush database ``db`` and give its number back (its workers are gone)."""
+    if db in _used_dbs:
+        redis_client(db).flushdb()
+        _used_dbs.discard(db)
+        redis_client(0).delete(f"{DB_CLAIM}{db}")
 
 
 class Farm:
@@ -181,9 +192,7 @@ class Farm:
         if self._store is not None:
             self._store.close()
             self._store = None
-        if self.db in _used_dbs:  # its workers are gone: the number is free for the next farm
-            redis_client(self.db).flushdb()
-            _used_dbs.discard(self.db)
+        release_db(self.db)  # its workers are gone: the number is free for the next farm
 
     def logs(self) -> str:
         return "\n".join(p.read_text()[-4000:] for p in sorted(self.root.glob("worker*.log")))

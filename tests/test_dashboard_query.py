@@ -36,7 +36,7 @@ def _png_size(data: bytes) -> tuple[int, int]:
 
 def test_runs_overview_has_every_state_newest_first(farm_store):
     store, farm = farm_store
-    rows = query.runs_overview(store)
+    rows = query.runs_page(store)["runs"]
     assert {r["status"] for r in rows} == set(RUN_STATUSES)
     assert len(rows) == 6 + len(farm.sweep_runs)
     created = [r["created"] for r in rows]
@@ -73,12 +73,12 @@ def test_list_reads_match_the_per_run_reads(farm_store):
 
 def test_runs_overview_filters_by_state_and_sweep(farm_store):
     store, farm = farm_store
-    assert [r["id"] for r in query.runs_overview(store, status="failed")] == [farm.runs["failed"]]
-    in_sweep = query.runs_overview(store, sweep_id=farm.sweep_id)
+    assert [r["id"] for r in query.runs_page(store, status="failed")["runs"]] == [farm.runs["failed"]]
+    in_sweep = query.runs_page(store, sweep_id=farm.sweep_id)["runs"]
     assert sorted(r["id"] for r in in_sweep) == sorted(farm.sweep_runs)
-    assert query.runs_overview(store, status="running", sweep_id=farm.sweep_id) == []
+    assert query.runs_page(store, status="running", sweep_id=farm.sweep_id)["runs"] == []
     with pytest.raises(BadRequest, match="'bogus': not a run status; valid statuses are queued"):
-        query.runs_overview(store, status="bogus")
+        query.runs_page(store, status="bogus")
 
 
 def test_eta_follows_the_median_pace(farm_store):
@@ -115,7 +115,7 @@ def test_held_out_and_attacked_numbers_come_from_the_results(farm_store):
     ev = query.run_detail(store, farm.runs["done"])["evaluation"]  # frame 3 held out; 3 of 4 fooled
     assert ev["held_out"] == {"frames": 1, "benign": 1.0, "adversarial": 1.0, "success_rate": 0.0}
     assert ev["attacked"] == {"frames": 3, "benign": 1.0, "adversarial": 0.0, "success_rate": 1.0}
-    rows = {r["id"]: r for r in query.runs_overview(store)}
+    rows = {r["id"]: r for r in query.runs_page(store)["runs"]}
     done = rows[farm.runs["done"]]
     assert (done["held_out_benign"], done["held_out_adversarial"], done["adversarial"]) == (1.0, 1.0, 0.25)
     assert rows[farm.runs["running"]]["held_out_adversarial"] is None
@@ -190,8 +190,9 @@ def test_sweep_detail_and_eps_series(farm_store):
     adv = [p["adversarial"] for p in series["pgd"]]
     assert adv == sorted(adv, reverse=True) and adv[0] > adv[-1]
     assert [p["held_out_adversarial"] for p in series["mifgsm"]] == [1.0, 1.0, 0.0]  # frame 3 falls at ε 32
-    assert sweeps.sweeps_overview(store) == [{"id": farm.sweep_id, "name": "eps-sweep",
-                                              "created": detail["created"], "runs": 6, "statuses": {"done": 6}}]
+    assert sweeps.sweeps_overview(store) == {"sweeps": [{"id": farm.sweep_id, "name": "eps-sweep",
+                                                         "created": detail["created"], "runs": 6,
+                                                         "statuses": {"done": 6}}], "total": 1}
 
 
 def test_workers_overview_from_the_store(farm_store):

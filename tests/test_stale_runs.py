@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from sqlalchemy import text
+from sqlalchemy import inspect, text
 
 from farm_support import fresh_postgres, make_scene, make_victim, run_config, write_yaml
 from scheduler.lease import Lease, expire_stale, process_gone, stale_reason, this_process
@@ -141,34 +141,50 @@ def test_a_run_held_by_a_live_process_is_refused_and_left_alone(store):
 # -- the schema upgrade ----------------------------------------------------------------------------
 
 
+LIST_INDEXES = {"ix_runs_created_id", "ix_runs_status_created_id", "ix_runs_sweep_created_id"}
+
+
+@pytest.mark.parametrize("version", [2, 3])
 @pytest.mark.parametrize("backend", ["sqlite", "postgresql"])
-def test_a_version_2_database_is_upgraded_in_place(backend, tmp_path):
+def test_an_older_database_is_upgraded_in_place(backend, version, tmp_path):
+    """A database undream wrote with schema 2 (no leases) or 3 (no list indexes, no alembic) opens
+    as schema 4: columns added by the hand-written step, indexes by alembic's revision 0004."""
     drop = None
     if backend == "sqlite":
-        url = f"sqlite:///{tmp_path / 'v2.db'}"
+        url = f"sqlite:///{tmp_path / 'old.db'}"
     else:
         url, drop = fresh_postgres()
     try:
-        _downgrade_and_reopen(url, tmp_path)
+        _downgrade_and_reopen(url, tmp_path, version)
     finally:
         if drop is not None:
             drop()
 
 
-def _downgrade_and_reopen(url: str, tmp_path: Path) -> None:
+def _downgrade_and_reopen(url: str, tmp_path: Path, version: int) -> None:
     with open_store(url, tmp_path / "blobs") as s:
         run_id = s.create_run("old", {"a": 1}, n_frames=2, seed=3)
-        with s.engine.begin() as conn:  # back to what undream with schema 2 wrote
-            conn.execute(text("ALTER TABLE runs DROP COLUMN owner"))
-            conn.execute(text("ALTER TABLE runs DROP COLUMN heartbeat"))
+        assert LIST_INDEXES <= {ix["name"] for ix in inspect(s.engine).get_indexes("runs")}
+        with s.engine.begin() as conn:  # back to what undream with schema `version` wrote
+            for name in sorted(LIST_INDEXES):
+                conn.execute(text(f"DROP INDEX {name}"))
+            conn.execute(text("DROP TABLE alembic_version"))
+            if version == 2:
+                conn.execute(text("ALTER TABLE runs DROP COLUMN owner"))
+                conn.execute(text("ALTER TABLE runs DROP COLUMN heartbeat"))
             conn.execute(text("DELETE FROM undream_schema"))
-            conn.execute(text("INSERT INTO undream_schema (version) VALUES (2)"))
+            conn.execute(text(f"INSERT INTO undream_schema (version) VALUES ({version})"))
     with open_store(url, tmp_path / "blobs") as s:
         with s.engine.connect() as conn:
-            assert conn.scalar(text("SELECT max(version) FROM undream_schema")) == 3
+            assert conn.scalar(text("SELECT max(version) FROM undream_schema")) == 4
+            assert conn.scalar(text("SELECT version_num FROM alembic_version")) == "0004"
+        assert LIST_INDEXES <= {ix["name"] for ix in inspect(s.engine).get_indexes("runs")}
         run = s.get_run(run_id)
         assert (run.name, run.config, run.owner, run.heartbeat) == ("old", {"a": 1}, None, None)
         assert s.claim(run_id, "h:1") and s.get_run(run_id).owner == "h:1"
+    with open_store(url, tmp_path / "blobs") as s:  # opened again: nothing left to do
+        with s.engine.connect() as conn:
+            assert conn.scalar(text("SELECT count(*) FROM undream_schema WHERE version = 4")) == 1
 
 
 # -- end to end: SIGKILL, status, resume ------------------------------------------------------------

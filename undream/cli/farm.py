@@ -21,12 +21,15 @@ from undream.cli.errors import one_line_errors
 from undream.cli.options import check_option, local_settings
 from undream.errors import SpecError, StoreError, UndreamError
 from undream.redact import MASK
+from undream.runlist import MAX_PAGE, RUN_STATUSES
 
 if TYPE_CHECKING:
     from celery import Celery
 
     from undream.settings import Settings
     from undream.store import Store
+
+TABLE_ROWS = 100  # runs `undream results` shows in its table unless --limit says otherwise
 
 
 def settings_options(fn: Callable[..., Any]) -> Callable[..., Any]:
@@ -164,10 +167,17 @@ def worker_cmd(concurrency: int | None, threads: int | None, loglevel: str,
 @click.argument("run", required=False)
 @click.option("--out", "out", type=click.Path(path_type=Path), default=None,
               help="An `undream run` output folder: show the run recorded in its store.")
+@click.option("--limit", type=click.IntRange(1, MAX_PAGE), default=50, show_default=True,
+              help="Show this many runs, newest first.")
+@click.option("--all", "show_all", is_flag=True, help="Show every run (instead of --limit).")
+@click.option("--state", type=click.Choice(RUN_STATUSES), default=None, help="Only runs in this state.")
+@click.option("--sweep", default=None, help="Only the runs of this sweep (an id or a name).")
 @settings_options
 @one_line_errors
-def status_cmd(run: str | None, out: Path | None, settings: Callable[..., "Settings"]) -> None:
-    """Every run as a table, or RUN (an id or its first characters) with its current jobs.
+def status_cmd(run: str | None, out: Path | None, limit: int, show_all: bool, state: str | None,
+               sweep: str | None, settings: Callable[..., "Settings"]) -> None:
+    """The newest runs as a table, with every run counted by state; or RUN (an id or its first
+    characters) with its current jobs.
 
     Runs whose process is gone (see `undream run`) are marked failed first, with the reason.
     """
@@ -177,7 +187,10 @@ def status_cmd(run: str | None, out: Path | None, settings: Callable[..., "Setti
     store = _run_store(out, settings().database_url) if out is not None else _store(settings(), create=False)
     expire_stale(store)
     if run is None:
-        click.echo(_table(run_rows(store, store.runs())))
+        sweep_id = store.find_sweep(sweep).id if sweep else None
+        page = store.runs_page(state, sweep_id, None if show_all else limit)
+        click.echo(_table(run_rows(store, page.runs)))
+        click.echo(_tally(len(page.runs), page.total, store.status_counts(sweep_id), state))
         return
     snap = store.find_run(run)
     click.echo(_table(run_rows(store, [snap])))
@@ -186,6 +199,16 @@ def status_cmd(run: str | None, out: Path | None, settings: Callable[..., "Setti
     phase, k, rows = job_rows(store, snap)
     click.echo(f"\n{phase} jobs, k={k}:")
     click.echo(_table(rows))
+
+
+def _tally(shown: int, total: int, counts: dict[str, int], state: str | None) -> str:
+    """The line under a runs table: how many it shows of how many, and every run counted by state."""
+    states = ", ".join(f"{counts[s]} {s}" for s in RUN_STATUSES if counts.get(s))
+    line = f"\n{shown} of {total} run{'' if total == 1 else 's'}{f' {state}' if state else ''}, newest first"
+    line += f" ({states})" if states else ""
+    if shown < total:
+        line += "; more with --limit N or --all, fewer with --state or --sweep"
+    return line
 
 
 def _run_store(out: Path, database: str | None = None) -> "Store":
@@ -327,18 +350,25 @@ def _validate_sweep(sweep: Any, sweep_yaml: Path, tmp: Path) -> list[Any]:
 
 @click.command("results")
 @click.argument("sweep")
-@click.option("--csv", "as_csv", is_flag=True, help="CSV instead of a table.")
+@click.option("--csv", "as_csv", is_flag=True, help="CSV of every run (or --limit runs) instead of a table.")
+@click.option("--limit", type=click.IntRange(1, MAX_PAGE), default=None,
+              help="Show this many runs, in grid order (default: 100 in the table, every run in --csv).")
 @settings_options
 @one_line_errors
-def results_cmd(sweep: str, as_csv: bool, settings: Callable[..., "Settings"]) -> None:
-    """The runs of SWEEP (an id or a name) with their grid values and results."""
+def results_cmd(sweep: str, as_csv: bool, limit: int | None, settings: Callable[..., "Settings"]) -> None:
+    """The runs of SWEEP (an id or a name) with their grid values and results, in grid order."""
     from scheduler.query import result_rows
 
     store = _store(settings(), create=False)
     snap = store.find_sweep(sweep)
-    rows = result_rows(store, snap.id, snap.spec)
+    page = store.runs_page(sweep_id=snap.id, limit=limit or (None if as_csv else TABLE_ROWS), newest_first=False)
+    rows = result_rows(snap.spec, page.runs)
     if not as_csv:
         click.echo(_table(rows))
+        counts = store.status_counts(snap.id)
+        states = ", ".join(f"{counts[s]} {s}" for s in RUN_STATUSES if counts.get(s))
+        more = "; more with --limit N or --csv" if len(rows) < page.total else ""
+        click.echo(f"\n{len(rows)} of {page.total} runs of sweep {snap.name}{f' ({states})' if states else ''}{more}")
         return
     buf = io.StringIO()
     writer = csv.DictWriter(buf, fieldnames=list(rows[0]) if rows else ["run"], lineterminator="\n")

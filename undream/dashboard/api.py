@@ -49,7 +49,7 @@ def health() -> Any:
             raise
         return jsonify({"status": "ok", "api_version": API_VERSION, "database": None, "runs": 0,
                         "note": str(err), "actions_enabled": farm().settings.dashboard_token is not None})
-    n = len(store.runs())
+    n = sum(store.status_counts().values())
     url = store.engine.url.render_as_string(hide_password=True)
     return jsonify({"status": "ok", "api_version": API_VERSION, "database": mask_url(url), "runs": n,
                     "actions_enabled": farm().settings.dashboard_token is not None})
@@ -57,9 +57,14 @@ def health() -> Any:
 
 @api.get("/runs")
 def runs() -> Any:
-    rows = query.runs_overview(farm().store(), request.args.get("status"), request.args.get("sweep"),
-                               memo=farm().cache.get)
-    return jsonify({"runs": rows, "active": sum(r["status"] in query.ACTIVE_STATUSES for r in rows)})
+    """A page of runs, newest first: ``?status=``, ``?sweep=``, ``?limit=`` (1–1000, default 50) and
+    ``?cursor=`` (the ``next`` of the previous page); ``next`` is None on the last page."""
+    args = request.args
+    page = query.runs_page(farm().store(), args.get("status"), args.get("sweep"), query.check_limit(args.get("limit")),
+                           args.get("cursor"), memo=farm().cache.get)
+    if page["next"] is not None:
+        page["next_url"] = url_for("api.runs", **{**args.to_dict(), "cursor": page["next"]})
+    return jsonify(page)
 
 
 @api.get("/runs/<id:run_id>")
@@ -76,12 +81,16 @@ def jobs(run_id: str) -> Any:
 
 @api.get("/sweeps")
 def sweep_list() -> Any:
-    return jsonify({"sweeps": sweeps.sweeps_overview(farm().store())})
+    """The newest sweeps that have runs (``?limit=``, default 50), each with its runs counted by status."""
+    return jsonify(sweeps.sweeps_overview(farm().store(), query.check_limit(request.args.get("limit"))))
 
 
 @api.get("/sweeps/<id:sweep_id>")
 def sweep(sweep_id: str) -> Any:
-    detail = sweeps.sweep_detail(farm().store(), sweep_id)
+    """The sweep and a page of its runs in grid order (``?limit=``, ``?cursor=`` as for ``/runs``)."""
+    args = request.args
+    detail = sweeps.sweep_detail(farm().store(), sweep_id, query.check_limit(args.get("limit") or 100),
+                                 args.get("cursor"))
     return jsonify({**detail, "links": {"chart": url_for("artifacts.sweep_chart", sweep_id=detail["id"]),
                                         "page": url_for("pages.sweep", sweep_id=detail["id"])}})
 

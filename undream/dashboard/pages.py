@@ -22,14 +22,19 @@ REFRESH_S = 5  # seconds between refreshes of a page about active runs
 
 @pages.get("/")
 def runs() -> Any:
-    store = farm().store()
-    status, sweep_id = request.args.get("status") or None, request.args.get("sweep") or None
-    rows = query.runs_overview(store, status, sweep_id, memo=farm().cache.get)
-    all_sweeps = sweeps.sweeps_overview(store)
-    active = any(r["status"] in query.ACTIVE_STATUSES for r in rows)
-    return render_template("runs.html", runs=rows, statuses=RUN_STATUSES, status=status, sweep=sweep_id,
-                           sweeps=all_sweeps, sweep_names={s["id"]: s["name"] for s in all_sweeps},
-                           refresh=REFRESH_S if active else None)
+    """A page of runs newest first (``?status=``, ``?sweep=``, ``?limit=``), a link to the next."""
+    store, args = farm().store(), request.args
+    status, sweep_id = args.get("status") or None, args.get("sweep") or None
+    page = query.runs_page(store, status, sweep_id, query.check_limit(args.get("limit")), args.get("cursor"),
+                           memo=farm().cache.get)
+    listed = sweeps.sweeps_overview(store)
+    names = {s.id: s.name for s in store.sweeps_of({r["sweep_id"] for r in page["runs"] if r["sweep_id"]})}
+    return render_template(
+        "runs.html", runs=page["runs"], page=page, statuses=RUN_STATUSES, status=status, sweep=sweep_id,
+        sweeps=listed["sweeps"], sweeps_total=listed["total"], sweep_names=names,
+        next_url=page["next"] and url_for("pages.runs", **{**args.to_dict(), "cursor": page["next"]}),
+        first_url=args.get("cursor") and url_for("pages.runs", status=status, sweep=sweep_id),
+        refresh=REFRESH_S if page["active"] else None)
 
 
 @pages.get("/runs/<id:run_id>")
@@ -45,9 +50,12 @@ def run(run_id: str) -> Any:
 
 @pages.get("/sweeps/<id:sweep_id>")
 def sweep(sweep_id: str) -> Any:
-    detail = sweeps.sweep_detail(farm().store(), sweep_id)
+    detail = sweeps.sweep_detail(farm().store(), sweep_id, query.check_limit(request.args.get("limit") or 100),
+                                 request.args.get("cursor"))
     active = any(detail["statuses"].get(s) for s in query.ACTIVE_STATUSES)
-    return render_template("sweep.html", sweep=detail, refresh=REFRESH_S if active else None,
+    next_url = None if detail["next"] is None else url_for("pages.sweep", sweep_id=detail["id"], cursor=detail["next"],
+                                                             limit=request.args.get("limit") or None)
+    return render_template("sweep.html", sweep=detail, next_url=next_url, refresh=REFRESH_S if active else None,
                            version="-".join(f"{k}{v}" for k, v in sorted(detail["statuses"].items())))
 
 

@@ -17,6 +17,8 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 from scheduler.query import current_phase
 from undream.dashboard.errors import BadRequest
+from undream.errors import StoreError
+from undream.runlist import MAX_PAGE
 from undream.store import RUN_STATUSES
 
 if TYPE_CHECKING:
@@ -26,6 +28,7 @@ ACTIVE_STATUSES = ("queued", "running", "evaluating")
 Memo = Callable[[tuple[Any, ...], Callable[[], Any]], Any]  # cache.get(key, make)
 EVAL_VIEWS = {"benign": "pre", "adversarial": "adversarial"}  # URL name → job phase
 SLOW_FACTOR = 2.0  # a job this many times the run's median job time is slow
+PAGE = 50  # runs in a page of the runs list unless the request asks for another ``limit``
 
 
 def iso(stamp: dt.datetime | None) -> str | None:
@@ -102,31 +105,53 @@ def run_summary(store: "Store", run: "RunSnapshot", now: dt.datetime,
     }
 
 
-def runs_overview(store: "Store", status: str | None = None, sweep_id: str | None = None,
-                  now: dt.datetime | None = None, memo: Memo | None = None) -> list[dict[str, Any]]:
-    """Every run (with ``status``, of sweep ``sweep_id``), newest first, as :func:`run_summary` rows.
+def check_limit(limit: str | int | None) -> int:
+    """The page size a request asks for (default :data:`PAGE`), or BadRequest naming the bad value."""
+    if limit in (None, ""):
+        return PAGE
+    try:
+        value = int(limit)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        value = 0
+    if not 1 <= value <= MAX_PAGE:
+        raise BadRequest(f"limit {limit!r}: must be a whole number from 1 to {MAX_PAGE}")
+    return value
+
+
+def runs_page(store: "Store", status: str | None = None, sweep_id: str | None = None,
+              limit: int = PAGE, cursor: str | None = None, now: dt.datetime | None = None,
+              memo: Memo | None = None) -> dict[str, Any]:
+    """A page of the runs list (with ``status``, of sweep ``sweep_id``), newest first, after
+    ``cursor``: ``runs`` (:func:`run_summary` rows), ``next`` (the cursor of the next page, None on
+    the last), ``total`` (runs matching the filters), ``counts`` (runs per status, of the sweep or
+    of the farm) and ``active`` (queued, running or evaluating runs matching the filters). A fixed
+    number of queries whatever the farm's size: the page, its count, the tally, and the page's
+    iteration records and job counts.
 
     ``memo(key, make)``: a cache for the rows of finished runs (their jobs and iterations no longer
     change; the key holds the run's ``updated`` time, which a resume changes); ages are made fresh.
     """
     now = now or dt.datetime.now(dt.timezone.utc)
-    runs = list(reversed(store.runs(status=check_status(status), sweep_id=sweep_id or None)))
-    reads = ListReads(store, [run.id for run in runs])
+    status = check_status(status)
+    try:
+        page = store.runs_page(status, sweep_id or None, limit, cursor or None)
+    except StoreError as err:
+        if "cursor" not in str(err):
+            raise
+        raise BadRequest(str(err)) from None
+    reads = ListReads(store, [run.id for run in page.runs])
     rows = []
-    for run in runs:
+    for run in page.runs:
         if memo is None or run.status in ACTIVE_STATUSES:
             rows.append(run_summary(store, run, now, reads))
             continue
         row = memo(("summary", run.id, run.updated, run.status),
                    lambda run=run: run_summary(store, run, now, reads))
         rows.append({**row, "age_s": (now - run.created).total_seconds()})
-    return rows
-
-
-def sweep_names(store: "Store", runs: list[dict[str, Any]]) -> dict[str, str]:
-    """Sweep id → name for the sweeps the rows ``runs`` belong to."""
-    ids = sorted({r["sweep_id"] for r in runs if r["sweep_id"]})
-    return {i: store.find_sweep(i).name for i in ids}
+    counts = store.status_counts(sweep_id or None)
+    active = sum(n for s, n in counts.items() if s in ACTIVE_STATUSES and status in (None, s))
+    return {"runs": rows, "next": page.next, "total": page.total, "counts": counts, "active": active,
+            "limit": limit}
 
 
 def _split(res: dict[str, Any], name: str) -> dict[str, Any] | None:

@@ -4,6 +4,8 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 from scheduler.query import result_rows
+from undream.dashboard.errors import BadRequest
+from undream.errors import StoreError
 
 if TYPE_CHECKING:
     from undream.store import Store
@@ -32,32 +34,28 @@ def eps_series(store: "Store", sweep_id: str) -> dict[str, list[dict[str, Any]]]
     return {name: sorted(points, key=lambda p: p["eps"]) for name, points in sorted(series.items())}
 
 
-def sweep_detail(store: "Store", sweep_ref: str) -> dict[str, Any]:
-    """The sweep page: name, spec, one results row per run (grid values, status, headline numbers)
-    and the ε series per attack (see :func:`eps_series`)."""
+def sweep_detail(store: "Store", sweep_ref: str, limit: int = 100, cursor: str | None = None) -> dict[str, Any]:
+    """The sweep page: name, spec, a page of results rows in grid order (grid values, status,
+    headline numbers; ``next`` the cursor of the page after it), every run counted by status
+    (``statuses``, ``total``) and the ε series per attack (see :func:`eps_series`)."""
     sweep = store.find_sweep(sweep_ref)
-    rows = result_rows(store, sweep.id, sweep.spec)
-    ids = [r.id for r in store.runs(sweep_id=sweep.id)]
-    for row, run_id in zip(rows, ids):
-        row["run"] = run_id  # the whole id: the pages link to it
-    statuses: dict[str, int] = {}
-    for row in rows:
-        statuses[row["status"]] = statuses.get(row["status"], 0) + 1
+    try:
+        page = store.runs_page(sweep_id=sweep.id, limit=limit, after=cursor or None, newest_first=False)
+    except StoreError as err:
+        raise BadRequest(str(err)) from None
+    rows = result_rows(sweep.spec, page.runs)
+    for row, run in zip(rows, page.runs):
+        row["run"] = run.id  # the whole id: the pages link to it
     return {"id": sweep.id, "name": sweep.name, "spec": sweep.spec, "created": sweep.created.isoformat(),
-            "grid": list((sweep.spec.get("grid") or {}).keys()), "rows": rows, "statuses": statuses,
-            "series": eps_series(store, sweep.id)}
+            "grid": list((sweep.spec.get("grid") or {}).keys()), "rows": rows, "next": page.next,
+            "total": page.total, "statuses": store.status_counts(sweep.id), "series": eps_series(store, sweep.id)}
 
 
-def sweeps_overview(store: "Store") -> list[dict[str, Any]]:
-    """Every sweep that has runs: id, name and its runs' statuses, newest first."""
-    found: dict[str, dict[str, int]] = {}
-    for run in reversed(store.runs()):
-        if run.sweep_id:
-            counts = found.setdefault(run.sweep_id, {})
-            counts[run.status] = counts.get(run.status, 0) + 1
-    out = []
-    for sweep_id, counts in found.items():
-        sweep = store.find_sweep(sweep_id)
-        out.append({"id": sweep.id, "name": sweep.name, "created": sweep.created.isoformat(),
-                    "runs": sum(counts.values()), "statuses": counts})
-    return out
+def sweeps_overview(store: "Store", limit: int = 50) -> dict[str, Any]:
+    """The newest ``limit`` sweeps that have runs (id, name, created, their runs counted by status)
+    and ``total``, how many sweeps have runs: three queries whatever the number of runs."""
+    counts = store.sweep_counts()
+    newest = store.sweeps_of(list(counts), limit)
+    return {"sweeps": [{"id": sweep.id, "name": sweep.name, "created": sweep.created.isoformat(),
+                        "runs": sum(counts[sweep.id].values()), "statuses": counts[sweep.id]}
+                       for sweep in newest], "total": len(counts)}

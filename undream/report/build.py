@@ -94,7 +94,7 @@ def run_dir(run: "RunSnapshot") -> str:
 def sweep_files(store: "Store", sweep: "SweepSnapshot", runs: list["RunSnapshot"],
                 loaded: dict[str, RunData], command: str) -> dict[str, bytes]:
     """A sweep's report files: its page, results.csv, the ε chart and its points, one folder per run."""
-    rows = tables.sweep_rows(store, sweep, runs)
+    rows = tables.sweep_rows(sweep, runs)
     series = tables.eps_points(sweep, runs)
     files = {"results.csv": tables.to_csv(rows).encode(),
              "eps_chart.csv": tables.to_csv(tables.point_rows(series)).encode(),

@@ -18,7 +18,7 @@ from scheduler.sweep import grid_values
 from undream.report.data import SPLITS, RunData
 
 if TYPE_CHECKING:
-    from undream.store import RunSnapshot, Store, SweepSnapshot
+    from undream.store import RunSnapshot, SweepSnapshot
 
 SPLIT_NAMES = {"attacked": "attacked frames", "held_out": "held-out frames", "all": "all frames"}
 SEED_AXES = ("seed", "attack.seed")  # grid fields whose values are repeats, averaged in the chart
@@ -77,9 +77,9 @@ def frame_rows(data: RunData) -> list[dict[str, Any]]:
     return rows
 
 
-def sweep_rows(store: "Store", sweep: "SweepSnapshot", runs: list["RunSnapshot"]) -> list[dict[str, Any]]:
+def sweep_rows(sweep: "SweepSnapshot", runs: list["RunSnapshot"]) -> list[dict[str, Any]]:
     """One row per run of the sweep (:func:`scheduler.query.result_rows`), with the split numbers added."""
-    rows = result_rows(store, sweep.id, sweep.spec)
+    rows = result_rows(sweep.spec, runs)
     for row, run in zip(rows, runs):
         res = run.results or {}
         for split in SPLITS:

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import Engine, create_engine, event, func, inspect, insert, select, text
 from sqlalchemy.engine import URL, make_url
@@ -27,6 +27,9 @@ from undream.store.blobs import BlobStore
 from undream.store.blobs import blob_root as _blob_root
 from undream.store.models import SCHEMA_VERSION, Base, SchemaVersion
 from undream.store.store import WRITE_OPTION, Store
+
+if TYPE_CHECKING:
+    from alembic.config import Config as AlembicConfig
 
 SQLITE_FILENAME = "undream.db"
 CONNECT_TIMEOUT_S = 10
@@ -140,19 +143,46 @@ def _add_columns(conn: Any, table: str, names: tuple[str, ...]) -> None:
         conn.execute(text(f"ALTER TABLE {table} ADD COLUMN {name} {kind}"))
 
 
-# In-place upgrades: version → what turns a database of that version into the next one.
+# Hand-written upgrades of the databases made before alembic: version → what turns a database of
+# that version into the next one, up to LEGACY_VERSION; alembic's revisions take it from there.
+LEGACY_VERSION = 3
 MIGRATIONS = {2: lambda conn: _add_columns(conn, "runs", ("owner", "heartbeat"))}
+MIGRATIONS_DIR = Path(__file__).with_name("migrations")
+
+
+def _alembic(conn: Any) -> "AlembicConfig":
+    from alembic.config import Config
+
+    cfg = Config()
+    cfg.set_main_option("script_location", str(MIGRATIONS_DIR))
+    cfg.attributes["connection"] = conn
+    return cfg
+
+
+def _revision(conn: Any) -> str | None:
+    """The alembic revision the database is at; None when it has none (new, or made before alembic)."""
+    from alembic.runtime.migration import MigrationContext
+
+    return MigrationContext.configure(conn).get_current_revision()
 
 
 def _migrate(conn: Any, found: int, url: str) -> None:
-    """Upgrade tables of schema ``found`` to ``SCHEMA_VERSION`` step by step, in the caller's transaction."""
-    for version in range(found, SCHEMA_VERSION):
+    """Upgrade tables of schema ``found`` to ``SCHEMA_VERSION`` in the caller's transaction: the
+    hand-written steps up to ``LEGACY_VERSION``, then alembic's revisions (``undream/store/migrations``)."""
+    from alembic import command
+
+    for version in range(found, LEGACY_VERSION):
         if version not in MIGRATIONS:
             raise StoreError(
                 f"the run database at {mask_url(url)!r} has schema version {found}, this undream "
                 f"needs version {SCHEMA_VERSION} and cannot upgrade from {version}; use a new database")
         MIGRATIONS[version](conn)
         conn.execute(insert(SchemaVersion).values(version=version + 1))
+    cfg = _alembic(conn)
+    if _revision(conn) is None:
+        command.stamp(cfg, f"{max(found, LEGACY_VERSION):04d}")
+    command.upgrade(cfg, "head")
+    conn.execute(insert(SchemaVersion).values(version=SCHEMA_VERSION))
 
 
 class NoDatabase(StoreError):
@@ -169,7 +199,7 @@ def create_tables(engine: Engine, url: str, create: bool = True) -> None:
     """Create the store's tables if missing, upgrade older ones, and check their schema version.
 
     Tables of an older schema are upgraded in place, in one transaction
-    (``MIGRATIONS``: 2 → 3 adds the run lease columns). StoreError naming the
+    (:func:`_migrate`: 2 → 3 adds the run lease columns, 3 → 4 the runs lists' indexes). StoreError naming the
     URL (password hidden) when the database is unreachable, or when its
     tables were made by a newer undream or by one too old to upgrade.
     ``create`` False: a database without undream's tables is :class:`NoDatabase`
@@ -191,6 +221,9 @@ def create_tables(engine: Engine, url: str, create: bool = True) -> None:
             Base.metadata.create_all(conn)
             if found is None:
                 conn.execute(insert(SchemaVersion).values(version=SCHEMA_VERSION))
+                from alembic import command
+
+                command.stamp(_alembic(conn), "head")
     except SQLAlchemyError as exc:
         reason = str(getattr(exc, "orig", None) or exc).strip().splitlines()[0]
         password = make_url(url).password

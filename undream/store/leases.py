@@ -15,10 +15,11 @@ from __future__ import annotations
 import datetime as dt
 from typing import TYPE_CHECKING
 
-from sqlalchemy import or_, update
+from sqlalchemy import or_, select, update
 
 from undream.errors import StoreError
 from undream.store.models import Run, utcnow
+from undream.store.snapshots import RunSnapshot
 
 if TYPE_CHECKING:
     from contextlib import AbstractContextManager
@@ -62,6 +63,14 @@ class LeaseMethods:
                                .values(owner=owner, heartbeat=utcnow())
                                .execution_options(synchronize_session=False))
             return result.rowcount == 1
+
+    def owned_runs(self) -> list[RunSnapshot]:
+        """The live runs that a process owns (``undream run``'s), oldest first: the only runs the
+        stale-run rule looks at (farm runs have no owner), read without touching the others."""
+        query = (select(Run).where(Run.owner.is_not(None), Run.status.in_(LIVE))
+                 .order_by(Run.created, Run.id))
+        with self._tx("owned_runs", write=False) as s:
+            return [RunSnapshot.of(r) for r in s.scalars(query)]
 
     def beat(self, run_id: str, owner: str) -> bool:
         """Refresh the heartbeat of ``owner``'s run; False when ``owner`` no longer holds it."""

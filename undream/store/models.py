@@ -22,6 +22,7 @@ from sqlalchemy import (
     DateTime,
     Float,
     ForeignKey,
+    Index,
     Integer,
     MetaData,
     String,
@@ -30,11 +31,13 @@ from sqlalchemy import (
 )
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
-RUN_STATUSES = ("queued", "running", "evaluating", "done", "failed", "cancelled")
+from undream.runlist import RUN_STATUSES
+
 JOB_STATUSES = ("queued", "started", "succeeded", "failed", "retried")
 JOB_PHASES = ("attack", "pre", "adversarial")  # iteration jobs; evaluation before and after the final pick
-SCHEMA_VERSION = 3  # 1: runs, iterations, frame_jobs without phases; 2: the farm (sweeps, scenes, phases);
-#                    3: run leases (runs.owner, runs.heartbeat; migrated in place from 2)
+SCHEMA_VERSION = 4  # 1: runs, iterations, frame_jobs without phases; 2: the farm (sweeps, scenes, phases);
+#                    3: run leases (runs.owner, runs.heartbeat; migrated in place from 2);
+#                    4: the runs lists' indexes (alembic revision 0004, undream/store/migrations)
 
 _NAMING = {
     "ix": "ix_%(column_0_label)s",
@@ -71,6 +74,10 @@ class Run(Base):
         CheckConstraint(_one_of("status", RUN_STATUSES), name="status"),
         CheckConstraint("iteration >= 0", name="iteration"),
         CheckConstraint("n_frames >= 1", name="n_frames"),
+        # A page of runs newest first, of everything, one status or one sweep (the control plane's lists)
+        Index("ix_runs_created_id", "created", "id"),
+        Index("ix_runs_status_created_id", "status", "created", "id"),
+        Index("ix_runs_sweep_created_id", "sweep_id", "created", "id"),
     )
 
     id: Mapped[str] = mapped_column(String(36), primary_key=True)

@@ -43,6 +43,7 @@ from undream.store.jobs import IN_CHUNK, JobTables
 from undream.store.leases import LeaseMethods
 from undream.store.models import JOB_STATUSES, RUN_STATUSES, FrameJob, IterationRecord, Run, Sweep, utcnow
 from undream.store.newrun import NewRun, check_name, run_row
+from undream.store.pages import ListMethods
 from undream.store.snapshots import IterationSnapshot, RunSnapshot, SweepSnapshot, dumps
 
 WRITE_OPTION = "undream_begin"  # execution option: the BEGIN statement SQLite writers emit
@@ -75,7 +76,7 @@ def _state_doc(blobs: BlobStore, run_id: str, field: str, state: Any,
     return doc
 
 
-class Store(JobTables, LeaseMethods):
+class Store(JobTables, LeaseMethods, ListMethods):
     """Run state in a SQL database plus a blob folder; see :func:`undream.store.open_store`."""
 
     def __init__(self, engine: Engine, blobs: BlobStore) -> None:
