@@ -180,6 +180,17 @@ def test_runs_list_to_run_page_to_sweep_page(site, browser, shots):
     assert len(_by(browser, "#job-grid td.slow")) == 2
     _screenshot(browser, shots, "03_run_running")
 
+    browser.get(base + "/?limit=5")  # paging: 12 runs, 5 a page, the older ones a click away
+    seen = []
+    for page in range(3):
+        seen += [r.get_attribute("data-run") for r in _by(browser, "#runs-table tbody tr")]
+        assert _by(browser, "#runs-count")[0].text.startswith(f"{min(5, 12 - 5 * page)} of 12 runs")
+        if page < 2:
+            _by(browser, "#next-page")[0].click()
+            _wait(lambda: _by(browser, "#runs-table tbody tr")[0].get_attribute("data-run") not in seen,
+                  "the next page")
+    assert len(seen) == len(set(seen)) == 12 and not _by(browser, "#next-page")
+
     browser.get(base + "/?sweep=" + ids.sweep_id)
     assert len(_by(browser, "#runs-table tbody tr")) == 6
     _by(browser, "#runs-table a.run-link")[0].click()
