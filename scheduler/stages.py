@@ -196,7 +196,7 @@ def run_batch(store: "Store", contexts: Contexts, run_id: str, phase: str, k: in
         summary["skipped"] = list(frames)
         return summary
     max_attempts = FarmOptions.of(run).max_attempts
-    jobs = {j.frame: j for j in store.jobs(run_id, k, phase)}
+    jobs = {j.frame: j for j in store.jobs(run_id, k, phase, frames)}
     read0, written0 = store.blobs.bytes_read, store.blobs.bytes_written
     cache: LRU[tuple, dict] = textures if textures is not None else LRU(TEXTURE_VERSIONS)
     key = (run_id, phase, k)

@@ -187,8 +187,13 @@ class Store(JobTables, LeaseMethods, ListMethods):
         return True
 
     def get_run(self, run_id: str) -> RunSnapshot:
+        """The run as stored (read as a plain row: every job reads its run, so no ORM object)."""
+        table = Run.__table__
         with self._tx("get_run", write=False) as s:
-            return RunSnapshot.of(self._run(s, run_id))
+            row = s.execute(select(table).where(table.c.id == run_id)).first() if isinstance(run_id, str) else None
+        if row is None:
+            raise StoreError(f"run {run_id!r}: not found")
+        return RunSnapshot.of(row)  # type: ignore[arg-type]
 
     def find_run(self, ref: str) -> RunSnapshot:
         """The run whose id is ``ref`` or starts with it (at least 4 characters, unique)."""
