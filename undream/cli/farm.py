@@ -191,6 +191,8 @@ def status_cmd(run: str | None, out: Path | None, limit: int, show_all: bool, st
         page = store.runs_page(state, sweep_id, None if show_all else limit)
         click.echo(_table(run_rows(store, page.runs)))
         click.echo(_tally(len(page.runs), page.total, store.status_counts(sweep_id), state))
+        if out is None:
+            _echo_stuck(store, settings())
         return
     snap = store.find_run(run)
     click.echo(_table(run_rows(store, [snap])))
@@ -209,6 +211,42 @@ def _tally(shown: int, total: int, counts: dict[str, int], state: str | None) ->
     if shown < total:
         line += "; more with --limit N or --all, fewer with --state or --sweep"
     return line
+
+
+def _echo_stuck(store: "Store", cfg: "Settings") -> None:
+    """The runs that cannot make progress (:func:`workers.health.stuck_runs`), after the table."""
+    from workers.health import probe, stuck_runs
+
+    report = stuck_runs(store, lambda: probe(cfg))
+    if not report["asked"]:
+        return
+    if report["queues"] is None:
+        live = f"unknown ({report['broker_error']})"
+    else:
+        live = "; ".join(f"{q}: {len(w)} worker(s)" for q, w in report["queues"].items()) or "none"
+    click.echo(f"\nlive queues: {live}")
+    rows = [{"run": r["run_id"][:8], "name": r["run"], "state": r["state"], "since": r["since"][11:19],
+             "stalled": _duration(r["stalled_s"]), "reason": r["reason"] + (f" ({r['job']}, attempt {r['attempts']} of {r['max_attempts']}; "
+                                      f"failures {r['failures']} of {r['failure_budget']})" if r["state"] == "failing" else "")}
+            for r in report["waiting"] + report["failing"]]
+    if not rows:
+        click.echo("stuck: none" if report["n_waiting"] is not None else "stuck: none failing; waiting unknown")
+        return
+    click.echo(f"stuck: {_count(report['n_waiting'])} waiting, {report['n_failing']} failing")
+    click.echo(_table(rows))
+    shown = len(report["waiting"]) + len(report["failing"])
+    if shown < (report["n_waiting"] or 0) + report["n_failing"]:
+        click.echo(f"… {(report['n_waiting'] or 0) + report['n_failing'] - shown} more, stalled less long")
+
+
+def _duration(seconds: float) -> str:
+    """``seconds`` as 42s, 5m03s or 2h07m."""
+    s = int(seconds)
+    return f"{s}s" if s < 60 else f"{s // 60}m{s % 60:02d}s" if s < 3600 else f"{s // 3600}h{s // 60 % 60:02d}m"
+
+
+def _count(n: int | None) -> str:
+    return "unknown" if n is None else str(n)
 
 
 def _run_store(out: Path, database: str | None = None) -> "Store":

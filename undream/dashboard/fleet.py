@@ -13,53 +13,46 @@ from __future__ import annotations
 import datetime as dt
 from typing import TYPE_CHECKING, Any
 
-from undream.dashboard.query import ACTIVE_STATUSES, iso
+from undream.dashboard.query import iso
 
 if TYPE_CHECKING:
-    from undream.store import JobSnapshot, RunSnapshot, Store
+    from undream.store import Store
 
 WINDOW_S = 600.0  # jobs per minute are counted over this many seconds
 ALIVE_S = 120.0  # a worker that recorded nothing for this long and holds no job is silent
 
 
-def _recent_jobs(store: "Store", runs: list["RunSnapshot"]) -> list[tuple["RunSnapshot", "JobSnapshot"]]:
-    out = []
-    for run in runs:
-        jobs = store.jobs(run.id, None, "attack")
-        jobs += [j for phase in ("pre", "adversarial") for j in store.jobs(run.id, run.iteration, phase)]
-        out += [(run, j) for j in jobs if j.worker]
-    return out
-
-
-def _last_seen(job: "JobSnapshot") -> dt.datetime | None:
-    stamps = [s for s in (job.started, job.finished) if s is not None]
-    return max(stamps) if stamps else None
+def _worker(workers: dict[str, dict[str, Any]], name: str, seen: dt.datetime | None) -> dict[str, Any]:
+    w = workers.setdefault(name, {"worker": name, "current": [], "finished": 0, "failed": 0, "last_seen": seen})
+    if seen is not None and (w["last_seen"] is None or seen > w["last_seen"]):
+        w["last_seen"] = seen
+    return w
 
 
 def workers_overview(store: "Store", now: dt.datetime | None = None, window_s: float = WINDOW_S,
                      alive_s: float = ALIVE_S) -> dict[str, Any]:
-    """Each worker seen in the window: state, current jobs, jobs finished and per minute, last seen."""
+    """Each worker seen in the window: state, current jobs, jobs finished and per minute, last seen.
+
+    Two queries whatever the number of runs and jobs (:meth:`undream.store.Store.worker_activity`).
+    """
     now = now or dt.datetime.now(dt.timezone.utc)
     since = now - dt.timedelta(seconds=window_s)
-    runs = [r for r in store.runs() if r.status in ACTIVE_STATUSES or r.updated >= since]
+    tallies, held = store.worker_activity(since)
     workers: dict[str, dict[str, Any]] = {}
-    for run, job in _recent_jobs(store, runs):
-        seen = _last_seen(job)
-        if seen is None or (seen < since and not (job.status == "started" and run.status in ACTIVE_STATUSES)):
-            continue
-        w = workers.setdefault(job.worker, {"worker": job.worker, "current": [], "finished": 0,
-                                            "failed": 0, "last_seen": seen})  # type: ignore[index]
-        w["last_seen"] = max(w["last_seen"], seen)
-        if job.status == "started" and run.status in ACTIVE_STATUSES:
-            w["current"].append({"run_id": run.id, "run": run.name, "phase": job.phase, "k": job.k,
-                                 "frame": job.frame, "started": iso(job.started),
-                                 "running_s": (now - job.started).total_seconds() if job.started else None})
-        elif job.finished is not None and job.finished >= since:
-            w["finished" if job.status == "succeeded" else "failed"] += 1
+    for t in tallies:
+        seen = max((s for s in (t.last_started, t.last_finished) if s is not None), default=None)
+        w = _worker(workers, t.worker, seen)
+        if t.status != "started":
+            w["finished" if t.status == "succeeded" else "failed"] += t.finished
+    for job in held:
+        w = _worker(workers, job.worker, job.started)
+        w["current"].append({"run_id": job.run_id, "run": job.run, "phase": job.phase, "k": job.k,
+                             "frame": job.frame, "started": iso(job.started),
+                             "running_s": (now - job.started).total_seconds() if job.started else None})
     rows = []
     for w in sorted(workers.values(), key=lambda w: w["worker"]):
-        idle_s = (now - w["last_seen"]).total_seconds()
-        state = "busy" if w["current"] else ("idle" if idle_s <= alive_s else "silent")
+        idle_s = (now - w["last_seen"]).total_seconds() if w["last_seen"] else None
+        state = "busy" if w["current"] else ("idle" if idle_s is not None and idle_s <= alive_s else "silent")
         rows.append({**w, "state": state, "alive": state != "silent",
                      "jobs_per_minute": w["finished"] / (window_s / 60.0), "last_seen": iso(w["last_seen"]),
                      "idle_s": idle_s})

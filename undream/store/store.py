@@ -34,6 +34,7 @@ from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.orm import Session
 
 from undream.errors import StoreError
+from undream.store.activity import ActivityTables
 from undream.store.blobs import (
     BlobStore, array_digest, array_key, attack_state_key, final_texture_key, run_prefix,
     texture_blob_key,
@@ -76,7 +77,7 @@ def _state_doc(blobs: BlobStore, run_id: str, field: str, state: Any,
     return doc
 
 
-class Store(JobTables, LeaseMethods, ListMethods):
+class Store(JobTables, LeaseMethods, ListMethods, ActivityTables):
     """Run state in a SQL database plus a blob folder; see :func:`undream.store.open_store`."""
 
     def __init__(self, engine: Engine, blobs: BlobStore) -> None:

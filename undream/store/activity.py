@@ -1,0 +1,153 @@
+"""The farm's activity as the store sees it, each read in a fixed number of queries.
+
+:meth:`ActivityTables.worker_activity` reads what the workers did in a
+window (two grouped queries, whatever the number of runs);
+:meth:`ActivityTables.run_health` reads every active run's progress at its
+current iteration and its latest job error (two queries). Both join
+``frame_jobs`` to ``runs`` on the run id, so only the jobs of the runs that
+matter are read. Times are UTC.
+"""
+from __future__ import annotations
+
+import datetime as dt
+from typing import TYPE_CHECKING, Any, NamedTuple
+
+from sqlalchemy import and_, case, func, or_, select
+
+from undream.store.jobs import UNFINISHED
+from undream.store.models import FrameJob, Run
+from undream.store.snapshots import loads
+
+if TYPE_CHECKING:
+    from contextlib import AbstractContextManager
+
+    from sqlalchemy.orm import Session
+
+ACTIVE_RUNS = ("queued", "running", "evaluating")  # a run in one of these has work left
+
+
+class WorkerTally(NamedTuple):
+    """One worker's jobs of one status in the window: how many finished in it, and its latest
+    job start and finish (UTC; None if none)."""
+
+    worker: str
+    status: str
+    finished: int
+    last_started: dt.datetime | None
+    last_finished: dt.datetime | None
+
+
+class CurrentJob(NamedTuple):
+    """A started job of an active run: who holds it and since when (UTC)."""
+
+    worker: str
+    run_id: str
+    run: str
+    phase: str
+    k: int
+    frame: int
+    started: dt.datetime | None
+
+
+class RunHealth(NamedTuple):
+    """An active run's progress at its current iteration ``iteration`` (the jobs of that k only).
+
+    ``unfinished``: jobs queued, started or retried; ``errored``: jobs whose last attempt failed and
+    that have not succeeded since; ``last_job``: the latest job start or finish (UTC, None without
+    jobs); ``farm``: the scheduling options fixed at submit (``max_attempts``, ``failure_budget``);
+    ``owner``: the process driving the run itself (``undream run``), None on the farm.
+    """
+
+    id: str
+    name: str
+    status: str
+    iteration: int
+    updated: dt.datetime
+    failures: int
+    farm: dict[str, Any]
+    owner: str | None
+    unfinished: int
+    errored: int
+    last_job: dt.datetime | None
+
+
+class JobError(NamedTuple):
+    """The latest failed attempt of an active run's current iteration (its error unredacted)."""
+
+    run_id: str
+    phase: str
+    k: int
+    frame: int
+    status: str
+    attempts: int
+    error: str
+
+
+def _utc(stamp: dt.datetime | None) -> dt.datetime | None:
+    """SQLite returns naive datetimes; every stored time is UTC."""
+    return stamp if stamp is None or stamp.tzinfo is not None else stamp.replace(tzinfo=dt.timezone.utc)
+
+
+def _latest(*stamps: dt.datetime | None) -> dt.datetime | None:
+    present = [s for s in map(_utc, stamps) if s is not None]
+    return max(present) if present else None
+
+
+class ActivityTables:
+    """The activity reads of :class:`undream.store.Store` (a mixin: needs ``_tx``)."""
+
+    def _tx(self, op: str, write: bool) -> "AbstractContextManager[Session]":  # pragma: no cover
+        raise NotImplementedError
+
+    def worker_activity(self, since: dt.datetime) -> tuple[list[WorkerTally], list[CurrentJob]]:
+        """What the workers did since ``since`` (UTC), in two queries: per worker and job status,
+        the jobs finished since then and the latest start and finish (jobs of runs active or
+        updated since then, started or finished since then); and every started job of an active
+        run, however old (a long job, or one whose worker is gone)."""
+        fj, r = FrameJob.__table__, Run.__table__
+        recent = or_(r.c.status.in_(ACTIVE_RUNS), r.c.updated >= since)
+        tallies = (select(fj.c.worker, fj.c.status,
+                          func.sum(case((fj.c.finished >= since, 1), else_=0)),
+                          func.max(fj.c.started), func.max(fj.c.finished))
+                   .join(r, r.c.id == fj.c.run_id)
+                   .where(recent, fj.c.worker.is_not(None), or_(fj.c.started >= since, fj.c.finished >= since))
+                   .group_by(fj.c.worker, fj.c.status))
+        current = (select(fj.c.worker, fj.c.run_id, r.c.name, fj.c.phase, fj.c.k, fj.c.frame, fj.c.started)
+                   .join(r, r.c.id == fj.c.run_id)
+                   .where(r.c.status.in_(ACTIVE_RUNS), fj.c.status == "started", fj.c.worker.is_not(None))
+                   .order_by(fj.c.worker, fj.c.started, fj.c.run_id, fj.c.frame))
+        with self._tx("worker_activity", write=False) as s:
+            rows = s.execute(tallies).all()
+            held = s.execute(current).all()
+        return ([WorkerTally(w, st, int(n or 0), _utc(a), _utc(b)) for w, st, n, a, b in rows],
+                [CurrentJob(*row[:6], _utc(row[6])) for row in held])
+
+    def run_health(self) -> tuple[list[RunHealth], dict[str, JobError]]:
+        """Every active run, oldest first, with its jobs at its current iteration counted; and, by
+        run id, the latest failed attempt of those jobs that has not succeeded since. Two queries,
+        whatever the number of runs."""
+        fj, r = FrameJob.__table__, Run.__table__
+        current = and_(r.c.status.in_(ACTIVE_RUNS), fj.c.k == r.c.iteration)
+        errored = and_(fj.c.error.is_not(None), fj.c.status != "succeeded")
+        counts = (select(fj.c.run_id,
+                         func.sum(case((fj.c.status.in_(UNFINISHED), 1), else_=0)).label("unfinished"),
+                         func.sum(case((errored, 1), else_=0)).label("errored"),
+                         func.max(fj.c.started).label("started"), func.max(fj.c.finished).label("finished"))
+                  .join(r, r.c.id == fj.c.run_id).where(current).group_by(fj.c.run_id).subquery())
+        runs = (select(r.c.id, r.c.name, r.c.status, r.c.iteration, r.c.updated, r.c.failures, r.c.farm_json,
+                       r.c.owner, counts.c.unfinished, counts.c.errored, counts.c.started, counts.c.finished)
+                .outerjoin(counts, counts.c.run_id == r.c.id).where(r.c.status.in_(ACTIVE_RUNS))
+                .order_by(r.c.created, r.c.id))
+        newest = func.row_number().over(partition_by=fj.c.run_id,
+                                        order_by=(func.coalesce(fj.c.finished, fj.c.started).desc(),
+                                                  fj.c.id.desc()))
+        failed = (select(fj.c.run_id, fj.c.phase, fj.c.k, fj.c.frame, fj.c.status, fj.c.attempts, fj.c.error,
+                         newest.label("n"))
+                  .join(r, r.c.id == fj.c.run_id).where(current, errored).subquery())
+        with self._tx("run_health", write=False) as s:
+            rows = s.execute(runs).all()
+            errors = s.execute(select(*list(failed.c)[:-1]).where(failed.c.n == 1)).all()
+        health = [RunHealth(row.id, row.name, row.status, row.iteration, _utc(row.updated),  # type: ignore[arg-type]
+                            row.failures or 0, loads(row.farm_json) or {}, row.owner, int(row.unfinished or 0),
+                            int(row.errored or 0), _latest(row.started, row.finished)) for row in rows]
+        return health, {e.run_id: JobError(*e) for e in errors}
