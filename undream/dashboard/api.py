@@ -97,7 +97,7 @@ def sweep(sweep_id: str) -> Any:
 
 @api.get("/workers")
 def workers() -> Any:
-    return jsonify(fleet.workers_overview(farm().store()))
+    return jsonify(fleet.farm_overview(farm().store(), farm().settings))
 
 
 @api.post("/runs/<id:run_id>/<action>")

@@ -6,7 +6,9 @@ so a long-finished farm costs nothing here. A worker is *busy* while it
 holds a started job of an active run, *idle* when it recorded a job start
 or finish within ``alive_s`` seconds, else *silent* (stopped, or lost: its
 jobs are redelivered by the broker). The store cannot see a worker that
-has never taken a job; Celery's own events (Flower) can.
+has never taken a job; Celery's own events (Flower) can. :func:`farm_overview`
+adds the runs that cannot make progress (:mod:`workers.health`): waiting on a
+queue no live worker consumes, or failing.
 """
 from __future__ import annotations
 
@@ -14,8 +16,10 @@ import datetime as dt
 from typing import TYPE_CHECKING, Any
 
 from undream.dashboard.query import iso
+from workers.health import probe, stuck_runs
 
 if TYPE_CHECKING:
+    from undream.settings import Settings
     from undream.store import Store
 
 WINDOW_S = 600.0  # jobs per minute are counted over this many seconds
@@ -58,3 +62,11 @@ def workers_overview(store: "Store", now: dt.datetime | None = None, window_s: f
                      "idle_s": idle_s})
     return {"window_s": window_s, "alive_s": alive_s, "workers": rows,
             "alive": sum(r["alive"] for r in rows), "now": iso(now)}
+
+
+def farm_overview(store: "Store", settings: "Settings", now: dt.datetime | None = None) -> dict[str, Any]:
+    """:func:`workers_overview` and, under ``stuck``, the runs that cannot make progress
+    (:func:`workers.health.stuck_runs`: the broker asked which queues have a live worker, within
+    the settings' ``connect_timeout``, only while a farm run is active). Four queries in all."""
+    now = now or dt.datetime.now(dt.timezone.utc)
+    return {**workers_overview(store, now), "stuck": stuck_runs(store, lambda: probe(settings), now)}

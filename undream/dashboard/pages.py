@@ -61,7 +61,7 @@ def sweep(sweep_id: str) -> Any:
 
 @pages.get("/workers")
 def workers() -> Any:
-    data = fleet.workers_overview(farm().store())
+    data = fleet.farm_overview(farm().store(), farm().settings)
     return render_template("workers.html", data=data, refresh=REFRESH_S)
 
 
