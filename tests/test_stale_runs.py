@@ -141,7 +141,8 @@ def test_a_run_held_by_a_live_process_is_refused_and_left_alone(store):
 # -- the schema upgrade ----------------------------------------------------------------------------
 
 
-LIST_INDEXES = {"ix_runs_created_id", "ix_runs_status_created_id", "ix_runs_sweep_created_id"}
+LIST_INDEXES = {"ix_runs_created_id", "ix_runs_status_created_id", "ix_runs_sweep_created_id", "ix_runs_owner"}
+JOB_INDEXES = ["ix_frame_jobs_failed", "ix_frame_jobs_run_k_status"]
 
 
 @pytest.mark.parametrize("version", [2, 3])
@@ -166,7 +167,7 @@ def _downgrade_and_reopen(url: str, tmp_path: Path, version: int) -> None:
         run_id = s.create_run("old", {"a": 1}, n_frames=2, seed=3)
         assert LIST_INDEXES <= {ix["name"] for ix in inspect(s.engine).get_indexes("runs")}
         with s.engine.begin() as conn:  # back to what undream with schema `version` wrote
-            for name in sorted(LIST_INDEXES):
+            for name in sorted(LIST_INDEXES) + JOB_INDEXES:
                 conn.execute(text(f"DROP INDEX {name}"))
             conn.execute(text("DROP TABLE alembic_version"))
             if version == 2:
@@ -179,6 +180,7 @@ def _downgrade_and_reopen(url: str, tmp_path: Path, version: int) -> None:
             assert conn.scalar(text("SELECT max(version) FROM undream_schema")) == 4
             assert conn.scalar(text("SELECT version_num FROM alembic_version")) == "0004"
         assert LIST_INDEXES <= {ix["name"] for ix in inspect(s.engine).get_indexes("runs")}
+        assert set(JOB_INDEXES) <= {ix["name"] for ix in inspect(s.engine).get_indexes("frame_jobs")}
         run = s.get_run(run_id)
         assert (run.name, run.config, run.owner, run.heartbeat) == ("old", {"a": 1}, None, None)
         assert s.claim(run_id, "h:1") and s.get_run(run_id).owner == "h:1"

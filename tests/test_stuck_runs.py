@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime as dt
+import json
 import sys
 from pathlib import Path
 from typing import Iterator
@@ -16,14 +17,15 @@ from sqlalchemy.engine import Engine
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from conftest import service_missing  # noqa: E402
-from farm_support import Farm, free_db, redis_up, wait_for  # noqa: E402
+from farm_support import Farm, free_db, redis_client, redis_up, release_db, wait_for  # noqa: E402
 
 from undream.cli import main  # noqa: E402
 from undream.dashboard import create_app  # noqa: E402
 from undream.settings import load_settings  # noqa: E402
 from undream.spec.run import RunConfig  # noqa: E402
 from undream.store import open_store  # noqa: E402
-from workers.health import Consumers, diagnose, probe, stuck_runs  # noqa: E402
+from workers.health import Consumers, probe, stuck_runs  # noqa: E402
+from workers.presence import PREFIX, announce, live_queues  # noqa: E402
 from workers.queues import CONTROL_QUEUE, FRAMES_QUEUE, QUEUES  # noqa: E402
 
 SECRET = "hunter2-secret"
@@ -84,14 +86,14 @@ def test_runs_on_queues_without_a_live_worker_wait_and_failing_jobs_give_the_red
 def test_a_run_driven_by_its_own_process_never_waits_and_lists_are_capped(tmp_path):
     ids = _farm(tmp_path, n_queued=5)
     with open_store(None, tmp_path) as store:
-        runs, errors = store.run_health()
-        assert [r.owner for r in runs if r.id == ids["local"]] == ["node-b:9"]
-        waiting, _ = diagnose(runs, errors, Consumers({}), dt.datetime.now(dt.timezone.utc))
-        assert ids["local"] not in {r["run_id"] for r in waiting} and len(waiting) == 7
-        freed = [r._replace(owner=None) for r in runs]
-        assert len(diagnose(freed, errors, Consumers({}), dt.datetime.now(dt.timezone.utc))[0]) == 8
+        nobody = stuck_runs(store, lambda: Consumers({}))
         capped = stuck_runs(store, lambda: Consumers({}), limit=2)
-    assert len(capped["waiting"]) == 2 and capped["n_waiting"] == 7  # 5 queued, frames, failing
+        assert store.release(ids["local"], "node-b:9")  # its process let go: a run like the farm's now
+        freed = stuck_runs(store, lambda: Consumers({}))
+    assert ids["local"] not in {r["run_id"] for r in nobody["waiting"]} and nobody["n_waiting"] == 7  # 5 queued, frames, failing
+    assert len(capped["waiting"]) == 2 and capped["n_waiting"] == 7
+    assert [r["run_id"] for r in capped["waiting"]] == [r["run_id"] for r in nobody["waiting"][:2]]  # stalled longest
+    assert freed["n_waiting"] == 8 and ids["local"] in {r["run_id"] for r in freed["waiting"]}
 
 
 def test_status_lists_stuck_runs_after_its_table(tmp_path):
@@ -101,7 +103,7 @@ def test_status_lists_stuck_runs_after_its_table(tmp_path):
     assert res.exit_code == 0, res.output
     table, stuck = res.output.split("\nlive queues: ")
     assert "queued0" in table and "failing" in table
-    assert stuck.startswith(f"unknown (cannot reach the broker at '{NO_BROKER}'")
+    assert stuck.startswith(f"unknown (cannot read the workers' announcements at '{NO_BROKER}'")
     assert "stuck: unknown waiting, 1 failing" in stuck
     assert "postgresql://farm:***@db:5432/undream" in stuck and "attempt 2 of 3; failures 0 of 2" in stuck
     assert SECRET not in res.output
@@ -133,7 +135,7 @@ def test_api_workers_and_the_workers_page_show_stuck_runs(tmp_path):
     assert stuck["failing"][0]["reason"].startswith("RenderError: cannot load scene from postgresql://farm:***@")
     page = client.get("/workers").get_data(as_text=True)
     assert 'id="stuck-table"' in page and f'data-run="{ids["failing"]}" data-state="failing"' in page
-    assert "Live queues: unknown (cannot reach the broker" in page
+    assert "Live queues: unknown (cannot read the workers" in page
     assert SECRET not in page and SECRET not in str(body)
     app.extensions["undream"].close()
 
@@ -171,10 +173,29 @@ def test_the_workers_page_reads_any_number_of_runs_in_the_same_number_of_queries
         with _statements() as seen:
             body = client.get("/api/workers").get_json()
         assert {w["worker"] for w in body["workers"]} >= {f"node-{i % 3}:1" for i in range(n)}
-        assert body["stuck"]["active"] == n + 3
+        assert body["stuck"]["active"] == n + 2  # farm runs: the queued ones, frames and failing (not the local one)
         counts.append(sum(q.lstrip().upper().startswith("SELECT") for q in seen))
         app.extensions["undream"].close()
-    assert counts == [4, 4], counts  # two for the workers, two for the stuck runs
+    assert counts == [6, 6], counts  # two for the workers; two counting the active farm runs, the failing jobs and their runs
+
+
+def test_a_worker_is_live_from_its_announcement_until_it_withdraws_or_its_key_lapses():
+    if (reason := redis_up()) is not None:
+        service_missing(reason)
+    db = free_db()
+    try:
+        settings = load_settings(env={"UNDREAM_BROKER_URL": f"redis://127.0.0.1:6379/{db}"})
+        withdraw = announce(settings, "w1@host", QUEUES, beat_s=0.1, ttl_s=1)
+        assert live_queues(settings) == {q: ("w1@host",) for q in QUEUES}
+        assert probe(settings).queues == {q: ("w1@host",) for q in QUEUES}
+        withdraw()
+        assert live_queues(settings) == {}
+        # killed without a word: its last announcement lapses
+        redis_client(db).set(PREFIX + "w2@host", json.dumps({"node": "w2@host", "queues": [CONTROL_QUEUE]}), ex=1)
+        assert live_queues(settings) == {CONTROL_QUEUE: ("w2@host",)}
+        wait_for(lambda: live_queues(settings) == {}, 5, "the lapsed announcement")
+    finally:
+        release_db(db)
 
 
 @pytest.mark.slow

@@ -4,19 +4,19 @@ Every run's work goes to one of the farm's two queues (:mod:`workers.queues`):
 a queued run waits for its start on ``undream.control``; a running or
 evaluating run waits on ``undream.frames`` while its current iteration has
 jobs queued, started or retried, else on ``undream.control`` for the phase's
-callback. Which queues have a live consumer is asked of the workers
-themselves through Celery's remote control (:func:`probe`: every worker
-answers ``active_queues`` within a second). A farm run whose queue nobody
+callback. Which queues have a live consumer the workers say themselves, in
+Redis (:mod:`workers.presence`; :func:`probe` reads it in milliseconds, where
+Celery's remote control waits out its whole timeout on every call). A farm run whose queue nobody
 consumes is *waiting*; a run whose current iteration has jobs whose last
 attempt failed is *failing*, with that job's error (redacted, one line).
 A run driven by its own process (``undream run``) uses no queue and is never
 waiting.
 
-:func:`probe` never hangs: the broker is reached within the settings'
-``connect_timeout`` and the replies are awaited :data:`REPLY_S` at most;
-when the broker cannot be reached the live queues are *unknown* (None, with
-the reason), and no run is called waiting. The store is read in a fixed
-number of queries (:meth:`undream.store.Store.run_health`), and each list
+:func:`probe` never hangs: Redis is reached within the settings'
+``connect_timeout``; when it cannot be reached the live queues are *unknown*
+(None, with the reason), and no run is called waiting. The store is read in a fixed
+number of queries (:meth:`undream.store.Store.stalled_runs`, read only when
+a queue has no live worker, and :meth:`~undream.store.Store.failing_runs`), and each list
 shows at most ``limit`` runs, those stalled longest first, with the total.
 """
 from __future__ import annotations
@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, Any, Callable, Mapping
 from scheduler.stages import FarmOptions
 from undream.redact import redact_text
 from undream.store import mask_url
-from workers.app import BrokerError, check_reachable, create_celery_app
+from workers.presence import live_queues
 from workers.queues import CONTROL_QUEUE, FRAMES_QUEUE
 
 if TYPE_CHECKING:
@@ -37,8 +37,9 @@ if TYPE_CHECKING:
     from undream.store import Store
     from undream.store.activity import JobError, RunHealth
 
-REPLY_S = 1.0  # s to wait for the workers' answers (at most the settings' connect_timeout)
 LIMIT = 20  # runs listed per kind (waiting, failing); the totals are given apart
+# queue → what a run waits for there (Store.stalled_runs' kinds): its start or a phase's callback, or its jobs
+WAITS_ON = {CONTROL_QUEUE: ("queued", "callback"), FRAMES_QUEUE: ("jobs",)}
 ERROR_WIDTH = 160  # characters of a job's error shown
 
 
@@ -56,41 +57,27 @@ class Consumers:
         return self.queues is not None
 
 
-def _ask(settings: "Settings", reply_s: float) -> Consumers:
+def _ask(settings: "Settings") -> Consumers:
     try:
-        app = create_celery_app(settings)
-    except Exception as exc:  # bad local settings in the environment: say so, never raise here
-        return Consumers(None, f"cannot build the Celery app: {one_line(str(exc) or type(exc).__name__)}")
-    try:
-        check_reachable(app, settings)
-        replies = app.control.inspect(timeout=reply_s).active_queues() or {}
-    except BrokerError as err:
-        return Consumers(None, one_line(str(err)))
-    except Exception as exc:  # kombu's OperationalError and the transport's own errors
-        return Consumers(None, f"cannot ask the workers through {mask_url(settings.broker_url)!r}: "
+        return Consumers(live_queues(settings))
+    except Exception as exc:  # redis-py's ConnectionError, TimeoutError, AuthenticationError, a bad URL
+        return Consumers(None, f"cannot read the workers' announcements at {mask_url(settings.backend_url)!r}: "
                                f"{one_line(str(exc) or type(exc).__name__)}")
-    finally:
-        app.close()
-    queues: dict[str, list[str]] = {}
-    for worker, consumed in replies.items():
-        for queue in consumed or ():
-            queues.setdefault(queue.get("name", "?"), []).append(worker)
-    return Consumers({q: tuple(sorted(ws)) for q, ws in sorted(queues.items())})
 
 
-def probe(settings: "Settings", reply_s: float = REPLY_S) -> Consumers:
-    """Which queues have a live worker, asked through the broker: at most ``connect_timeout`` to
-    reach it, ``min(reply_s, connect_timeout)`` for the answers, and never longer than their sum
-    plus a second (the asking thread is left behind, as a daemon, if the broker stalls)."""
-    wait = min(reply_s, settings.connect_timeout)
+def probe(settings: "Settings") -> Consumers:
+    """Which queues have a live worker, from the workers' announcements in Redis
+    (:mod:`workers.presence`): milliseconds when Redis answers; ``connect_timeout`` at most to
+    reach it, and never longer than twice that plus a second (the reading thread is left behind,
+    as a daemon, if Redis stalls)."""
     box: list[Consumers] = []
-    asker = threading.Thread(target=lambda: box.append(_ask(settings, wait)), name="undream-probe", daemon=True)
-    asker.start()
-    asker.join(settings.connect_timeout + wait + 1.0)
+    reader = threading.Thread(target=lambda: box.append(_ask(settings)), name="undream-probe", daemon=True)
+    reader.start()
+    limit = 2 * settings.connect_timeout + 1.0
+    reader.join(limit)
     if box:
         return box[0]
-    return Consumers(None, f"the broker at {mask_url(settings.broker_url)!r} did not answer within "
-                           f"{settings.connect_timeout + wait + 1.0:g} s")
+    return Consumers(None, f"Redis at {mask_url(settings.backend_url)!r} did not answer within {limit:g} s")
 
 
 def one_line(text: str, width: int = ERROR_WIDTH) -> str:
@@ -127,23 +114,6 @@ def _failing(run: "RunHealth", err: "JobError", now: dt.datetime) -> dict[str, A
             "failure_budget": options.failure_budget}
 
 
-def diagnose(runs: list["RunHealth"], errors: Mapping[str, "JobError"], consumers: Consumers,
-             now: dt.datetime) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-    """(waiting, failing): the farm runs whose queue has no live worker (none while the live queues
-    are unknown), and the runs with an error at their current iteration; each list the runs stalled
-    longest first. Plain data; no query, no broker."""
-    waiting, failing = [], []
-    for run in runs:
-        if consumers.queues is not None and run.owner is None:
-            queue = queue_of(run)
-            if not consumers.queues.get(queue):
-                waiting.append({**_base(run, now), "state": "waiting", "queue": queue,
-                                "reason": f"no live worker on queue {queue}"})
-        if run.id in errors:
-            failing.append(_failing(run, errors[run.id], now))
-    return sorted(waiting, key=_stalled_first), sorted(failing, key=_stalled_first)
-
-
 def _stalled_first(row: dict[str, Any]) -> tuple[float, str]:
     return -row["stalled_s"], row["run_id"]
 
@@ -152,15 +122,20 @@ def stuck_runs(store: "Store", consumers: Callable[[], Consumers], now: dt.datet
                limit: int = LIMIT) -> dict[str, Any]:
     """The runs that cannot make progress, as plain data: ``waiting`` and ``failing`` (at most
     ``limit`` each, stalled longest first), their totals ``n_waiting`` (None while the live queues
-    are unknown) and ``n_failing``, ``queues`` (queue → live workers; None: unknown, or not asked)
-    and ``broker_error``. ``consumers`` is called (the broker asked: ``asked``) only when a farm
-    run is active. Two queries, whatever the number of runs."""
+    are unknown) and ``n_failing``, ``active`` (farm runs queued, running or evaluating), ``queues``
+    (queue → live workers; None: unknown, or not asked) and ``broker_error``. ``consumers`` is
+    called (the broker asked: ``asked``) only when a farm run is active; the runs waiting are read
+    only when a queue has no live worker. A fixed number of queries, whatever the number of runs."""
     now = now or dt.datetime.now(dt.timezone.utc)
-    runs, errors = store.run_health()
-    asked = any(r.owner is None for r in runs)
-    live = consumers() if asked else Consumers(None)
-    waiting, failing = diagnose(runs, errors, live, now)
+    active = store.active_farm_runs()
+    live = consumers() if active else Consumers(None)
+    dead = [q for q in WAITS_ON if live.queues is not None and not live.queues.get(q)]
+    kinds = [kind for q in dead for kind in WAITS_ON[q]]
+    counts, stalled = store.stalled_runs(kinds, limit) if kinds else ({}, [])
+    waiting = [{**_base(run, now), "state": "waiting", "queue": queue_of(run),
+                "reason": f"no live worker on queue {queue_of(run)}"} for run in stalled]
+    failing = sorted((_failing(run, err, now) for run, err in store.failing_runs()), key=_stalled_first)
     queues = None if live.queues is None else {q: list(w) for q, w in live.queues.items()}
-    return {"active": len(runs), "asked": asked, "queues": queues, "broker_error": live.reason,
-            "n_waiting": len(waiting) if live.known or not asked else None, "n_failing": len(failing),
-            "waiting": waiting[:limit], "failing": failing[:limit], "now": now.isoformat()}
+    return {"active": active, "asked": bool(active), "queues": queues, "broker_error": live.reason,
+            "n_waiting": sum(counts.get(kind, 0) for kind in kinds) if live.known or not active else None,
+            "n_failing": len(failing), "waiting": waiting, "failing": failing[:limit], "now": now.isoformat()}

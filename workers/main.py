@@ -5,9 +5,10 @@ import logging
 import os
 import socket
 import sys
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Callable
 
 from workers.app import QUEUES, create_celery_app
+from workers.presence import announce
 from workers.runtime import drjit_threads_for, init_process
 
 if TYPE_CHECKING:
@@ -17,9 +18,14 @@ log = logging.getLogger(__name__)
 HEAVY = ("mitsuba", "drjit", "torch")  # never imported in the worker's parent process
 
 
+def node_name(hostname: str | None = None) -> str:
+    """The worker's Celery node name: ``hostname``, else ``undream-<pid>@<host>``."""
+    return hostname or f"undream-{os.getpid()}@{socket.gethostname()}"
+
+
 def worker_argv(settings: "Settings", loglevel: str = "INFO", hostname: str | None = None) -> list[str]:
     """The ``celery worker`` arguments of an undream worker."""
-    name = hostname or f"undream-{os.getpid()}@{socket.gethostname()}"
+    name = node_name(hostname)
     return ["worker", "--pool=prefork", f"--concurrency={settings.concurrency}",
             f"--queues={','.join(QUEUES)}", f"--loglevel={loglevel}", f"--hostname={name}",
             "--without-gossip", "--without-mingle", "--without-heartbeat"]
@@ -30,6 +36,8 @@ def run_worker(settings: "Settings", loglevel: str = "INFO", hostname: str | Non
     from celery import signals
 
     app = create_celery_app(settings)
+    node = node_name(hostname)
+    withdraw: list[Callable[[], None]] = []
 
     def _child_init(**_: Any) -> None:
         app.undream_local = init_process(settings, app.undream_local)  # type: ignore[attr-defined]
@@ -40,7 +48,13 @@ def run_worker(settings: "Settings", loglevel: str = "INFO", hostname: str | Non
             log.error("undream worker: %s imported in the worker's parent process (not fork-safe)", heavy)
         log.info("undream worker ready: %d process(es), %d Dr.Jit thread(s) each, parent without %s",
                  settings.concurrency, drjit_threads_for(settings), ", ".join(HEAVY))
+        withdraw.append(announce(settings, node, QUEUES))  # `undream status` sees it live from now
+
+    def _shutdown(**_: Any) -> None:
+        for stop in withdraw:
+            stop()
 
     signals.worker_process_init.connect(_child_init, weak=False)
     signals.worker_ready.connect(_ready, weak=False)
-    app.worker_main(worker_argv(settings, loglevel, hostname))
+    signals.worker_shutdown.connect(_shutdown, weak=False)
+    app.worker_main(worker_argv(settings, loglevel, node))

@@ -2,19 +2,21 @@
 
 :meth:`ActivityTables.worker_activity` reads what the workers did in a
 window (two grouped queries, whatever the number of runs);
-:meth:`ActivityTables.run_health` reads every active run's progress at its
-current iteration and its latest job error (two queries). Both join
+:meth:`ActivityTables.stalled_runs` counts the farm's active runs by what
+they wait for and lists those of some kinds stalled longest, and
+:meth:`ActivityTables.failing_runs` the runs with a failed job at their
+current iteration (two queries each). Both join
 ``frame_jobs`` to ``runs`` on the run id, so only the jobs of the runs that
 matter are read. Times are UTC.
 """
 from __future__ import annotations
 
 import datetime as dt
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import TYPE_CHECKING, Any, Collection, NamedTuple, Sequence
 
 from sqlalchemy import and_, case, func, or_, select
 
-from undream.store.jobs import UNFINISHED
+from undream.store.jobs import IN_CHUNK, UNFINISHED
 from undream.store.models import FrameJob, Run
 from undream.store.snapshots import loads
 
@@ -122,32 +124,81 @@ class ActivityTables:
         return ([WorkerTally(w, st, int(n or 0), _utc(a), _utc(b)) for w, st, n, a, b in rows],
                 [CurrentJob(*row[:6], _utc(row[6])) for row in held])
 
-    def run_health(self) -> tuple[list[RunHealth], dict[str, JobError]]:
-        """Every active run, oldest first, with its jobs at its current iteration counted; and, by
-        run id, the latest failed attempt of those jobs that has not succeeded since. Two queries,
-        whatever the number of runs."""
+    def active_farm_runs(self) -> int:
+        """How many runs are queued, running or evaluating on the farm (not driven by their own
+        process): the active runs less the owned ones, each counted down an index."""
+        r = Run.__table__
+        with self._tx("active_farm_runs", write=False) as s:
+            active = s.scalar(select(func.count()).select_from(r).where(r.c.status.in_(ACTIVE_RUNS))) or 0
+            # by owner alone, so that the owner index serves it (the owned runs are few)
+            owned = [status for (status,) in s.execute(select(r.c.status).where(r.c.owner > ""))]
+        return active - sum(status in ACTIVE_RUNS for status in owned)
+
+    def _progress(self, s: "Session", run_ids: "Sequence[str] | None" = None) -> Any:
+        """Per active run (or the runs ``run_ids``), its jobs at its current iteration: unfinished,
+        errored, latest start and finish (a subquery)."""
+        fj, r = FrameJob.__table__, Run.__table__
+        errored = and_(fj.c.error.is_not(None), fj.c.status != "succeeded")
+        query = (select(fj.c.run_id,
+                        func.sum(case((fj.c.status.in_(UNFINISHED), 1), else_=0)).label("unfinished"),
+                        func.sum(case((errored, 1), else_=0)).label("errored"),
+                        func.max(fj.c.started).label("started"), func.max(fj.c.finished).label("finished"))
+                 .join(r, r.c.id == fj.c.run_id).where(r.c.status.in_(ACTIVE_RUNS), fj.c.k == r.c.iteration))
+        if run_ids is not None:
+            query = query.where(fj.c.run_id.in_(list(run_ids)))
+        return query.group_by(fj.c.run_id).subquery()
+
+    def stalled_runs(self, kinds: "Collection[str]", limit: int) -> tuple[dict[str, int], list[RunHealth]]:
+        """The farm's active runs (not driven by their own process) by what they wait for: ``queued``
+        (their start), ``jobs`` (their current iteration has jobs queued, started or retried) or
+        ``callback`` (it has none: the phase's callback). Returns every kind's count and the runs of
+        ``kinds``, at most ``limit``, those whose row changed longest ago first (an iteration's
+        advance, a status change), with their current jobs' progress. Three queries, whatever the
+        number of runs."""
+        fj, r = FrameJob.__table__, Run.__table__
+        pending = (select(fj.c.id).where(fj.c.run_id == r.c.id, fj.c.k == r.c.iteration,
+                                         fj.c.status.in_(UNFINISHED)).exists())
+        kind = case((r.c.status == "queued", "queued"), (pending, "jobs"), else_="callback")
+        farm = and_(r.c.status.in_(ACTIVE_RUNS), r.c.owner.is_(None))
+        with self._tx("stalled_runs", write=False) as s:
+            counts = {k: n for k, n in s.execute(select(kind.label("kind"), func.count()).where(farm)
+                                                 .group_by(kind))}
+            ids = [row[0] for row in s.execute(select(r.c.id).where(farm, kind.in_(list(kinds)))
+                                               .order_by(r.c.updated, r.c.id).limit(limit))] if kinds else []
+            rows = self._with_progress(s, ids)
+        return counts, [_health(rows[run_id]) for run_id in ids]
+
+    def _with_progress(self, s: "Session", run_ids: "Sequence[str]") -> dict[str, Any]:
+        """The rows (id → row) of the runs ``run_ids`` with their current jobs' progress."""
+        r, out = Run.__table__, {}
+        for i in range(0, len(run_ids), IN_CHUNK):
+            chunk = list(run_ids[i:i + IN_CHUNK])
+            jobs = self._progress(s, chunk)
+            query = (select(r.c.id, r.c.name, r.c.status, r.c.iteration, r.c.updated, r.c.failures, r.c.farm_json,
+                            r.c.owner, jobs.c.unfinished, jobs.c.errored, jobs.c.started, jobs.c.finished)
+                     .outerjoin(jobs, jobs.c.run_id == r.c.id).where(r.c.id.in_(chunk)))
+            out.update({row.id: row for row in s.execute(query)})
+        return out
+
+    def failing_runs(self) -> list[tuple[RunHealth, JobError]]:
+        """The active runs whose current iteration has a job whose last attempt failed and that has
+        not succeeded since, each with the latest such attempt. Two queries, whatever the number of runs."""
         fj, r = FrameJob.__table__, Run.__table__
         current = and_(r.c.status.in_(ACTIVE_RUNS), fj.c.k == r.c.iteration)
         errored = and_(fj.c.error.is_not(None), fj.c.status != "succeeded")
-        counts = (select(fj.c.run_id,
-                         func.sum(case((fj.c.status.in_(UNFINISHED), 1), else_=0)).label("unfinished"),
-                         func.sum(case((errored, 1), else_=0)).label("errored"),
-                         func.max(fj.c.started).label("started"), func.max(fj.c.finished).label("finished"))
-                  .join(r, r.c.id == fj.c.run_id).where(current).group_by(fj.c.run_id).subquery())
-        runs = (select(r.c.id, r.c.name, r.c.status, r.c.iteration, r.c.updated, r.c.failures, r.c.farm_json,
-                       r.c.owner, counts.c.unfinished, counts.c.errored, counts.c.started, counts.c.finished)
-                .outerjoin(counts, counts.c.run_id == r.c.id).where(r.c.status.in_(ACTIVE_RUNS))
-                .order_by(r.c.created, r.c.id))
         newest = func.row_number().over(partition_by=fj.c.run_id,
                                         order_by=(func.coalesce(fj.c.finished, fj.c.started).desc(),
                                                   fj.c.id.desc()))
         failed = (select(fj.c.run_id, fj.c.phase, fj.c.k, fj.c.frame, fj.c.status, fj.c.attempts, fj.c.error,
                          newest.label("n"))
                   .join(r, r.c.id == fj.c.run_id).where(current, errored).subquery())
-        with self._tx("run_health", write=False) as s:
-            rows = s.execute(runs).all()
-            errors = s.execute(select(*list(failed.c)[:-1]).where(failed.c.n == 1)).all()
-        health = [RunHealth(row.id, row.name, row.status, row.iteration, _utc(row.updated),  # type: ignore[arg-type]
-                            row.failures or 0, loads(row.farm_json) or {}, row.owner, int(row.unfinished or 0),
-                            int(row.errored or 0), _latest(row.started, row.finished)) for row in rows]
-        return health, {e.run_id: JobError(*e) for e in errors}
+        with self._tx("failing_runs", write=False) as s:
+            errors = {e.run_id: JobError(*e) for e in s.execute(select(*list(failed.c)[:-1]).where(failed.c.n == 1))}
+            rows = self._with_progress(s, list(errors))
+        return [(_health(rows[run_id]), error) for run_id, error in errors.items()]
+
+
+def _health(row: Any) -> RunHealth:
+    return RunHealth(row.id, row.name, row.status, row.iteration, _utc(row.updated),  # type: ignore[arg-type]
+                     row.failures or 0, loads(row.farm_json) or {}, row.owner, int(row.unfinished or 0),
+                     int(row.errored or 0), _latest(row.started, row.finished))

@@ -67,10 +67,10 @@ class LeaseMethods:
     def owned_runs(self) -> list[RunSnapshot]:
         """The live runs that a process owns (``undream run``'s), oldest first: the only runs the
         stale-run rule looks at (farm runs have no owner), read without touching the others."""
-        query = (select(Run).where(Run.owner.is_not(None), Run.status.in_(LIVE))
-                 .order_by(Run.created, Run.id))
+        query = select(Run).where(Run.owner > "")  # a range of the owner index (every owner is non-empty)
         with self._tx("owned_runs", write=False) as s:
-            return [RunSnapshot.of(r) for r in s.scalars(query)]
+            runs = [RunSnapshot.of(r) for r in s.scalars(query) if r.status in LIVE]
+        return sorted(runs, key=lambda run: (run.created, run.id))
 
     def beat(self, run_id: str, owner: str) -> bool:
         """Refresh the heartbeat of ``owner``'s run; False when ``owner`` no longer holds it."""

@@ -28,6 +28,7 @@ from sqlalchemy import (
     String,
     Text,
     UniqueConstraint,
+    text,
 )
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
@@ -37,7 +38,7 @@ JOB_STATUSES = ("queued", "started", "succeeded", "failed", "retried")
 JOB_PHASES = ("attack", "pre", "adversarial")  # iteration jobs; evaluation before and after the final pick
 SCHEMA_VERSION = 4  # 1: runs, iterations, frame_jobs without phases; 2: the farm (sweeps, scenes, phases);
 #                    3: run leases (runs.owner, runs.heartbeat; migrated in place from 2);
-#                    4: the runs lists' indexes (alembic revision 0004, undream/store/migrations)
+#                    4: the control plane's indexes (alembic revision 0004, undream/store/migrations)
 
 _NAMING = {
     "ix": "ix_%(column_0_label)s",
@@ -78,6 +79,7 @@ class Run(Base):
         Index("ix_runs_created_id", "created", "id"),
         Index("ix_runs_status_created_id", "status", "created", "id"),
         Index("ix_runs_sweep_created_id", "sweep_id", "created", "id"),
+        Index("ix_runs_owner", "owner"),  # the few runs a process owns, among any number of farm runs
     )
 
     id: Mapped[str] = mapped_column(String(36), primary_key=True)
@@ -161,6 +163,11 @@ class FrameJob(Base):
         UniqueConstraint("run_id", "phase", "k", "frame"),
         CheckConstraint(_one_of("status", JOB_STATUSES), name="status"),
         CheckConstraint(_one_of("phase", JOB_PHASES), name="phase"),
+        # A run's jobs at its current iteration, whatever the phase: the stuck-run and progress reads
+        Index("ix_frame_jobs_run_k_status", "run_id", "k", "status"),
+        # The few jobs with an error, found without reading the others (failing runs)
+        Index("ix_frame_jobs_failed", "run_id", sqlite_where=text("error IS NOT NULL"),
+              postgresql_where=text("error IS NOT NULL")),
     )
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
