@@ -63,11 +63,12 @@ def _steady(store: Any, run_id: str, steps: int, n_frames: int) -> dict[str, flo
 
 
 def _blob_bytes(store: Any, run_id: str, fpt: int) -> float:
-    """Blob bytes per frame job: its gradient written, the texture read once per task."""
-    job = store.jobs(run_id, 1)[0]
-    grad = store.blobs.path(job.grad_ref).stat().st_size
-    tex = store.blobs.path(f"runs/{run_id}/texture/000001.npy").stat().st_size
-    return grad + tex / fpt
+    """Blob bytes per frame job: its gradient written, the texture read once per task.
+
+    A frame's gradient is an H×W×3 float32 array like the texture (and is deleted once its
+    iteration is reduced, so the texture's size stands for it)."""
+    tex = store.blobs.size(f"runs/{run_id}/texture/000001.npy")
+    return tex + tex / fpt
 
 
 class Farm:
@@ -99,7 +100,7 @@ def _farm_run(root: Path, args: argparse.Namespace, prepared: Any, workers: int,
               redis: Any) -> dict[str, Any]:
     from scheduler.submit import record
     from undream.settings import load_settings
-    from undream.store import open_store
+    from undream.store import open_farm_store
     from workers.app import create_celery_app
     from workers.dispatch import CeleryDispatch
 
@@ -109,7 +110,7 @@ def _farm_run(root: Path, args: argparse.Namespace, prepared: Any, workers: int,
     redis.flushdb()
     farm.start(workers, threads)
     try:
-        store = open_store(settings.database_url, settings.blob_url)
+        store = open_farm_store(settings)
         app = create_celery_app(settings)
         (run_id,) = record(store, [prepared], settings)
         net0 = redis.info("stats")

@@ -574,6 +574,15 @@ def test_crash_mid_write_leaves_no_partial_blob(tmp_path: Path, monkeypatch):
     monkeypatch.setattr(blobs_module.np, "save", half_save)
     with pytest.raises(KeyboardInterrupt):
         blobs.put_array("runs/r1/texture/000001.npy", np.zeros(8))
+    assert not blobs.exists("runs/r1/texture/000001.npy")
+    monkeypatch.undo()
+
+    def killed(fd):  # the bytes are in the temporary file, not yet on disk: the writer dies
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(blobs_module.os, "fsync", killed)
+    with pytest.raises(KeyboardInterrupt):
+        blobs.put_array("runs/r1/texture/000001.npy", np.zeros(8))
     assert list((tmp_path / "runs" / "r1" / "texture").iterdir()) == []
 
 

@@ -7,13 +7,20 @@ with the field names below (``--settings FILE`` or ``$UNDREAM_SETTINGS``)::
 
     broker_url: redis://farm-head:6379/0
     database_url: postgresql://undream:secret@farm-head:5432/undream
-    blob_url: /mnt/shared/undream          # a folder every machine mounts
+    blob_url: /mnt/shared/undream          # a folder every machine mounts, or
+    # blob_url: database                   # blobs in the run database (database_url must be set)
+    # blob_url: s3://undream-farm/blobs    # S3-compatible object storage (s3_* below)
+    s3_endpoint_url: http://minio:9000     # unset: AWS
     drjit_threads: 1
 
 Environment: ``UNDREAM_`` + the field name in capitals (``UNDREAM_BROKER_URL``,
 ``UNDREAM_RESULT_BACKEND``, ``UNDREAM_DATABASE_URL``, ``UNDREAM_BLOB_URL``,
 ``UNDREAM_CACHE_DIR``, ``UNDREAM_DRJIT_THREADS``, ``UNDREAM_DASHBOARD_TOKEN``, ...).
 Errors name the source (file and field, or variable) and the value (never a token's).
+The S3 settings also take the usual AWS variables where no ``UNDREAM_S3_*``
+variable or file sets them: ``AWS_ENDPOINT_URL_S3`` (or ``AWS_ENDPOINT_URL``),
+``AWS_REGION`` (or ``AWS_DEFAULT_REGION``), ``AWS_ACCESS_KEY_ID`` and
+``AWS_SECRET_ACCESS_KEY``; the keys are secrets and never shown.
 
 Every command (``init``, ``run``, ``baseline``, ...) and every worker process
 also builds one :class:`LocalSettings` with :func:`load_local`: how this
@@ -94,6 +101,11 @@ class Settings:
     scene_cache: int = 2  # scene directories whose Mitsuba scenes a worker process keeps loaded
     connect_timeout: float = 5.0  # s to reach the broker before giving up (CLI commands)
     dashboard_token: str | None = field(default=None, repr=False)  # cancel/resume need it; None: none
+    transport_cache_mb: int = 512  # MB of captured transports the blob store keeps (least recently used go)
+    s3_endpoint_url: str | None = None  # S3-compatible endpoint of s3:// blobs (None: AWS)
+    s3_region: str | None = None  # its region (None: boto3's default)
+    s3_access_key_id: str | None = field(default=None, repr=False)  # None: boto3's own credential chain
+    s3_secret_access_key: str | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         for name in ("broker_url",):
@@ -113,11 +125,16 @@ class Settings:
         for name, least in (("concurrency", 1), ("torch_threads", 1), ("farm_slots", 1),
                             ("max_attempts", 1), ("failure_budget", 0), ("store_retries", 0),
                             ("visibility_timeout", 1),
-                            ("restore_interval", 1), ("scene_cache", 1)):
+                            ("restore_interval", 1), ("scene_cache", 1), ("transport_cache_mb", 0)):
             _check_int(name, getattr(self, name), least)
         for name in ("drjit_threads", "frames_per_task"):
             if getattr(self, name) is not None:
                 _check_int(name, getattr(self, name), 1)
+        for name in ("s3_endpoint_url", "s3_region", "s3_access_key_id", "s3_secret_access_key"):
+            value = getattr(self, name)
+            if value is not None and (not isinstance(value, str) or not value):
+                shown = repr(value) if name in ("s3_endpoint_url", "s3_region") else "a value that is not text"
+                raise SettingsError(f"{name}: must be text or unset, got {shown}")
         token = self.dashboard_token
         if token is not None and (not isinstance(token, str) or len(token.strip()) < 8):
             raise SettingsError("dashboard_token: must be a secret of at least 8 characters or unset, "
@@ -146,15 +163,19 @@ def _check_int(name: str, value: Any, least: int) -> None:
 _FIELDS = {f.name: f for f in fields(Settings)}
 _INTS = {"concurrency", "drjit_threads", "torch_threads", "frames_per_task", "farm_slots",
          "max_attempts", "failure_budget", "store_retries", "visibility_timeout", "restore_interval",
-         "scene_cache"}
+         "scene_cache", "transport_cache_mb"}
+_OPTIONAL = {"result_backend", "database_url", "drjit_threads", "frames_per_task", "dashboard_token",
+             "s3_endpoint_url", "s3_region", "s3_access_key_id", "s3_secret_access_key"}
+# The usual AWS variables, read where no UNDREAM_S3_* variable sets the setting (first one set wins).
+AWS_ENV = {"s3_endpoint_url": ("AWS_ENDPOINT_URL_S3", "AWS_ENDPOINT_URL"),
+           "s3_region": ("AWS_REGION", "AWS_DEFAULT_REGION"),
+           "s3_access_key_id": ("AWS_ACCESS_KEY_ID",), "s3_secret_access_key": ("AWS_SECRET_ACCESS_KEY",)}
 
 
 def _coerce(source: str, name: str, value: Any) -> Any:
     """A value from a file or the environment as the field's type; errors name ``source``."""
     if value is None or value == "":
-        return None if name in ("result_backend", "database_url", "drjit_threads", "frames_per_task",
-                                "dashboard_token") \
-            else _FIELDS[name].default
+        return None if name in _OPTIONAL else _FIELDS[name].default
     if name in _INTS:
         if isinstance(value, (bool, float)):
             return _bad(source, value, "an integer")
@@ -194,6 +215,11 @@ def load_settings(file: str | Path | None = None, env: Mapping[str, str] | None 
     env = os.environ if env is None else env
     values: dict[str, Any] = {}
     sources: dict[str, str] = {}
+    for name, variables in AWS_ENV.items():
+        var = next((v for v in variables if env.get(v)), None)
+        if var is not None:
+            values[name] = env[var]
+            sources[name] = var
     path = file or env.get(SETTINGS_ENV)
     if path:
         values.update(_from_file(Path(path)))

@@ -46,12 +46,12 @@ class Runtime:
 
     def __init__(self, app: "Celery") -> None:
         from scheduler.stages import TEXTURE_VERSIONS
-        from undream.store import open_store
+        from undream.store import open_farm_store
 
         settings: Settings = app.undream_settings  # type: ignore[attr-defined]
         local: LocalSettings = app.undream_local  # type: ignore[attr-defined]
         self.pid = os.getpid()
-        self.store: Store = open_store(settings.database_url, settings.blob_url)
+        self.store: Store = open_farm_store(settings)
         self.contexts: ContextCache = ContextCache(self.store, settings.cache_dir, scenes=settings.scene_cache,
                                                    local=local)
         self.dispatch: CeleryDispatch = CeleryDispatch(app)

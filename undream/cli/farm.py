@@ -39,7 +39,8 @@ def settings_options(fn: Callable[..., Any]) -> Callable[..., Any]:
     @click.option("--broker", default=None, help="Broker URL (redis://host:6379/0; $UNDREAM_BROKER_URL).")
     @click.option("--database", default=None,
                   help="Run database URL (sqlite:///path or postgresql://...; $UNDREAM_DATABASE_URL).")
-    @click.option("--blobs", default=None, help="Blob folder shared by the farm ($UNDREAM_BLOB_URL).")
+    @click.option("--blobs", default=None, help="Blob store of the farm: a shared folder, 'database' or s3://bucket/prefix "
+                       "($UNDREAM_BLOB_URL).")
     @functools.wraps(fn)
     def wrapper(settings_file: Path | None, broker: str | None, database: str | None,
                 blobs: str | None, **kwargs: Any) -> Any:
@@ -56,9 +57,9 @@ def settings_options(fn: Callable[..., Any]) -> Callable[..., Any]:
 def _store(settings: "Settings", create: bool = True) -> "Store":
     """The farm's store; ``create`` False (commands that read, or change a recorded run): no
     database, folder or table is created, and none there is one line (exit 2)."""
-    from undream.store import open_store
+    from undream.store import open_farm_store
 
-    return open_store(settings.database_url, settings.blob_url, create=create)
+    return open_farm_store(settings, create=create)
 
 
 def _app(settings: "Settings") -> "Celery":

@@ -129,13 +129,13 @@ def create_app(settings: "Settings", opener: Callable[[str | None, str], "Store"
     refused (421), so a web page cannot reach it through DNS rebinding; every answer is redacted.
 
     ``opener(database_url, blob_url)`` opens the store (default
-    :func:`undream.store.open_store`, creating nothing: without a farm database every page
+    :func:`undream.store.open_store` with the settings' blob options, creating nothing: without a farm database every page
     is a 503 saying so until one appears).
     """
     if opener is None:
-        from undream.store import open_store
+        from undream.store import BlobOptions, open_store
 
-        opener = functools.partial(open_store, create=False)
+        opener = functools.partial(open_store, create=False, options=BlobOptions.of(settings))
     app = Flask("undream.dashboard", template_folder=str(HERE / "templates"),
                 static_folder=str(HERE / "static"))
     app.url_map.converters["id"] = IdConverter

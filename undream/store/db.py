@@ -1,12 +1,21 @@
-"""Opening the run store: database engine (SQLite or PostgreSQL) plus blob folder.
+"""Opening the run store: database engine (SQLite or PostgreSQL) plus blob backend.
 
-- ``None`` → SQLite at ``<blob_dir>/undream.db`` (the embedded default).
+Database URLs:
+
+- ``None`` → SQLite at ``<blob folder>/undream.db`` (the embedded default; a
+  folder blob URL only: with ``database`` or ``s3://`` blobs there is no folder
+  to put it in, and a StoreError says to set ``database_url``).
 - ``sqlite:///path/to.db`` → SQLite in WAL mode with foreign keys on, a 30 s
   busy timeout, and ``BEGIN IMMEDIATE`` for write transactions so that
   concurrent writers queue instead of failing.
 - ``postgresql://user:password@host:port/db`` (or ``postgres://``,
   ``postgresql+psycopg://``) → PostgreSQL through psycopg 3 (install the
   ``postgres`` extra), with pre-ping and a connect timeout.
+
+Blob URLs (:func:`undream.store.blobs.parse_blob_url`): a folder, ``database``
+(the ``blobs`` table of this database, :mod:`undream.store.blob_db`) or
+``s3://bucket/prefix`` (:mod:`undream.store.blob_s3`, with
+:class:`undream.store.blobs.BlobOptions` for the endpoint and keys).
 
 Engines hold connections: open the store in each worker process after the
 fork, never before.
@@ -23,13 +32,14 @@ from sqlalchemy.exc import ArgumentError, NoSuchModuleError, SQLAlchemyError
 from sqlalchemy.pool import StaticPool
 
 from undream.errors import StoreError
-from undream.store.blobs import BlobStore
-from undream.store.blobs import blob_root as _blob_root
+from undream.store.blob_db import DatabaseBackend
+from undream.store.blobs import DATABASE, BlobOptions, BlobStore, BlobURL, parse_blob_url
 from undream.store.models import SCHEMA_VERSION, Base, SchemaVersion
 from undream.store.store import WRITE_OPTION, Store
 
 if TYPE_CHECKING:
     from alembic.config import Config as AlembicConfig
+    from undream.settings import Settings
 
 SQLITE_FILENAME = "undream.db"
 CONNECT_TIMEOUT_S = 10
@@ -242,24 +252,49 @@ def _sqlite_file(url: str) -> Path | None:
     return Path(parsed.database)
 
 
-def open_store(url: str | None, blob_dir: Path | str, create: bool = True) -> Store:
+def _no_folder(blob_url: BlobURL) -> StoreError:
+    shown = DATABASE if blob_url.kind == "database" else f"s3://{blob_url.bucket}/{blob_url.prefix}"
+    return StoreError(f"database_url: not set, and blob_url {shown!r} is no folder to keep the default "
+                      "SQLite file in; set database_url (UNDREAM_DATABASE_URL: sqlite:///path/undream.db "
+                      "on one machine, postgresql://... for a farm)")
+
+
+def _blob_store(parsed: BlobURL, engine: Engine, options: BlobOptions) -> BlobStore:
+    if parsed.kind == "folder":
+        return BlobStore(parsed.root, options.local_dir)  # type: ignore[arg-type]
+    if parsed.kind == "database":
+        return BlobStore(DatabaseBackend(engine), options.local_dir)
+    from undream.store.blob_s3 import S3Backend  # boto3 only for S3 blobs
+
+    return BlobStore(S3Backend(parsed.bucket, parsed.prefix, options), options.local_dir)
+
+
+def open_store(url: str | None, blob_dir: Path | str, create: bool = True,
+               options: BlobOptions | None = None) -> Store:
     """Open (creating tables and folders as needed) the run store.
 
-    ``url``: database URL, or None for SQLite at ``<blob_dir>/undream.db``.
-    ``blob_dir``: folder (or ``file:///`` URL) of texture, gradient and
-    attack-state blobs, shared by every process of the farm. ``create``
-    False (the commands that read the farm, or change a run it holds):
-    nothing is created, neither folder, file nor table; :class:`NoDatabase`
-    (one line, the URL's password hidden) when there is no farm database.
+    ``url``: database URL, or None for SQLite at ``<blob folder>/undream.db``
+    (a folder blob URL only). ``blob_dir``: the blob URL (see the module
+    docstring): a folder (or ``file:///`` URL) shared by every process of the
+    farm, ``database`` or ``s3://bucket/prefix``. ``options``: the S3 endpoint
+    and keys, and the local folder for blob copies (:class:`BlobOptions`;
+    :func:`open_farm_store` fills them from the settings). ``create`` False
+    (the commands that read the farm, or change a run it holds): nothing is
+    created, neither folder, file nor table; :class:`NoDatabase` (one line,
+    the URL's password hidden) when there is no farm database.
     """
-    blob_root = _blob_root(blob_dir)
-    if create:
+    parsed = parse_blob_url(blob_dir)
+    options = options or BlobOptions()
+    blob_root = parsed.root
+    if create and blob_root is not None:
         try:
             blob_root.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise StoreError(f"blob folder {str(blob_root)!r}: cannot create it: {exc}") from exc
     where = None
     if url is None:
+        if blob_root is None:
+            raise _no_folder(parsed)
         url = f"sqlite:///{(blob_root / SQLITE_FILENAME).resolve()}"
         where = str((blob_root / SQLITE_FILENAME).resolve())
     sqlite_file = _sqlite_file(url)
@@ -268,7 +303,12 @@ def open_store(url: str | None, blob_dir: Path | str, create: bool = True) -> St
     engine = make_engine(url)
     try:
         create_tables(engine, url, create)
+        return Store(engine, _blob_store(parsed, engine, options))
     except StoreError:
         engine.dispose()
         raise
-    return Store(engine, BlobStore(blob_root))
+
+
+def open_farm_store(settings: "Settings", create: bool = True) -> Store:
+    """:func:`open_store` for a farm's settings: its database, blob URL and blob options."""
+    return open_store(settings.database_url, settings.blob_url, create, BlobOptions.of(settings))

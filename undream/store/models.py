@@ -1,11 +1,13 @@
 """The run store's tables (SQLAlchemy 2 declarative, typed).
 
-Five tables, all owned by :class:`undream.store.Store`; nothing else writes
+Six tables, all owned by :class:`undream.store.Store`; nothing else writes
 them: runs, sweeps (a grid of runs), iteration records, frame jobs (every
 per-frame job of a run: the attack's render-and-gradient jobs and the
-evaluation's render-and-predict jobs) and the schema version. Arrays never
-live here: textures, gradients and attack states are blobs
-(:mod:`undream.store.blobs`) and rows hold their keys. JSON columns are text
+evaluation's render-and-predict jobs), the schema version, and blobs (only
+with the ``database`` blob backend). Textures, gradients and attack states are
+blobs (:mod:`undream.store.blobs`) and rows hold their keys; the ``blobs``
+table holds their bytes when the farm keeps its blobs in its database
+(created where missing by ``create_all``, no schema step). JSON columns are text
 holding strict JSON (non-finite floats are written as null).
 
 Timestamps are UTC. Floats that are not finite are stored as NULL (SQLite turns
@@ -24,6 +26,7 @@ from sqlalchemy import (
     ForeignKey,
     Index,
     Integer,
+    LargeBinary,
     MetaData,
     String,
     Text,
@@ -187,3 +190,21 @@ class FrameJob(Base):
     worker: Mapped[str | None] = mapped_column(String(200))  # host:pid of the last attempt
     started: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
     finished: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
+
+
+class Blob(Base):
+    """One blob of the ``database`` blob backend (:mod:`undream.store.blob_db`): its bytes by key.
+
+    ``used``: when it was last written or read by the transport cache (least
+    recently used evicted first). The key column compares bytewise on
+    PostgreSQL (collation ``C``), so a key prefix is an index range.
+    """
+
+    __tablename__ = "blobs"
+
+    key: Mapped[str] = mapped_column(String(1024).with_variant(String(1024, collation="C"), "postgresql"),
+                                     primary_key=True)
+    data: Mapped[bytes] = mapped_column(LargeBinary)
+    size: Mapped[int] = mapped_column(BigInteger)
+    created: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    used: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)

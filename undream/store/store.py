@@ -86,10 +86,12 @@ class Store(JobTables, LeaseMethods, ListMethods, ActivityTables):
         self._writer = engine.execution_options(**{WRITE_OPTION: "BEGIN IMMEDIATE"})
 
     def __repr__(self) -> str:
-        return f"Store({self.engine.url!r}, blobs={str(self.blobs.root)!r})"
+        url = self.engine.url.render_as_string(hide_password=True)
+        return f"Store({url!r}, blobs={self.blobs.where!r})"
 
     def close(self) -> None:
-        """Close the database connections (the blobs need no closing)."""
+        """Close the database connections, the blob backend's, and this process's blob copies."""
+        self.blobs.close()
         self.engine.dispose()
 
     def __enter__(self) -> "Store":
@@ -104,7 +106,11 @@ class Store(JobTables, LeaseMethods, ListMethods, ActivityTables):
     def _tx(self, op: str, write: bool) -> Iterator[Session]:
         try:
             with Session(self._writer if write else self.engine) as session, session.begin():
-                yield session
+                if not write:
+                    yield session
+                    return
+                with self.blobs.joined(session.connection()):  # blobs in the database: one transaction
+                    yield session
         except SQLAlchemyError as exc:
             reason = str(getattr(exc, "orig", None) or exc).strip().splitlines()[0]
             url = self.engine.url.render_as_string(hide_password=True)
