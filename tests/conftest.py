@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import socket
 import subprocess
 from pathlib import Path
 
@@ -53,6 +54,43 @@ def read_only(tmp_path):
         pytest.skip(f"cannot mount a read-only tmpfs here: {res.stderr.strip()}")
     yield mount
     subprocess.run(["umount", str(mount)], check=True)
+
+
+S3_KEY_ID = "undream-test-key"
+S3_SECRET = "undream-test-secret-Zq81"  # not a real secret: the tests check it never shows
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that nothing listens on now."""
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+@pytest.fixture(scope="session")
+def s3_server():
+    """An S3-protocol server for the session (moto's standalone server, in a thread, on 127.0.0.1 and a
+    free port): ``{"endpoint", "key_id", "secret"}``; worker subprocesses reach it over HTTP."""
+    try:
+        from moto.server import ThreadedMotoServer
+    except ImportError as exc:
+        service_missing(f"moto's S3 server is not installed (pip install 'moto[server]'): {exc}")
+    port = free_port()
+    server = ThreadedMotoServer(ip_address="127.0.0.1", port=port, verbose=False)
+    server.start()
+    yield {"endpoint": f"http://127.0.0.1:{port}", "key_id": S3_KEY_ID, "secret": S3_SECRET}
+    server.stop()
+
+
+def s3_bucket(server: dict, name: str) -> str:
+    """Create the bucket ``name`` on ``server`` (``s3_server``); returns its name."""
+    import boto3
+
+    client = boto3.client("s3", endpoint_url=server["endpoint"], aws_access_key_id=server["key_id"],
+                          aws_secret_access_key=server["secret"], region_name="us-east-1")
+    client.create_bucket(Bucket=name)
+    client.close()
+    return name
 
 
 @pytest.fixture(scope="session")
