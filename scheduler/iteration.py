@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from scheduler.state import decode_state, encode_state
-from undream.errors import AttackError, UndreamError
+from undream.errors import AttackError, StoreError, UndreamError
 from undream.spec.run import split_frames
 
 if TYPE_CHECKING:
@@ -94,16 +94,29 @@ def reduce_and_step(store: "Store", attack: "Attack", run_id: str, k: int) -> bo
     when the run is no longer at iteration ``k`` or no longer active (the
     callback already ran, or the run was cancelled): calling it twice never
     steps twice.
+
+    Once it advanced the run, iteration ``k``'s gradients are deleted (transient
+    blobs); at ``k = 0`` the texels the frames see are kept first
+    (:meth:`undream.store.Store.put_seen_mask`, the dashboard's mask). A caller
+    killed between the advance and the deletion leaves garbage only: a retry
+    finds the run past ``k``, needs no gradient, and deletes them.
     """
     from undream.engine.algorithm import reduce, step
     from undream.store import ACTIVE
 
     run = store.get_run(run_id)
     if run.iteration != k or run.status not in ACTIVE:
+        if run.iteration > k:  # reduced before: what a caller killed after advancing left behind
+            drop_gradients(store, run_id, k)
         return False
     t0 = time.perf_counter()
     expected = expected_frames(run, attack.config.frames_per_step, k)
-    rows = {g.frame: g for g in store.frame_grads(run_id, k)}
+    try:
+        rows = {g.frame: g for g in store.frame_grads(run_id, k)}
+    except StoreError:  # a gradient gone: another callback reduced k and deleted them meanwhile
+        if store.get_run(run_id).iteration > k:
+            return False
+        raise
     missing = [f for f in expected if f not in rows or rows[f].grad is None]
     if missing:
         raise MissingResults(run_id, k, missing)
@@ -122,4 +135,32 @@ def reduce_and_step(store: "Store", attack: "Attack", run_id: str, k: int) -> bo
     scalars, arrays = encode_state(state)
     record = {"loss_mean": loss, "n_ok": len(kept), "n_bad": len(dropped), "dropped_frames": dropped,
               "grad_norm": float(G.norm()), "step_seconds": time.perf_counter() - t0}
-    return store.advance(run_id, k, T_next, scalars, record, arrays)
+    if k == 0:
+        seen = seen_texels([rows[f].grad for f in expected])
+        if seen is not None:
+            store.put_seen_mask(run_id, seen)
+    if not store.advance(run_id, k, T_next, scalars, record, arrays):
+        return False
+    drop_gradients(store, run_id, k)  # killed before this line: garbage, which finish() sweeps
+    return True
+
+
+def seen_texels(grads: list[Any]) -> np.ndarray | None:
+    """H×W bool: texels where some frame's gradient (H×W×3) is not zero; None without such gradients."""
+    seen = None
+    for grad in grads:
+        if grad is None or np.ndim(grad) != 3:
+            continue
+        hit = np.any(np.asarray(grad) != 0, axis=2)
+        seen = hit if seen is None else (seen | hit if seen.shape == hit.shape else seen)
+    return seen
+
+
+def drop_gradients(store: "Store", run_id: str, k: int | None = None) -> None:
+    """Delete iteration ``k``'s frame gradients (None: all the run's), which nothing reads once it is
+    reduced; a failure is logged, not raised (the blobs are garbage, not state)."""
+    try:
+        store.drop_gradients(run_id, k)
+    except StoreError as err:
+        log.warning("run %s: could not delete the gradients of %s: %s", run_id,
+                    "every iteration" if k is None else f"iteration {k}", err)

@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING, Any, Callable, Protocol, Sequence
 import numpy as np
 
 from scheduler.evaluation import eval_jobs, eval_textures, select_final
-from scheduler.iteration import MissingResults, expected_frames, frame_jobs, reduce_and_step
+from scheduler.iteration import MissingResults, drop_gradients, expected_frames, frame_jobs, reduce_and_step
 from scheduler.outputs import default_out_dir, results, write_outputs
 from scheduler.state import encode_state
 from undream import attacks  # lazy: make_attack loads torch when first called
@@ -309,6 +309,7 @@ def finish(store: "Store", contexts: Contexts, run_id: str, k: int) -> str:
     ctx = contexts(run_id)
     res = results(store, ctx, run, k)
     store.set_results(run_id, res)
+    drop_gradients(store, run_id)  # any a killed callback or a late duplicate job left behind
     write_outputs(Path(run.out_dir) if run.out_dir else default_out_dir(store, run), store, ctx, run, k, res)
     return "done" if store.transition(run_id, ("evaluating",), "done") else "stale"
 

@@ -53,6 +53,13 @@ def test_run_writes_every_output_and_is_deterministic(scene_dir, victim_dir, tmp
     assert len(list((tmp_path / "a" / "frames_adversarial").glob("*.png"))) == 3
     assert len(res["loss_per_iteration"]) == 3
     assert set(res["wall_time_seconds"]) >= {"sim_render", "victim", "grad_render", "reduce_step", "evaluation"}
+    from undream.store import open_store
+
+    with open_store(None, tmp_path / "a" / "store") as store:  # transient blobs: no gradient is left
+        run_id = res["run_id"]
+        assert store.blobs.listing(f"runs/{run_id}/grad") == [] and len(store.jobs(run_id)) == 9
+        assert store.seen_mask(run_id).shape == (8, 16)  # what the dashboard hatches, kept from k = 0
+        assert store.blobs.usage(f"runs/{run_id}/eval")[0] == 6  # evaluation frames stay (outputs, report)
     assert res["benign"]["metric"] == "accuracy" and len(res["adversarial"]["per_frame"]) == 3
     again = _run(cfg, tmp_path / "b")
     assert np.array_equal(np.load(tmp_path / "a" / "texture_final.npy"), np.load(tmp_path / "b" / "texture_final.npy"))
@@ -61,8 +68,10 @@ def test_run_writes_every_output_and_is_deterministic(scene_dir, victim_dir, tmp
     assert again["loss_per_iteration"] == pytest.approx(res["loss_per_iteration"], rel=1e-5)
 
 
-def test_unseen_texels_keep_their_value(scene_dir, victim_dir, tmp_path):
-    from undream.store import open_store
+def test_unseen_texels_keep_their_value(scene_dir, victim_dir, tmp_path, monkeypatch):
+    from undream.store import Store, open_store
+
+    monkeypatch.setattr(Store, "drop_gradients", lambda *a: 0)  # this test reads every iteration's gradients
 
     res = _run(_config(scene_dir, victim_dir, random_start=True), tmp_path / "r")
     store = open_store(None, tmp_path / "r" / "store")

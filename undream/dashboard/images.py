@@ -41,18 +41,25 @@ def seen_mask(store: "Store", run_id: str) -> np.ndarray | None:
     """H×W bool: texels some frame sees, or None when unknown.
 
     From the starting attack state's ``visible`` array (runs with a random
-    start), else the texels where some frame's gradient of iteration 0 is
-    not zero.
+    start), else the mask kept when iteration 0 was reduced (its gradients
+    are deleted then), else the texels where some frame's gradient of
+    iteration 0 is not zero (while iteration 0 runs).
     """
     state0 = store.attack_state(run_id, 0) or {}
     visible = state0.get("visible")
     if isinstance(visible, np.ndarray) and visible.ndim == 2 and visible.any():
         return visible.astype(bool)
+    kept = store.seen_mask(run_id)
+    if kept is not None:
+        return kept
     seen = None
     for job in store.jobs(run_id, 0, "attack"):
         if job.status != "succeeded" or job.grad_ref is None:
             continue
-        grad = store.blobs.get_array(job.grad_ref)
+        try:
+            grad = store.blobs.get_array(job.grad_ref)
+        except StoreError:  # deleted meanwhile: iteration 0 was reduced, and its mask kept
+            return store.seen_mask(run_id)
         if grad.ndim != 3:
             continue
         hit = np.any(grad != 0, axis=2)

@@ -36,7 +36,7 @@ from sqlalchemy.orm import Session
 from undream.errors import StoreError
 from undream.store.activity import ActivityTables
 from undream.store.blobs import (
-    BlobStore, array_digest, array_key, attack_state_key, final_texture_key, run_prefix,
+    BlobStore, array_digest, array_key, attack_state_key, final_texture_key, grad_prefix, run_prefix, seen_key,
     texture_blob_key,
 )
 from undream.store.checks import RECORD_FIELDS, integer, mapping, record_values, texture
@@ -393,6 +393,24 @@ class Store(JobTables, LeaseMethods, ListMethods, ActivityTables):
                                                       attack_state, arrays))
             s.add(IterationRecord(run_id=run_id, k=k, **values))
         return True
+
+    def drop_gradients(self, run_id: str, k: int | None = None) -> int:
+        """Delete the frame gradients of iteration ``k`` (None: every iteration) of the run; returns
+        how many. Call it once the iteration is reduced (:meth:`advance` returned True, or the run is
+        past ``k``): nothing reads them then. The jobs' ``grad_ref`` keep naming the deleted blobs."""
+        return self.blobs.delete_prefix(grad_prefix(run_id, None if k is None else integer("k", k, 0)))
+
+    def put_seen_mask(self, run_id: str, seen: np.ndarray) -> None:
+        """Store the run's seen-texel mask (H×W bool: texels some frame of iteration 0 sees)."""
+        arr = np.asarray(seen)
+        if arr.dtype != np.bool_ or arr.ndim != 2:
+            raise StoreError(f"seen: must be an H×W bool mask, got {arr.dtype} {arr.shape}")
+        self.blobs.put_array(seen_key(run_id), arr)
+
+    def seen_mask(self, run_id: str) -> np.ndarray | None:
+        """The run's seen-texel mask (:meth:`put_seen_mask`); None when there is none."""
+        key = seen_key(run_id)
+        return self.blobs.get_array(key) if self.blobs.exists(key) else None
 
     def iterations(self, run_id: str) -> list[IterationSnapshot]:
         """The run's iteration records, by ``k``."""
