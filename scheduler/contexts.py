@@ -21,7 +21,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from scheduler.transports import BlobTransportShelf
+from scheduler.transports import DEFAULT_CACHE_MB, BlobTransportShelf
 from undream.errors import StoreError
 from undream.lru import LRU
 from undream.render.scene_cache import SceneCache
@@ -37,8 +37,10 @@ class ContextCache:
     """Contexts of the runs this process serves, by run id (see the module docstring)."""
 
     def __init__(self, store: "Store", cache_dir: Path | str, scenes: int = 2, victims: int = 4,
-                 runs: int = 32, local: LocalSettings = LocalSettings()) -> None:
+                 runs: int = 32, local: LocalSettings = LocalSettings(),
+                 transport_cache_mb: int = DEFAULT_CACHE_MB) -> None:
         self.store = store
+        self.transport_cache_bytes = transport_cache_mb << 20  # the blob store's transport cache cap
         self.local = local  # this process's settings, read at the edge (the worker's start)
         self.cache_dir = Path(cache_dir)
         self._scenes: LRU[Path, Any] = LRU(scenes, on_evict=self._drop_scenes)
@@ -61,7 +63,8 @@ class ContextCache:
         scene_dir = unpack_scene(self.store.blobs, run.scene_ref, self.cache_dir)
         ctx = build_context(config, scene_dir, victim=self._victim(config, task_of(config)),
                             scenes=self._scene_cache(scene_dir), local=self.local)
-        ctx.gradients.shelf = BlobTransportShelf(self.store.blobs, run.scene_ref)
+        ctx.gradients.shelf = BlobTransportShelf(self.store.blobs, run.scene_ref,
+                                                  self.transport_cache_bytes)
         self.built["contexts"] += 1
         return self._contexts.put(run_id, ctx)
 

@@ -93,8 +93,11 @@ def _success(ctx: "RunContext", benign: list[Any], adversarial: list[Any], posit
 
 
 def default_out_dir(store: "Store", run: "RunSnapshot") -> Path:
-    """Where a submitted run without ``--out`` writes: ``<blobs>/outputs/<name>-<id[:8]>``."""
-    return store.blobs.root / "outputs" / f"{run.name}-{run.id[:8]}"
+    """Where a submitted run without ``--out`` writes: ``<blob folder>/outputs/<name>-<id[:8]>``; with
+    blobs in the database or S3 (no shared folder), ``<cache_dir>/outputs/<name>-<id[:8]>`` on the
+    machine of the worker that finishes it (:attr:`undream.store.BlobStore.local_dir`); the results
+    stay in the store either way (``undream report RUN --out FOLDER``)."""
+    return store.blobs.local_dir / "outputs" / f"{run.name}-{run.id[:8]}"
 
 
 def write_outputs(out: Path, store: "Store", ctx: "RunContext", run: "RunSnapshot", k: int,

@@ -7,11 +7,21 @@ capturing again (measured: a capture costs about 2 frame jobs at 64 px, a
 read of its ``.npz`` a few milliseconds). The linearity verdict of each frame
 is shared the same way. Everything under ``transports/`` is a cache: deleting
 it costs captures, never results.
+
+The cache is capped (the setting ``transport_cache_mb``, default
+:data:`DEFAULT_CACHE_MB`): after each capture it writes, a process lists
+``transports/`` with sizes and last-use times (:meth:`undream.store.BlobStore.listing`,
+on every backend) and deletes the least recently used blobs until the rest
+fit. A hit marks its blob used (at most once a minute per process:
+a file's mtime, a row's ``used``, an object copied onto itself). A transport
+deleted while another process reads it is a miss there: it captures again.
 """
 from __future__ import annotations
 
 import os
 import tempfile
+import time
+import zipfile
 from typing import TYPE_CHECKING
 
 from undream.errors import StoreError
@@ -21,32 +31,57 @@ if TYPE_CHECKING:
     from undream.store.blobs import BlobStore
 
 
+PREFIX = "transports"
+DEFAULT_CACHE_MB = 512
+TOUCH_EVERY_S = 60.0  # a hit renews its blob's last use at most this often per process
+
+
+def prune_transports(blobs: "BlobStore", cap_bytes: int) -> int:
+    """Delete the least recently used blobs under ``transports/`` until the rest total at most
+    ``cap_bytes``; returns how many were deleted."""
+    items = blobs.listing(PREFIX)
+    total = sum(i.size for i in items)
+    doomed = []
+    for item in sorted(items, key=lambda i: (i.used, i.key)):
+        if total <= cap_bytes:
+            break
+        doomed.append(item.key)
+        total -= item.size
+    blobs.delete(doomed)
+    return len(doomed)
+
+
 def scene_digest(scene_ref: str) -> str:
     """The digest part of a scene blob key (``scenes/<digest>.tar``)."""
     return scene_ref.rsplit("/", 1)[-1].removesuffix(".tar")
 
 
 class BlobTransportShelf:
-    """:class:`undream.engine.gradient.TransportShelf` over a :class:`BlobStore`, for one scene."""
+    """:class:`undream.engine.gradient.TransportShelf` over a :class:`BlobStore`, for one scene;
+    ``cap_bytes``: the size of the whole transport cache (every scene's), see the module docstring."""
 
-    def __init__(self, blobs: "BlobStore", scene_ref: str) -> None:
+    def __init__(self, blobs: "BlobStore", scene_ref: str, cap_bytes: int = DEFAULT_CACHE_MB << 20) -> None:
         self.blobs = blobs
-        self.prefix = f"transports/{scene_digest(scene_ref)}"
-        self.hits = self.misses = 0
+        self.prefix = f"{PREFIX}/{scene_digest(scene_ref)}"
+        self.cap_bytes = cap_bytes
+        self.hits = self.misses = self.evicted = 0
+        self._touched: dict[str, float] = {}  # blob → when this process last marked it used
 
     def get(self, key: str) -> "Transport | None":
         from undream.render.transport import Transport
 
         blob = f"{self.prefix}/{key}.npz"
-        if not self.blobs.exists(blob):
-            self.misses += 1
-            return None
         try:
-            t = Transport.load(self.blobs.get_file(blob))
-        except (StoreError, OSError, ValueError, KeyError):  # half-deleted cache: capture again
-            self.misses += 1
+            with self.blobs.open(blob) as f:
+                t = Transport.load(f)
+        except (StoreError, OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+            self.misses += 1  # not there, or evicted while read: capture again
             return None
         self.hits += 1
+        now = time.monotonic()
+        if now - self._touched.get(blob, -TOUCH_EVERY_S) >= TOUCH_EVERY_S:
+            self._touched[blob] = now
+            self.blobs.touch(blob)
         return t
 
     def put(self, key: str, transport: "Transport") -> None:
@@ -57,6 +92,8 @@ class BlobTransportShelf:
             self.blobs.put_file(f"{self.prefix}/{key}.npz", tmp)
         finally:
             os.unlink(tmp)
+        self._touched[f"{self.prefix}/{key}.npz"] = time.monotonic()
+        self.evicted += prune_transports(self.blobs, self.cap_bytes)
 
     def get_verdict(self, index: int) -> tuple[bool, str | None]:
         blob = f"{self.prefix}/linear-{index}.json"

@@ -191,3 +191,33 @@ def test_bad_blob_urls_are_one_line_errors(url, message):
 def test_no_database_url_with_blobs_outside_a_folder_names_the_setting(blob_url):
     with pytest.raises(StoreError, match=r"^database_url: not set, and blob_url .* set database_url"):
         open_store(None, blob_url)
+
+
+class _FakeTransport:
+    """What the shelf stores: anything with ``save(path)`` (a real one needs a scene and a capture)."""
+
+    def __init__(self, size: int) -> None:
+        self.size = size
+
+    def save(self, path) -> None:
+        Path(path).write_bytes(b"t" * self.size)
+
+
+def test_the_transport_cache_keeps_the_most_recently_used_under_its_cap(store, monkeypatch):
+    import scheduler.transports as transports
+    import undream.render.transport as transport
+    from scheduler.transports import BlobTransportShelf, prune_transports
+
+    monkeypatch.setattr(transports, "TOUCH_EVERY_S", 0.0)  # a hit marks its blob used at once
+    store.blobs.delete_prefix("transports")
+    shelf = BlobTransportShelf(store.blobs, "scenes/abc.tar", cap_bytes=10_000)
+    for name in ("k1", "k2", "k3", "k4"):
+        shelf.put(name, _FakeTransport(3000))  # the 4th write passes the cap: k1, the oldest, goes
+    assert shelf.evicted == 1 and not store.blobs.exists("transports/abc/k1.npz")
+    time.sleep(1.1 if store.blobs.where.startswith("S3") else 0.05)  # S3 keeps whole seconds
+    monkeypatch.setattr(transport.Transport, "load", classmethod(lambda cls, f: f.read()))
+    assert shelf.get("k2") == b"t" * 3000 and shelf.hits == 1  # a hit marks k2 used
+    assert shelf.get("k1") is None and shelf.misses == 1
+    assert prune_transports(store.blobs, 6000) == 1  # k3, now the least recently used
+    assert [i.key for i in store.blobs.listing("transports")] == ["transports/abc/k2.npz", "transports/abc/k4.npz"]
+    assert prune_transports(store.blobs, 0) == 2 and store.blobs.listing("transports") == []

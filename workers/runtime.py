@@ -53,7 +53,7 @@ class Runtime:
         self.pid = os.getpid()
         self.store: Store = open_farm_store(settings)
         self.contexts: ContextCache = ContextCache(self.store, settings.cache_dir, scenes=settings.scene_cache,
-                                                   local=local)
+                                                   local=local, transport_cache_mb=settings.transport_cache_mb)
         self.dispatch: CeleryDispatch = CeleryDispatch(app)
         self.textures: LRU[tuple, dict] = LRU(TEXTURE_VERSIONS)  # texture versions read (run, phase, k)
 
