@@ -122,13 +122,17 @@ def release_db(db: int) -> None:
 class Farm:
     """One farm: its settings as environment variables, its worker subprocesses, its CLI."""
 
-    def __init__(self, root: Path, database_url: str | None = None, **settings: Any) -> None:
+    def __init__(self, root: Path, database_url: str | None = None, blob_url: str | None = None,
+                 **settings: Any) -> None:
         self.root = root
         self.db = free_db()
         self.broker = f"redis://{REDIS_HOST}/{self.db}"
         self.blobs = root / "blobs"
+        # Blobs in the database or S3: each worker gets its own cache and temporary folders (no
+        # folder is shared between the farm's processes, as on a cluster without a shared volume).
+        self.own_folders = blob_url is not None
         self.env = {**os.environ, "HF_HUB_OFFLINE": "1", "TRANSFORMERS_OFFLINE": "1",
-                    "UNDREAM_BROKER_URL": self.broker, "UNDREAM_BLOB_URL": str(self.blobs),
+                    "UNDREAM_BROKER_URL": self.broker, "UNDREAM_BLOB_URL": blob_url or str(self.blobs),
                     "UNDREAM_CACHE_DIR": str(root / "cache"), "UNDREAM_VISIBILITY_TIMEOUT": "12",
                     "UNDREAM_RESTORE_INTERVAL": "1", "PYTHONUNBUFFERED": "1"}
         self.env.pop("UNDREAM_SETTINGS", None)
@@ -144,11 +148,10 @@ class Farm:
 
     @property
     def store(self):
-        from undream.store import open_store
+        from undream.store import open_farm_store
 
         if self._store is None:
-            s = self.settings()
-            self._store = open_store(s.database_url, s.blob_url)
+            self._store = open_farm_store(self.settings())
         return self._store
 
     def cli(self, *args: str, timeout: float = 120) -> subprocess.CompletedProcess:
@@ -162,9 +165,14 @@ class Farm:
 
     def start_worker(self, concurrency: int = 1, threads: int = 1) -> subprocess.Popen:
         """An ``undream worker`` in its own process group; waits until it consumes."""
-        log = open(self.root / f"worker{len(self.workers)}.log", "w")
+        n = len(self.workers)
+        log = open(self.root / f"worker{n}.log", "w")
+        env = self.env
+        if self.own_folders:
+            (self.root / f"tmp{n}").mkdir()
+            env = {**env, "UNDREAM_CACHE_DIR": str(self.root / f"cache{n}"), "TMPDIR": str(self.root / f"tmp{n}")}
         proc = subprocess.Popen([sys.executable, "-m", "undream.cli", "worker", "--concurrency",
-                                 str(concurrency), "--threads", str(threads)], cwd=ROOT, env=self.env,
+                                 str(concurrency), "--threads", str(threads)], cwd=ROOT, env=env,
                                 stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
         self.workers.append(proc)
         path = Path(log.name)

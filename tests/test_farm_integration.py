@@ -16,6 +16,7 @@ import pytest
 
 from scheduler.iteration import attacked_frames
 
+from conftest import s3_bucket
 from farm_support import (
     REDIS_START, Farm, farm_inputs, fresh_postgres, redis_client, redis_up, run_config, wait_for, write_yaml,
 )
@@ -48,7 +49,13 @@ def submit(farm: Farm, tiny, name: str, *extra: str, **cfg) -> str:
 
 def final_texture(farm: Farm, run_id: str) -> np.ndarray:
     run = farm.store.get_run(run_id)
-    out = Path(run.out_dir) if run.out_dir else farm.blobs / "outputs" / f"{run.name}-{run_id[:8]}"
+    name = f"{run.name}-{run_id[:8]}"
+    if run.out_dir:
+        out = Path(run.out_dir)
+    elif farm.own_folders:  # blobs in the database or S3: on the worker that finished the run
+        (out,) = farm.root.glob(f"cache*/outputs/{name}")
+    else:
+        out = farm.blobs / "outputs" / name
     return np.load(out / "texture_final.npy")
 
 
@@ -97,14 +104,33 @@ def test_a_short_run_finishes_while_a_long_one_runs(sqlite_farm, tiny):
     assert farm.store.get_run(long_id).status == "cancelled"
 
 
-def test_sigkill_of_a_worker_mid_iteration_loses_nothing(tiny):
+def _blob_farm(tiny, request, blobs: str, name: str, **settings) -> tuple[Farm, list]:
+    """A farm whose blobs are in a folder (its SQLite file there too), or in PostgreSQL's ``blobs``
+    table (``database``), or in S3 with the database in PostgreSQL; then no folder is shared."""
+    if blobs == "folder":
+        return Farm(tiny["root"] / name, **settings), []
+    url, drop = fresh_postgres()
+    if blobs == "database":
+        return Farm(tiny["root"] / name, database_url=url, blob_url="database", **settings), [drop]
+    server = request.getfixturevalue("s3_server")
+    bucket = s3_bucket(server, f"farm-{name.replace('_', '-')}")
+    farm = Farm(tiny["root"] / name, database_url=url, blob_url=f"s3://{bucket}/undream",
+                s3_endpoint_url=server["endpoint"], s3_region="us-east-1",
+                s3_access_key_id=server["key_id"], s3_secret_access_key=server["secret"], **settings)
+    return farm, [drop]
+
+
+@pytest.mark.parametrize("blobs", ["folder", "database", "s3"])
+def test_sigkill_of_a_worker_mid_iteration_loses_nothing(tiny, request, blobs):
     """Two workers; the one running a frame job of iteration 1 or later is SIGKILLed (with its child).
 
     Its job goes back to Redis after the visibility timeout and runs on the
     other worker; every iteration is applied once and the texture is the
-    undisturbed run's, bit for bit.
+    undisturbed run's, bit for bit. On every blob backend: a folder, PostgreSQL's
+    ``blobs`` table, S3 (those two with no folder shared between the workers).
+    The finished run keeps no gradient (transient blobs).
     """
-    farm = Farm(tiny["root"] / "kill", frames_per_task=1)
+    farm, cleanup = _blob_farm(tiny, request, blobs, f"kill_{blobs}", frames_per_task=1)
     farm.root.mkdir()
     try:
         # Queued first, the workers started after: with batched frames a tiny frame job takes
@@ -131,8 +157,13 @@ def test_sigkill_of_a_worker_mid_iteration_loses_nothing(tiny):
         assert again.status == "succeeded" and again.attempts >= 2  # ran again after the kill
         assert run.failures == 0
         assert np.array_equal(final_texture(farm, run_id), reference(tiny, **cfg))
+        assert farm.store.blobs.listing(f"runs/{run_id}/grad") == [] and farm.store.seen_mask(run_id) is not None
+        if farm.own_folders:
+            assert not farm.blobs.exists() and farm.store.blobs.exists(run.scene_ref)
     finally:
         farm.stop()
+        for drop in cleanup:
+            drop()
 
 
 def test_a_run_on_postgresql(tiny):
