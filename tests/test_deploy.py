@@ -123,7 +123,8 @@ def _read_by_code() -> set[str]:
 
 
 def _deploy_texts() -> dict[str, str]:
-    paths = [COMPOSE, DEPLOY / "compose.env.example", DOCKERFILE, *sorted(K8S.glob("*.yaml"))]
+    paths = [COMPOSE, DEPLOY / "compose.s3.yaml", DEPLOY / "compose.env.example", DOCKERFILE,
+             *sorted(K8S.glob("*.yaml")), *sorted((DEPLOY / "k8s-object-store").glob("*.yaml"))]
     return {str(p.relative_to(ROOT)): p.read_text() for p in paths}
 
 
