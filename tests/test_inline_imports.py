@@ -27,6 +27,7 @@ HEAVY = {
     "celery", "sqlalchemy",        # the farm and the store
     "alembic",                     # ~80 ms; only when a database is made or upgraded
     "flask", "waitress",           # the dashboard
+    "boto3", "botocore",           # S3 blobs only (undream.store.blob_s3): hundreds of ms
 }
 
 # undream's own modules that load a HEAVY package when imported (or, for undream.attacks, when one

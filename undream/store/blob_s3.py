@@ -34,9 +34,11 @@ class S3Backend:
         try:
             import boto3
             from botocore.config import Config
+            from botocore.exceptions import BotoCoreError, ClientError
         except ModuleNotFoundError:
             raise StoreError("blob URL s3://: boto3 is not installed (pip install boto3)") from None
         self.bucket, self.prefix = bucket, prefix
+        self._errors = (BotoCoreError, ClientError)  # what boto3 raises (imported with it, here)
         self._secret = options.s3_secret_access_key or ""
         endpoint = options.s3_endpoint_url or None
         at = f" at {redact_text(endpoint)}" if endpoint else ""
@@ -74,11 +76,9 @@ class S3Backend:
         raise StoreError(f"blob {key!r}: cannot {op} it in the {self.where}: {self._clean(exc)}{hint}") from None
 
     def _call(self, op: str, key: str, method: str, **kwargs: Any) -> Any:
-        from botocore.exceptions import BotoCoreError, ClientError
-
         try:
             return getattr(self.client, method)(Bucket=self.bucket, **kwargs)
-        except (BotoCoreError, ClientError) as exc:
+        except self._errors as exc:
             self._fail(op, key, exc)
 
     def write(self, key: str, data: bytes) -> None:
@@ -90,12 +90,10 @@ class S3Backend:
         return Path(src).stat().st_size
 
     def read(self, key: str) -> bytes:
-        from botocore.exceptions import BotoCoreError
-
         body = self._call("read", key, "get_object", Key=self._name(key))["Body"]
         try:
             return body.read()
-        except BotoCoreError as exc:
+        except self._errors as exc:
             self._fail("read", key, exc)
 
     def local_path(self, key: str) -> Path | None:
@@ -112,8 +110,6 @@ class S3Backend:
         return int(self._call("look up", key, "head_object", Key=self._name(key))["ContentLength"])
 
     def listing(self, prefix: str) -> list[BlobInfo]:
-        from botocore.exceptions import BotoCoreError, ClientError
-
         name = self._name(prefix)
         out = []
         try:
@@ -123,7 +119,7 @@ class S3Backend:
                         used = obj["LastModified"]
                         out.append(BlobInfo(self._key(obj["Key"]), int(obj["Size"]),
                                             used if used.tzinfo else used.replace(tzinfo=dt.timezone.utc)))
-        except (BotoCoreError, ClientError) as exc:
+        except self._errors as exc:
             self._fail("list", prefix, exc)
         return out
 

@@ -33,6 +33,7 @@ from sqlalchemy.pool import StaticPool
 
 from undream.errors import StoreError
 from undream.store.blob_db import DatabaseBackend
+from undream.store.blob_s3 import S3Backend  # imports boto3 only when it makes a client
 from undream.store.blobs import DATABASE, BlobOptions, BlobStore, BlobURL, parse_blob_url
 from undream.store.models import SCHEMA_VERSION, Base, SchemaVersion
 from undream.store.store import WRITE_OPTION, Store
@@ -264,8 +265,6 @@ def _blob_store(parsed: BlobURL, engine: Engine, options: BlobOptions) -> BlobSt
         return BlobStore(parsed.root, options.local_dir)  # type: ignore[arg-type]
     if parsed.kind == "database":
         return BlobStore(DatabaseBackend(engine), options.local_dir)
-    from undream.store.blob_s3 import S3Backend  # boto3 only for S3 blobs
-
     return BlobStore(S3Backend(parsed.bucket, parsed.prefix, options), options.local_dir)
 
 
