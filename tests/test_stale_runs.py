@@ -170,6 +170,7 @@ def _downgrade_and_reopen(url: str, tmp_path: Path, version: int) -> None:
             for name in sorted(LIST_INDEXES) + JOB_INDEXES:
                 conn.execute(text(f"DROP INDEX {name}"))
             conn.execute(text("DROP TABLE alembic_version"))
+            conn.execute(text("DROP TABLE blobs"))
             if version == 2:
                 conn.execute(text("ALTER TABLE runs DROP COLUMN owner"))
                 conn.execute(text("ALTER TABLE runs DROP COLUMN heartbeat"))
@@ -181,6 +182,7 @@ def _downgrade_and_reopen(url: str, tmp_path: Path, version: int) -> None:
             assert conn.scalar(text("SELECT version_num FROM alembic_version")) == "0004"
         assert LIST_INDEXES <= {ix["name"] for ix in inspect(s.engine).get_indexes("runs")}
         assert set(JOB_INDEXES) <= {ix["name"] for ix in inspect(s.engine).get_indexes("frame_jobs")}
+        assert "blobs" in inspect(s.engine).get_table_names()
         run = s.get_run(run_id)
         assert (run.name, run.config, run.owner, run.heartbeat) == ("old", {"a": 1}, None, None)
         assert s.claim(run_id, "h:1") and s.get_run(run_id).owner == "h:1"

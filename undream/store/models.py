@@ -41,7 +41,8 @@ JOB_STATUSES = ("queued", "started", "succeeded", "failed", "retried")
 JOB_PHASES = ("attack", "pre", "adversarial")  # iteration jobs; evaluation before and after the final pick
 SCHEMA_VERSION = 4  # 1: runs, iterations, frame_jobs without phases; 2: the farm (sweeps, scenes, phases);
 #                    3: run leases (runs.owner, runs.heartbeat; migrated in place from 2);
-#                    4: the control plane's indexes (alembic revision 0004, undream/store/migrations)
+#                    4: the control plane's indexes and the blobs table (alembic revision 0004,
+#                       undream/store/migrations)
 
 _NAMING = {
     "ix": "ix_%(column_0_label)s",

@@ -1,12 +1,14 @@
 """Schema version 4: the indexes that let the control plane read a page of runs newest first
 (all runs, by status, or by sweep), the runs a process owns, and a run's jobs at its current
-iteration, without scanning a table.
+iteration, without scanning a table; and the ``blobs`` table of the ``database`` blob backend.
 
 Revision ID: 0004
 Revises: 0003
 """
 import sqlalchemy as sa
 from alembic import op
+
+from undream.store.models import Blob
 
 revision = "0004"
 down_revision = "0003"
@@ -22,3 +24,4 @@ def upgrade() -> None:
     op.create_index("ix_frame_jobs_run_k_status", "frame_jobs", ["run_id", "k", "status"])
     failed = sa.text("error IS NOT NULL")
     op.create_index("ix_frame_jobs_failed", "frame_jobs", ["run_id"], sqlite_where=failed, postgresql_where=failed)
+    Blob.__table__.create(op.get_bind(), checkfirst=True)  # as declared (this revision is the model's first)
