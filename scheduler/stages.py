@@ -28,7 +28,6 @@ never closes while a job has no result.
 from __future__ import annotations
 
 import logging
-from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Protocol, Sequence
 
@@ -36,16 +35,15 @@ import numpy as np
 
 from scheduler.evaluation import eval_jobs, eval_textures, select_final
 from scheduler.iteration import MissingResults, drop_gradients, expected_frames, frame_jobs, reduce_and_step
+from scheduler.options import FarmOptions
 from scheduler.outputs import default_out_dir, results, write_outputs
 from scheduler.state import encode_state
 from undream import attacks  # lazy: make_attack loads torch when first called
 from undream.lru import LRU
-from undream.spec.run import split_frames
 from undream.store import ACTIVE, UNFINISHED, NewRun
 
 if TYPE_CHECKING:
     from undream.engine.context import RunContext
-    from undream.settings import Settings
     from undream.spec.run import RunConfig
     from undream.store import RunSnapshot, Store
 
@@ -54,31 +52,6 @@ log = logging.getLogger(__name__)
 PHASES = ("attack", "pre", "adversarial")
 TEXTURE_VERSIONS = 8  # texture versions (run, phase, k) a process keeps read (run_batch)
 Contexts = Callable[[str], "RunContext"]
-
-
-@dataclass(frozen=True)
-class FarmOptions:
-    """How a run is scheduled, fixed when it is submitted (stored with the run)."""
-
-    frames_per_task: int = 1
-    max_attempts: int = 3
-    failure_budget: int = 2
-
-    @classmethod
-    def of(cls, run: "RunSnapshot") -> "FarmOptions":
-        return cls(**{k: v for k, v in run.farm.items() if k in cls.__dataclass_fields__})
-
-    @classmethod
-    def from_settings(cls, settings: "Settings", config: "RunConfig", n_frames: int) -> "FarmOptions":
-        """The settings' options for a run of ``config`` over ``n_frames`` frames: tasks sized for the
-        frames an iteration renders (the attacked ones, or ``frames_per_step`` of them), so each
-        iteration's frames spread evenly over the farm's slots."""
-        attacked = len(split_frames(config.holdout, n_frames)[0])
-        per_iteration = min(config.attack.frames_per_step or attacked, attacked)
-        return cls(settings.frames_per_task_for(per_iteration), settings.max_attempts, settings.failure_budget)
-
-    def to_json(self) -> dict[str, Any]:
-        return asdict(self)
 
 
 class Dispatch(Protocol):

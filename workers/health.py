@@ -26,7 +26,7 @@ import threading
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Callable, Mapping
 
-from scheduler.stages import FarmOptions
+from scheduler.options import FarmOptions
 from undream.redact import redact_text
 from undream.store import mask_url
 from workers.presence import live_queues

@@ -158,12 +158,18 @@ class ActivityTables:
         fj, r = FrameJob.__table__, Run.__table__
         pending = (select(fj.c.id).where(fj.c.run_id == r.c.id, fj.c.k == r.c.iteration,
                                          fj.c.status.in_(UNFINISHED)).exists())
-        kind = case((r.c.status == "queued", "queued"), (pending, "jobs"), else_="callback")
+        queued = r.c.status == "queued"
+        of_kind = {"queued": queued, "jobs": and_(~queued, pending), "callback": and_(~queued, ~pending)}
         farm = and_(r.c.status.in_(ACTIVE_RUNS), r.c.owner.is_(None))
-        with self._tx("stalled_runs", write=False) as s:
-            counts = {k: n for k, n in s.execute(select(kind.label("kind"), func.count()).where(farm)
-                                                 .group_by(kind))}
-            ids = [row[0] for row in s.execute(select(r.c.id).where(farm, kind.in_(list(kinds)))
+        with self._tx("stalled_runs", write=False) as s:  # each run's EXISTS once: sums, not a GROUP BY
+            n_queued, n_jobs, n_all = s.execute(select(func.sum(case((queued, 1), else_=0)),
+                                                       func.sum(case((of_kind["jobs"], 1), else_=0)),
+                                                       func.count()).where(farm)).one()
+            counts = {"queued": int(n_queued or 0), "jobs": int(n_jobs or 0)}
+            counts["callback"] = n_all - counts["queued"] - counts["jobs"]
+            wanted = set(kinds)
+            where = [] if wanted >= set(of_kind) else [or_(*(of_kind[k] for k in sorted(wanted)))]
+            ids = [row[0] for row in s.execute(select(r.c.id).where(farm, *where)
                                                .order_by(r.c.updated, r.c.id).limit(limit))] if kinds else []
             rows = self._with_progress(s, ids)
         return counts, [_health(rows[run_id]) for run_id in ids]
@@ -184,14 +190,16 @@ class ActivityTables:
         """The active runs whose current iteration has a job whose last attempt failed and that has
         not succeeded since, each with the latest such attempt. Two queries, whatever the number of runs."""
         fj, r = FrameJob.__table__, Run.__table__
-        current = and_(r.c.status.in_(ACTIVE_RUNS), fj.c.k == r.c.iteration)
         errored = and_(fj.c.error.is_not(None), fj.c.status != "succeeded")
         newest = func.row_number().over(partition_by=fj.c.run_id,
                                         order_by=(func.coalesce(fj.c.finished, fj.c.started).desc(),
                                                   fj.c.id.desc()))
+        # From the failed jobs (a partial index) to their runs, not from every active run to its jobs
+        iteration = select(r.c.iteration).where(r.c.id == fj.c.run_id).scalar_subquery()
         failed = (select(fj.c.run_id, fj.c.phase, fj.c.k, fj.c.frame, fj.c.status, fj.c.attempts, fj.c.error,
                          newest.label("n"))
-                  .join(r, r.c.id == fj.c.run_id).where(current, errored).subquery())
+                  .where(errored, fj.c.run_id.in_(select(r.c.id).where(r.c.status.in_(ACTIVE_RUNS))),
+                         fj.c.k == iteration).subquery())
         with self._tx("failing_runs", write=False) as s:
             errors = {e.run_id: JobError(*e) for e in s.execute(select(*list(failed.c)[:-1]).where(failed.c.n == 1))}
             rows = self._with_progress(s, list(errors))
