@@ -164,12 +164,12 @@ def run_batch(store: "Store", contexts: Contexts, run_id: str, phase: str, k: in
     """
     summary: dict[str, Any] = {"run_id": run_id, "phase": phase, "k": k, "done": [], "failed": [],
                                "retry": [], "skipped": []}
-    run = store.get_run(run_id)
+    run, found = store.batch_view(run_id, k, phase, frames)
     if not _current(run, phase, k):
         summary["skipped"] = list(frames)
         return summary
     max_attempts = FarmOptions.of(run).max_attempts
-    jobs = {j.frame: j for j in store.jobs(run_id, k, phase, frames)}
+    jobs = {j.frame: j for j in found}
     read0, written0 = store.blobs.bytes_read, store.blobs.bytes_written
     cache: LRU[tuple, dict] = textures if textures is not None else LRU(TEXTURE_VERSIONS)
     key = (run_id, phase, k)

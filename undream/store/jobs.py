@@ -28,7 +28,7 @@ from undream.errors import StoreError
 from undream.store.blobs import BlobStore, eval_image_key, grad_key
 from undream.store.checks import integer, number
 from undream.store.models import JOB_PHASES, FrameJob, Run, utcnow
-from undream.store.snapshots import FrameGrad, JobLine, JobSnapshot, dumps, loads_many
+from undream.store.snapshots import FrameGrad, JobLine, JobSnapshot, RunSnapshot, dumps, loads_many
 
 if TYPE_CHECKING:
     from contextlib import AbstractContextManager
@@ -135,12 +135,18 @@ class JobTables:
     def _run(session: Session, run_id: str) -> Run:  # pragma: no cover
         raise NotImplementedError
 
-    @staticmethod
-    def _n_frames(s: Session, run_id: str) -> int:
-        """The run's number of frames, the one column a job write needs; StoreError if no such run."""
-        n = s.scalar(select(Run.n_frames).where(Run.id == run_id)) if isinstance(run_id, str) else None
+    _frame_counts: dict[str, int]  # run id → its number of frames, once read (it never changes)
+
+    def _n_frames(self, s: Session, run_id: str) -> int:
+        """The run's number of frames, the one column a job write needs; StoreError if no such run.
+        Read once per run and process: a job write for a run deleted since is refused by the
+        database's foreign key instead."""
+        n = self._frame_counts.get(run_id) if isinstance(run_id, str) else None
         if n is None:
-            raise StoreError(f"run {run_id!r}: not found")
+            n = s.scalar(select(Run.n_frames).where(Run.id == run_id)) if isinstance(run_id, str) else None
+            if n is None:
+                raise StoreError(f"run {run_id!r}: not found")
+            self._frame_counts[run_id] = n
         return n
 
     def _frames(self, s: Session, run_id: str, frames: Iterable[Any], unique: bool = True) -> list[int]:
@@ -155,7 +161,10 @@ class JobTables:
         return checked
 
     def _batch_frames(self, op: str, run_id: str, frames: Iterable[Any]) -> list[int]:
-        """:meth:`_frames` in a read transaction of its own (before any blob is written)."""
+        """:meth:`_frames` before any blob is written (in a read transaction of its own the first
+        time this process meets the run)."""
+        if isinstance(run_id, str) and run_id in self._frame_counts:
+            return self._frames(None, run_id, frames)  # type: ignore[arg-type]  # no query: known count
         with self._tx(op, write=False) as s:
             return self._frames(s, run_id, frames)
 
@@ -258,15 +267,30 @@ class JobTables:
         Read as plain rows, not ORM objects, their JSON decoded at once (a run's thousands of
         jobs in a third of the time).
         """
+        with self._tx("jobs", write=False) as s:
+            self._n_frames(s, run_id)  # the run exists
+            return self._read_jobs(s, run_id, k, phase, frames)
+
+    def batch_view(self, run_id: str, k: int, phase: str, frames: Sequence[int]) -> tuple[RunSnapshot, list[JobSnapshot]]:
+        """The run and its jobs ``frames`` of ``phase`` at ``k``, in one transaction: what a batch
+        task reads before it works (:func:`scheduler.stages.run_batch`)."""
+        table = Run.__table__
+        with self._tx("batch_view", write=False) as s:
+            row = s.execute(select(table).where(table.c.id == run_id)).first() if isinstance(run_id, str) else None
+            if row is None:
+                raise StoreError(f"run {run_id!r}: not found")
+            return RunSnapshot.of(row), self._read_jobs(s, run_id, k, phase, frames)  # type: ignore[arg-type]
+
+    @staticmethod
+    def _read_jobs(s: Session, run_id: str, k: int | None, phase: str,
+                   frames: Sequence[int] | None) -> list[JobSnapshot]:
         table = FrameJob.__table__
         query = select(table).where(table.c.run_id == run_id, table.c.phase == _phase(phase))
         if k is not None:
             query = query.where(table.c.k == k)
         if frames is not None and len(frames) <= IN_CHUNK:  # a longer list: every frame's row, filtered here
             query = query.where(table.c.frame.in_([integer("frame", f, 0) for f in frames]))
-        with self._tx("jobs", write=False) as s:
-            self._n_frames(s, run_id)  # the run exists
-            jobs = JobSnapshot.many(s.execute(query.order_by(table.c.k, table.c.frame)).all())
+        jobs = JobSnapshot.many(s.execute(query.order_by(table.c.k, table.c.frame)).all())
         if frames is not None and len(frames) > IN_CHUNK:
             wanted = set(frames)
             jobs = [j for j in jobs if j.frame in wanted]

@@ -84,6 +84,7 @@ class Store(JobTables, LeaseMethods, ListMethods, ActivityTables):
         self.engine = engine
         self.blobs = blobs
         self._writer = engine.execution_options(**{WRITE_OPTION: "BEGIN IMMEDIATE"})
+        self._frame_counts: dict[str, int] = {}
 
     def __repr__(self) -> str:
         url = self.engine.url.render_as_string(hide_password=True)
@@ -279,6 +280,7 @@ class Store(JobTables, LeaseMethods, ListMethods, ActivityTables):
             for table in (FrameJob, IterationRecord):
                 s.execute(delete(table).where(table.run_id == run_id))
             s.execute(delete(Run).where(Run.id == run_id))
+        self._frame_counts.pop(run_id, None)
         self.blobs.delete_prefix(run_prefix(run_id))
 
     # -- sweeps ----------------------------------------------------------------
