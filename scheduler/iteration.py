@@ -95,8 +95,10 @@ def reduce_and_step(store: "Store", attack: "Attack", run_id: str, k: int) -> bo
     callback already ran, or the run was cancelled): calling it twice never
     steps twice.
 
-    Once it advanced the run, iteration ``k``'s gradients are deleted (transient
-    blobs); at ``k = 0`` the texels the frames see are kept first
+    Once it advanced the run, iteration ``k``'s gradients are transient: the
+    caller deletes them (:func:`drop_gradients`) once the next iteration's jobs
+    are out, so the deletion is not in the gap between iterations; at ``k = 0``
+    the texels the frames see are kept first
     (:meth:`undream.store.Store.put_seen_mask`, the dashboard's mask). A caller
     killed between the advance and the deletion leaves garbage only: a retry
     finds the run past ``k``, needs no gradient, and deletes them.
@@ -139,10 +141,7 @@ def reduce_and_step(store: "Store", attack: "Attack", run_id: str, k: int) -> bo
         seen = seen_texels([rows[f].grad for f in expected])
         if seen is not None:
             store.put_seen_mask(run_id, seen)
-    if not store.advance(run_id, k, T_next, scalars, record, arrays):
-        return False
-    drop_gradients(store, run_id, k)  # killed before this line: garbage, which finish() sweeps
-    return True
+    return store.advance(run_id, k, T_next, scalars, record, arrays)  # the caller then drops k's gradients
 
 
 def seen_texels(grads: list[Any]) -> np.ndarray | None:

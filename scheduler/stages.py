@@ -265,6 +265,7 @@ def _step(store: "Store", run: "RunSnapshot", k: int, dispatch: Dispatch) -> str
         plan(store, run, "attack", k + 1, dispatch)
     elif store.transition(run.id, ("running",), "evaluating"):
         plan(store, store.get_run(run.id), "pre", k + 1, dispatch)
+    drop_gradients(store, run.id, k)  # after the next jobs are out (killed before: garbage finish() sweeps)
     return "stepped"
 
 
