@@ -14,8 +14,9 @@ next one. So what is timed is the farm's own work. From the job rows of iteratio
 (workers warm): **jobs/s** (attack jobs finished in that window over its length, all runs
 together), the **gap** (an iteration's last job finished → the next iteration's first job
 started, per run and iteration: chord completion, the callback's reduce and step, the next chord's
-delivery) and the time a job spends from its start to its result. Run it alone: the machine's load
-is printed with the numbers.
+delivery), the time a job spends from its start to its result, and the Redis commands per job
+(every job of every phase: all the server processed while the runs ran, the workers' polling
+included). Run it alone: the machine's load is printed with the numbers.
 """
 from __future__ import annotations
 
@@ -98,6 +99,7 @@ def measure(name: str, args: argparse.Namespace, inputs: dict[str, Any]) -> dict
             sweep = {"name": "sched", "run": str(root / "run.yaml"), "grid": {"seed": list(range(args.runs))}}
             (root / "run.yaml").write_text(yaml.safe_dump(run))
             (root / "sweep.yaml").write_text(yaml.safe_dump(sweep))
+            commands0 = redis_client(args.db).info("stats")["total_commands_processed"]
             t0 = time.monotonic()
             res = subprocess.run([sys.executable, "-m", "undream.cli", "sweep", str(root / "sweep.yaml")],
                                  cwd=ROOT, env=env, capture_output=True, text=True)
@@ -111,6 +113,8 @@ def measure(name: str, args: argparse.Namespace, inputs: dict[str, Any]) -> dict
                         raise SystemExit(f"{name}: runs not done after {args.timeout} s: "
                                          f"{[(r.status, r.iteration) for r in runs]}")
                     time.sleep(0.5)
+                commands = redis_client(args.db).info("stats")["total_commands_processed"] - commands0
+                n_jobs = sum(len(store.jobs(r.id, None, phase)) for r in runs for phase in ("attack", "pre", "adversarial"))
                 bad = [r for r in runs if r.status != "done"]
                 assert not bad, [(r.status, r.error) for r in bad]
                 jobs, gaps = [], []
@@ -132,7 +136,8 @@ def measure(name: str, args: argparse.Namespace, inputs: dict[str, Any]) -> dict
     gaps.sort()
     return {"database": name, "jobs": len(jobs), "jobs_per_s": len(jobs) / (end - start).total_seconds(),
             "gap_median_ms": 1000 * statistics.median(gaps), "gap_p90_ms": 1000 * gaps[int(0.9 * (len(gaps) - 1))],
-            "job_median_ms": 1000 * statistics.median(held), "job_p90_ms": 1000 * held[int(0.9 * (len(held) - 1))]}
+            "job_median_ms": 1000 * statistics.median(held), "job_p90_ms": 1000 * held[int(0.9 * (len(held) - 1))],
+            "redis_per_job": commands / n_jobs}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -160,11 +165,12 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{args.workers} workers (one slot each), {args.runs} runs × {args.frames} frames × {args.steps} "
           f"iterations, one frame per task, null jobs; iterations 1 … {args.steps - 2} of each run; load "
           f"average {load0:.2f} before, {os.getloadavg()[0]:.2f} after, on {os.cpu_count()} cores\n")
-    print("| database | jobs | jobs/s | gap median, ms | gap p90, ms | job start → result median, ms | p90, ms |")
-    print("|---|---|---|---|---|---|---|")
+    print("| database | jobs | jobs/s | gap median, ms | gap p90, ms | job start → result median, ms | p90, ms "
+          "| Redis commands per job |")
+    print("|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['database']} | {r['jobs']} | {r['jobs_per_s']:.0f} | {r['gap_median_ms']:.1f} | "
-              f"{r['gap_p90_ms']:.1f} | {r['job_median_ms']:.1f} | {r['job_p90_ms']:.1f} |")
+              f"{r['gap_p90_ms']:.1f} | {r['job_median_ms']:.1f} | {r['job_p90_ms']:.1f} | {r['redis_per_job']:.0f} |")
     return 0
 
 
