@@ -101,14 +101,34 @@ def redis_up() -> str | None:
 
 def free_db() -> int:
     """A Redis database number no other farm uses, of this test session or of another one running
-    beside it (claimed by a key in database 0, which lapses after an hour if a session dies), flushed."""
+    beside it on this machine (claimed by a key in database 0 holding the claiming process's pid,
+    which lapses after an hour; a claim whose process is gone is taken over), flushed."""
     claims = redis_client(0)
     for db in range(15, 0, -1):
-        if db not in _used_dbs and claims.set(f"{DB_CLAIM}{db}", os.getpid(), nx=True, ex=3600):
+        if db in _used_dbs:
+            continue
+        key = f"{DB_CLAIM}{db}"
+        holder = claims.get(key)
+        if holder is not None and not _gone(holder):
+            continue
+        if holder is not None:
+            claims.delete(key)  # its session died without giving it back
+        if claims.set(key, os.getpid(), nx=True, ex=3600):
             _used_dbs.add(db)
             redis_client(db).flushdb()
             return db
-    raise RuntimeError("no free Redis database number (each is claimed by a farm of a test session)")
+    raise RuntimeError("no free Redis database number (each is claimed by a farm of a live test session)")
+
+
+def _gone(pid: bytes) -> bool:
+    """Whether the process ``pid`` (a claim's value) no longer runs on this machine."""
+    try:
+        os.kill(int(pid), 0)
+    except ProcessLookupError:
+        return True
+    except (ValueError, PermissionError):
+        return False
+    return False
 
 
 def release_db(db: int) -> None:

@@ -115,7 +115,10 @@ def test_status_asks_the_broker_and_says_which_runs_wait(tmp_path):
     _farm(tmp_path)
     db = free_db()  # nobody consumes there
     env = {"UNDREAM_BLOB_URL": str(tmp_path), "UNDREAM_BROKER_URL": f"redis://127.0.0.1:6379/{db}"}
-    res = CliRunner().invoke(main, ["status"], env=env, catch_exceptions=False)
+    try:
+        res = CliRunner().invoke(main, ["status"], env=env, catch_exceptions=False)
+    finally:
+        release_db(db)
     assert res.exit_code == 0, res.output
     assert "live queues: none" in res.output and "stuck: 3 waiting, 1 failing" in res.output
     assert f"no live worker on queue {CONTROL_QUEUE}" in res.output
