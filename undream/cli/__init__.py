@@ -14,6 +14,7 @@ import click
 from undream.cli.baseline import COMMANDS as BASELINE
 from undream.cli.dashboard import COMMANDS as DASHBOARD
 from undream.cli.errors import OneLineGroup, one_line_errors
+from undream.cli.evaluate import COMMANDS as EVALUATE
 from undream.cli.farm import COMMANDS
 from undream.cli.options import check_option, force_option, local_settings, out_option, progress_option, spp_option
 from undream.cli.report import COMMANDS as REPORT
@@ -107,7 +108,7 @@ def _fmt(v: float | None) -> str:
 
 def _register_subgroups() -> None:
     main.add_command(victims)
-    for command in COMMANDS + DASHBOARD + REPORT + BASELINE:
+    for command in COMMANDS + DASHBOARD + REPORT + BASELINE + EVALUATE:
         main.add_command(command)
 
 

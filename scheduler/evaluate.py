@@ -1,0 +1,108 @@
+"""``undream evaluate``: judge a texture on scenes, victims and simulators it was never optimised for.
+
+The texture is worn by the object of each scene (8-bit, as a user would print
+or import it), every frame is rendered at ``spp`` by the chosen simulator,
+and each victim judges the frames: on every frame, and apart on the frames
+a run with ``holdout`` would attack and hold out. The scene's own texture is
+judged the same way (``benign``), so each row says how much the texture
+moved the victim. It is the function the runs' evaluation and the baseline
+use (:func:`undream.engine.patch.evaluate_texture`). Everything is checked
+(the texture file, its size against each scene's texture, the victims)
+before anything renders.
+"""
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+from PIL import Image
+
+from scheduler.preflight import is_scene
+from undream.errors import SpecError
+from undream.scenedir.init import InitOptions, init_scene
+from undream.settings import LocalSettings
+from undream.spec.run import RunConfig, split_frames
+
+TEXTURE_FILE = "texture_final.npy"  # what `undream run` leaves in its output folder
+
+
+def read_texture(path: Path) -> np.ndarray:
+    """An H×W×3 sRGB texture in [0, 1] from a ``.npy`` (float in [0, 1], or uint8), a ``.png``, or an
+    ``undream run`` output folder (its ``texture_final.npy``); SpecError naming the file otherwise."""
+    if path.is_dir():
+        if not (path / TEXTURE_FILE).is_file():
+            raise SpecError(f"TEXTURE {path}: a folder without {TEXTURE_FILE} (not an `undream run` output folder)")
+        path = path / TEXTURE_FILE
+    if not path.is_file():
+        raise SpecError(f"TEXTURE {path}: no such file")
+    try:
+        if path.suffix.lower() == ".npy":
+            array = np.load(path, allow_pickle=False)
+        elif path.suffix.lower() == ".png":
+            with Image.open(path) as image:
+                array = np.asarray(image.convert("RGB"))
+        else:
+            raise SpecError(f"TEXTURE {path}: give a .npy, a .png or an `undream run` output folder")
+    except (OSError, ValueError) as exc:
+        raise SpecError(f"TEXTURE {path}: unreadable ({exc})") from None
+    if array.ndim != 3 or array.shape[2] != 3:
+        raise SpecError(f"TEXTURE {path}: shape {array.shape}, not H×W×3")
+    if array.dtype == np.uint8:
+        return array.astype(np.float32) / 255.0
+    if not np.issubdtype(array.dtype, np.floating) or not np.isfinite(array).all() \
+            or array.min() < 0 or array.max() > 1:
+        raise SpecError(f"TEXTURE {path}: values must be uint8, or finite floats in [0, 1]")
+    return array.astype(np.float32)
+
+
+def _scene_dir(scene: Path, work: Path, local: LocalSettings) -> Path:
+    """A scene directory as given, or a spec file initialised into ``work``."""
+    if is_scene(scene):
+        return scene
+    if not scene.is_file():
+        raise SpecError(f"SCENE {scene}: neither a scene directory nor a spec file")
+    return init_scene(scene, work / f"scene-{len(list(work.iterdir()))}",
+                      InitOptions(force=True, memory_limit=local.memory_limit))
+
+
+def evaluate(texture: np.ndarray, scenes: Sequence[Path], victims: Sequence[str], sim: str = "mitsuba",
+             spp: int = 32, holdout: Any = "auto", label: str | None = None, seed: int = 0,
+             local: LocalSettings = LocalSettings()) -> list[dict[str, Any]]:
+    """One row per (scene, victim, split ``all``/``attacked``/``held_out``): frames, metric, the scene's
+    own texture's value (``benign``) and ``texture``'s (``adversarial``), fractions in [0, 1]."""
+    from undream.engine.algorithm import start_texture
+    from undream.engine.context import build_context
+    from undream.engine.patch import evaluate_texture
+    from undream.victims import load_victim
+
+    loaded = {name: load_victim(name) for name in victims}  # an unknown victim fails before any render
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="undream-evaluate-") as tmp:
+        dirs = [_scene_dir(Path(scene), Path(tmp), local) for scene in scenes]
+        contexts = []
+        try:
+            for scene, scene_dir in zip(scenes, dirs):  # every scene checked before anything renders
+                for name, victim in loaded.items():
+                    config = RunConfig.from_json({"scene": str(scene_dir), "name": "evaluate", "victim": name,
+                                                  "label": label, "eval_spp": spp, "holdout": holdout,
+                                                  "sim": sim, "seed": seed})
+                    contexts.append((scene, name, build_context(config, scene_dir, victim=victim, local=local)))
+                    wanted = contexts[-1][2].sequence.texture.shape
+                    if wanted != texture.shape:
+                        raise SpecError(f"TEXTURE: {texture.shape[1]}×{texture.shape[0]} texels, but scene {scene}'s "
+                                        f"texture is {wanted[1]}×{wanted[0]}: a texture made for another object "
+                                        "or UV layout")
+            for scene, name, ctx in contexts:
+                attacked, held = split_frames(holdout, len(ctx.sequence.frames))
+                splits = {"all": attacked + held, "attacked": attacked, "held_out": held}
+                benign = evaluate_texture(ctx, start_texture(ctx), splits)
+                for split, judged in evaluate_texture(ctx, texture, splits).items():
+                    rows.append({"scene": str(scene), "victim": name, "sim": sim, "split": split,
+                                 "frames": len(judged["frames"]), "metric": judged["metric"],
+                                 "benign": benign[split]["value"], "adversarial": judged["value"]})
+        finally:
+            for _, _, ctx in contexts:
+                ctx.scenes.close()
+    return rows

@@ -1,0 +1,78 @@
+"""``undream evaluate`` (issue 22): a texture judged on scenes, victims and simulators, end to end
+through the command; bad inputs are one line each and render nothing."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from PIL import Image
+
+from farm_support import make_scene, make_victim
+from undream.cli import main
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory):
+    base = tmp_path_factory.mktemp("evaluate")
+    scene = make_scene(base / "scene", n_frames=4, size=24)  # texture 16 × 8 texels
+    texture = np.random.default_rng(0).integers(0, 256, (8, 16, 3)).astype(np.uint8)
+    np.save(base / "texture.npy", texture.astype(np.float32) / 255.0)
+    Image.fromarray(texture).save(base / "texture.png")
+    return {"base": base, "scene": scene, "victim": make_victim(base / "victim")}
+
+
+def _evaluate(*args: str):
+    return CliRunner().invoke(main, ["evaluate", *args], env={"HF_HUB_OFFLINE": "1"})
+
+
+def test_a_texture_is_judged_on_every_split_and_written_as_json_and_csv(inputs, tmp_path):
+    base = inputs["base"]
+    res = _evaluate(str(base / "texture.npy"), str(inputs["scene"]), "--victim", inputs["victim"], "--spp", "2",
+                    "--json", str(tmp_path / "rows.json"), "--csv", str(tmp_path / "rows.csv"))
+    assert res.exit_code == 0, res.output
+    rows = json.loads((tmp_path / "rows.json").read_text())["rows"]
+    assert [(r["split"], r["frames"]) for r in rows] == [("all", 4), ("attacked", 3), ("held_out", 1)]
+    assert all(r["metric"] == "accuracy" and 0 <= r["benign"] <= 1 and 0 <= r["adversarial"] <= 1 for r in rows)
+    assert (tmp_path / "rows.csv").read_text().splitlines()[0] == "scene,victim,sim,split,frames,metric,benign,adversarial"
+    assert "held_out" in res.output and "→" in res.output
+    # the same 8-bit texture as a PNG: the same frames, the same verdicts (the evaluation wears 8 bits)
+    png = _evaluate(str(base / "texture.png"), str(inputs["scene"]), "--victim", inputs["victim"], "--spp", "2",
+                    "--json", str(tmp_path / "png.json"))
+    assert png.exit_code == 0, png.output
+    assert json.loads((tmp_path / "png.json").read_text())["rows"] == rows
+
+
+@pytest.mark.parametrize("texture, extra, needle", [
+    ("wrong", [], "TEXTURE: 8×4 texels, but scene"),
+    ("texture.npy", ["--victim", "bundled:no-such-victim"], "no-such-victim"),
+    ("missing.npy", [], "TEXTURE"),
+    ("texture.npy", ["--json", "/no/such/folder/rows.json"], "--json /no/such/folder/rows.json: its folder"),
+    ("texture.npy", ["--sim", "povray"], "sim"),
+])
+def test_bad_inputs_are_one_line(inputs, texture, extra, needle):
+    base = inputs["base"]
+    if texture == "wrong":
+        np.save(base / "wrong.npy", np.zeros((4, 8, 3), np.float32))  # another object's layout
+        texture = "wrong.npy"
+    extra = [inputs["victim"] if e == "VICTIM" else e for e in extra]
+    args = [str(base / texture), str(inputs["scene"]), *extra]
+    if "--victim" not in extra:
+        args += ["--victim", inputs["victim"]]
+    res = _evaluate(*args, "--spp", "1")
+    assert res.exit_code != 0
+    lines = [line for line in res.output.strip().splitlines() if line]
+    assert len(lines) == 1 and needle in lines[0], res.output
+
+
+@pytest.mark.slow
+def test_the_same_texture_judged_in_blender(inputs, cycles, tmp_path):
+    res = _evaluate(str(inputs["base"] / "texture.npy"), str(inputs["scene"]), "--victim", inputs["victim"],
+                    "--sim", "blender", "--spp", "2", "--json", str(tmp_path / "rows.json"))
+    assert res.exit_code == 0, res.output
+    rows = json.loads((tmp_path / "rows.json").read_text())["rows"]
+    assert [(r["sim"], r["split"], r["frames"]) for r in rows] == \
+        [("blender", "all", 4), ("blender", "attacked", 3), ("blender", "held_out", 1)]
+    assert all(0 <= r["adversarial"] <= 1 for r in rows)
