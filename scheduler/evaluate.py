@@ -12,6 +12,7 @@ before anything renders.
 """
 from __future__ import annotations
 
+import json
 import tempfile
 from pathlib import Path
 from typing import Any, Sequence
@@ -21,11 +22,42 @@ from PIL import Image
 
 from scheduler.preflight import is_scene
 from undream.errors import SpecError
+from undream.scene.mesh import Mesh, read_ply
+from undream.scene.mitsuba_scene import OBJECT_ID
 from undream.scenedir.init import InitOptions, init_scene
 from undream.settings import LocalSettings
 from undream.spec.run import RunConfig, split_frames
 
 TEXTURE_FILE = "texture_final.npy"  # what `undream run` leaves in its output folder
+
+
+def run_scene(path: Path) -> Path | None:
+    """The scene directory an ``undream run`` output folder was optimised on (its ``metadata.json``'s
+    ``scene_dir``), when ``path`` is one and that scene is still there; else None."""
+    try:
+        scene = Path(json.loads((path / "metadata.json").read_text())["scene_dir"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return scene if is_scene(scene) else None
+
+
+def _object_mesh(scene_dir: Path) -> Mesh:
+    """The adversarial object's mesh of a scene directory (its first frame's, if per frame)."""
+    files = sorted((scene_dir / "meshes").glob(f"{OBJECT_ID}*.ply"))
+    if not files:
+        raise SpecError(f"SCENE {scene_dir}: no {OBJECT_ID} mesh in its meshes/")
+    return read_ply(files[0])
+
+
+def check_uv_layout(reference: Path, scene_dir: Path, scene: Path) -> None:
+    """SpecError naming ``scene`` when its object's triangles or UVs differ from the object of the
+    scene the texture was optimised on (``reference``): a texel would land elsewhere on the surface."""
+    ref, got = _object_mesh(reference), _object_mesh(scene_dir)
+    if got.n_vertices != ref.n_vertices or not np.array_equal(got.faces, ref.faces) \
+            or not np.allclose(got.uvs, ref.uvs, atol=1e-6):
+        raise SpecError(f"SCENE {scene}: its object has another UV layout than the scene the texture was "
+                        f"optimised on ({got.n_vertices} vertices, {got.n_faces} triangles against "
+                        f"{ref.n_vertices}, {ref.n_faces}, or other UVs): its texels would land elsewhere")
 
 
 def read_texture(path: Path) -> np.ndarray:
@@ -69,9 +101,11 @@ def _scene_dir(scene: Path, work: Path, local: LocalSettings) -> Path:
 
 def evaluate(texture: np.ndarray, scenes: Sequence[Path], victims: Sequence[str], sim: str = "mitsuba",
              spp: int = 32, holdout: Any = "auto", label: str | None = None, seed: int = 0,
-             local: LocalSettings = LocalSettings()) -> list[dict[str, Any]]:
+             local: LocalSettings = LocalSettings(), reference: Path | None = None) -> list[dict[str, Any]]:
     """One row per (scene, victim, split ``all``/``attacked``/``held_out``): frames, metric, the scene's
-    own texture's value (``benign``) and ``texture``'s (``adversarial``), fractions in [0, 1]."""
+    own texture's value (``benign``) and ``texture``'s (``adversarial``), fractions in [0, 1].
+    ``reference``: the scene directory the texture was optimised on, whose object's UV layout every
+    scene's must share (:func:`check_uv_layout`)."""
     from undream.engine.algorithm import start_texture
     from undream.engine.context import build_context
     from undream.engine.patch import evaluate_texture
@@ -81,6 +115,9 @@ def evaluate(texture: np.ndarray, scenes: Sequence[Path], victims: Sequence[str]
     rows = []
     with tempfile.TemporaryDirectory(prefix="undream-evaluate-") as tmp:
         dirs = [_scene_dir(Path(scene), Path(tmp), local) for scene in scenes]
+        for scene, scene_dir in zip(scenes, dirs):
+            if reference is not None:
+                check_uv_layout(reference, scene_dir, Path(scene))
         contexts = []
         try:
             for scene, scene_dir in zip(scenes, dirs):  # every scene checked before anything renders

@@ -3,6 +3,7 @@ through the command; bad inputs are one line each and render nothing."""
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -65,6 +66,29 @@ def test_bad_inputs_are_one_line(inputs, texture, extra, needle):
     assert res.exit_code != 0
     lines = [line for line in res.output.strip().splitlines() if line]
     assert len(lines) == 1 and needle in lines[0], res.output
+
+
+def test_a_runs_texture_on_a_scene_with_another_uv_layout_is_one_line(inputs, tmp_path):
+    """An `undream run` output folder names its scene: a scene whose object has other UVs is refused."""
+    import dataclasses
+    import json as json_
+
+    from undream.scene.mesh import read_ply, write_ply
+
+    run = tmp_path / "run"
+    run.mkdir()
+    np.save(run / "texture_final.npy", np.load(inputs["base"] / "texture.npy"))
+    (run / "metadata.json").write_text(json_.dumps({"scene_dir": str(inputs["scene"])}))
+    other = tmp_path / "other"
+    shutil.copytree(inputs["scene"], other)
+    mesh = read_ply(other / "meshes" / "object.ply")
+    write_ply(dataclasses.replace(mesh, uvs=mesh.uvs[:, ::-1].copy()), other / "meshes" / "object.ply")
+    res = _evaluate(str(run), str(other), "--victim", inputs["victim"], "--spp", "1")
+    lines = [line for line in res.output.strip().splitlines() if line]
+    assert res.exit_code != 0 and len(lines) == 1, res.output
+    assert f"SCENE {other}: its object has another UV layout than the scene the texture was optimised on" in lines[0]
+    same = _evaluate(str(run), str(inputs["scene"]), "--victim", inputs["victim"], "--spp", "1")
+    assert same.exit_code == 0, same.output  # its own scene: the same layout
 
 
 @pytest.mark.slow

@@ -31,13 +31,13 @@ def evaluate_cmd(texture: Path, scenes: tuple[Path, ...], victims: tuple[str, ..
     """Judge TEXTURE (a .npy, a .png, or an `undream run` output folder) on SCENES (scene directories
     or spec files) by each victim, rendered by one simulator: per scene and victim, on every frame
     and apart on the frames a run would attack and hold out, beside the scene's own texture."""
-    from scheduler.evaluate import evaluate, read_texture
+    from scheduler.evaluate import evaluate, read_texture, run_scene
 
     for flag, path in (("--json", json_out), ("--csv", csv_out)):  # before the renders, not after
         if path is not None and not path.parent.is_dir():
             raise SpecError(f"{flag} {path}: its folder {path.parent} does not exist")
     rows = evaluate(read_texture(texture), scenes, victims, sim=sim, spp=spp, holdout=holdout, label=label,
-                    local=local_settings())
+                    local=local_settings(), reference=run_scene(texture) if texture.is_dir() else None)
     click.echo(_table(rows))
     if json_out is not None:
         json_out.write_text(json.dumps({"texture": str(texture), "rows": rows}, indent=2, allow_nan=False) + "\n")
