@@ -15,18 +15,22 @@ from __future__ import annotations
 import json
 import tempfile
 from pathlib import Path
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
 import numpy as np
 from PIL import Image
 
 from scheduler.preflight import is_scene
-from undream.errors import SpecError
+from scheduler.scenes import unpack_scene
+from undream.errors import SpecError, StoreError
 from undream.scene.mesh import Mesh, read_ply
 from undream.scene.mitsuba_scene import OBJECT_ID
 from undream.scenedir.init import InitOptions, init_scene
 from undream.settings import LocalSettings
 from undream.spec.run import RunConfig, split_frames
+
+if TYPE_CHECKING:
+    from undream.store import Store
 
 TEXTURE_FILE = "texture_final.npy"  # what `undream run` leaves in its output folder
 
@@ -99,13 +103,42 @@ def _scene_dir(scene: Path, work: Path, local: LocalSettings) -> Path:
                       InitOptions(force=True, memory_limit=local.memory_limit))
 
 
-def evaluate(texture: np.ndarray, scenes: Sequence[Path], victims: Sequence[str], sim: str = "mitsuba",
+Texture = tuple[np.ndarray, "Path | None"]  # the texture and the scene directory it was optimised on, if known
+
+
+def farm_textures(store: "Store", ref: str, cache_dir: Path | str) -> dict[str, Texture]:
+    """The final textures of the farm's run ``ref`` (an id or its first characters), else of every
+    run of sweep ``ref`` (an id or a name) that has one, by ``name (id8)``, each with its run's scene
+    (unpacked under ``cache_dir``) for the UV-layout check; SpecError in one line when there is none."""
+    try:
+        runs, what = [store.find_run(ref)], "run"
+    except StoreError as run_err:
+        try:
+            sweep = store.find_sweep(ref)
+        except StoreError:
+            raise SpecError(f"TEXTURE {ref}: no such file, and no run or sweep by that id or name in the farm "
+                            f"({run_err})") from None
+        runs, what = store.runs_page(sweep_id=sweep.id, limit=None, newest_first=False).runs, f"sweep {sweep.name}"
+    out = {}
+    for run in runs:
+        final = store.final_texture(run.id)
+        if final is None:
+            continue
+        scene = unpack_scene(store.blobs, run.scene_ref, cache_dir) if run.scene_ref else None
+        out[f"{run.name} ({run.id[:8]})"] = (final, scene)
+    if not out:
+        raise SpecError(f"TEXTURE {ref}: the {what} has no final texture yet (a run has one once its evaluation "
+                        "picked it)")
+    return out
+
+
+def evaluate(textures: Mapping[str, Texture], scenes: Sequence[Path], victims: Sequence[str], sim: str = "mitsuba",
              spp: int = 32, holdout: Any = "auto", label: str | None = None, seed: int = 0,
-             local: LocalSettings = LocalSettings(), reference: Path | None = None) -> list[dict[str, Any]]:
-    """One row per (scene, victim, split ``all``/``attacked``/``held_out``): frames, metric, the scene's
-    own texture's value (``benign``) and ``texture``'s (``adversarial``), fractions in [0, 1].
-    ``reference``: the scene directory the texture was optimised on, whose object's UV layout every
-    scene's must share (:func:`check_uv_layout`)."""
+             local: LocalSettings = LocalSettings()) -> list[dict[str, Any]]:
+    """One row per (scene, victim, texture, split ``all``/``attacked``/``held_out``): frames, metric,
+    the scene's own texture's value (``benign``) and the texture's (``adversarial``), fractions in
+    [0, 1]. ``textures``: name → (texture, the scene directory it was optimised on or None), whose
+    object's UV layout every scene's must share (:func:`check_uv_layout`)."""
     from undream.engine.algorithm import start_texture
     from undream.engine.context import build_context
     from undream.engine.patch import evaluate_texture
@@ -116,8 +149,9 @@ def evaluate(texture: np.ndarray, scenes: Sequence[Path], victims: Sequence[str]
     with tempfile.TemporaryDirectory(prefix="undream-evaluate-") as tmp:
         dirs = [_scene_dir(Path(scene), Path(tmp), local) for scene in scenes]
         for scene, scene_dir in zip(scenes, dirs):
-            if reference is not None:
-                check_uv_layout(reference, scene_dir, Path(scene))
+            for _, reference in textures.values():
+                if reference is not None:
+                    check_uv_layout(reference, scene_dir, Path(scene))
         contexts = []
         try:
             for scene, scene_dir in zip(scenes, dirs):  # every scene checked before anything renders
@@ -127,18 +161,20 @@ def evaluate(texture: np.ndarray, scenes: Sequence[Path], victims: Sequence[str]
                                                   "sim": sim, "seed": seed})
                     contexts.append((scene, name, build_context(config, scene_dir, victim=victim, local=local)))
                     wanted = contexts[-1][2].sequence.texture.shape
-                    if wanted != texture.shape:
-                        raise SpecError(f"TEXTURE: {texture.shape[1]}×{texture.shape[0]} texels, but scene {scene}'s "
-                                        f"texture is {wanted[1]}×{wanted[0]}: a texture made for another object "
-                                        "or UV layout")
+                    for texture_name, (texture, _) in textures.items():
+                        if wanted != texture.shape:
+                            raise SpecError(f"TEXTURE {texture_name}: {texture.shape[1]}×{texture.shape[0]} texels, "
+                                            f"but scene {scene}'s texture is {wanted[1]}×{wanted[0]}: a texture "
+                                            "made for another object or UV layout")
             for scene, name, ctx in contexts:
                 attacked, held = split_frames(holdout, len(ctx.sequence.frames))
                 splits = {"all": attacked + held, "attacked": attacked, "held_out": held}
                 benign = evaluate_texture(ctx, start_texture(ctx), splits)
-                for split, judged in evaluate_texture(ctx, texture, splits).items():
-                    rows.append({"scene": str(scene), "victim": name, "sim": sim, "split": split,
-                                 "frames": len(judged["frames"]), "metric": judged["metric"],
-                                 "benign": benign[split]["value"], "adversarial": judged["value"]})
+                for texture_name, (texture, _) in textures.items():
+                    for split, judged in evaluate_texture(ctx, texture, splits).items():
+                        rows.append({"scene": str(scene), "victim": name, "sim": sim, "texture": texture_name,
+                                     "split": split, "frames": len(judged["frames"]), "metric": judged["metric"],
+                                     "benign": benign[split]["value"], "adversarial": judged["value"]})
         finally:
             for _, _, ctx in contexts:
                 ctx.scenes.close()

@@ -25,8 +25,8 @@ def inputs(tmp_path_factory):
     return {"base": base, "scene": scene, "victim": make_victim(base / "victim")}
 
 
-def _evaluate(*args: str):
-    return CliRunner().invoke(main, ["evaluate", *args], env={"HF_HUB_OFFLINE": "1"})
+def _evaluate(*args: str, env: dict[str, str] | None = None):
+    return CliRunner().invoke(main, ["evaluate", *args], env={"HF_HUB_OFFLINE": "1", **(env or {})})
 
 
 def test_a_texture_is_judged_on_every_split_and_written_as_json_and_csv(inputs, tmp_path):
@@ -37,17 +37,20 @@ def test_a_texture_is_judged_on_every_split_and_written_as_json_and_csv(inputs, 
     rows = json.loads((tmp_path / "rows.json").read_text())["rows"]
     assert [(r["split"], r["frames"]) for r in rows] == [("all", 4), ("attacked", 3), ("held_out", 1)]
     assert all(r["metric"] == "accuracy" and 0 <= r["benign"] <= 1 and 0 <= r["adversarial"] <= 1 for r in rows)
-    assert (tmp_path / "rows.csv").read_text().splitlines()[0] == "scene,victim,sim,split,frames,metric,benign,adversarial"
+    assert (tmp_path / "rows.csv").read_text().splitlines()[0] == \
+        "scene,victim,sim,texture,split,frames,metric,benign,adversarial"
+    assert {r["texture"] for r in rows} == {"texture.npy"}
     assert "held_out" in res.output and "→" in res.output
     # the same 8-bit texture as a PNG: the same frames, the same verdicts (the evaluation wears 8 bits)
     png = _evaluate(str(base / "texture.png"), str(inputs["scene"]), "--victim", inputs["victim"], "--spp", "2",
                     "--json", str(tmp_path / "png.json"))
     assert png.exit_code == 0, png.output
-    assert json.loads((tmp_path / "png.json").read_text())["rows"] == rows
+    assert [{**r, "texture": None} for r in json.loads((tmp_path / "png.json").read_text())["rows"]] == \
+        [{**r, "texture": None} for r in rows]
 
 
 @pytest.mark.parametrize("texture, extra, needle", [
-    ("wrong", [], "TEXTURE: 8×4 texels, but scene"),
+    ("wrong", [], "TEXTURE wrong.npy: 8×4 texels, but scene"),
     ("texture.npy", ["--victim", "bundled:no-such-victim"], "no-such-victim"),
     ("missing.npy", [], "TEXTURE"),
     ("texture.npy", ["--json", "/no/such/folder/rows.json"], "--json /no/such/folder/rows.json: its folder"),
@@ -89,6 +92,33 @@ def test_a_runs_texture_on_a_scene_with_another_uv_layout_is_one_line(inputs, tm
     assert f"SCENE {other}: its object has another UV layout than the scene the texture was optimised on" in lines[0]
     same = _evaluate(str(run), str(inputs["scene"]), "--victim", inputs["victim"], "--spp", "1")
     assert same.exit_code == 0, same.output  # its own scene: the same layout
+
+
+def test_a_farm_sweeps_final_textures_are_judged_by_name(inputs, tmp_path):
+    """TEXTURE as a sweep of the farm (by name) or one of its runs (by id): every final texture."""
+    from scheduler.scenes import store_scene
+    from undream.store import NewRun, open_store
+
+    texture = np.load(inputs["base"] / "texture.npy")
+    blobs = tmp_path / "farm"
+    with open_store(None, blobs) as store:
+        scene_ref = store_scene(store.blobs, inputs["scene"])
+        runs = [NewRun(f"eps{e}", {"scene": "s", "name": f"eps{e}"}, 4, 0, scene_ref=scene_ref) for e in (8, 16)]
+        store.create_sweep("eps-grid", {"grid": {"attack.eps": [8, 16]}}, runs)
+        store.put_final_texture(runs[0].id, texture)
+        store.put_final_texture(runs[1].id, 1 - texture)
+    farm = {"UNDREAM_CACHE_DIR": str(tmp_path / "cache")}  # where the runs' scene is unpacked
+    env = ["--blobs", str(blobs), "--victim", inputs["victim"], "--spp", "1"]
+    res = _evaluate("eps-grid", str(inputs["scene"]), *env, "--json", str(tmp_path / "sweep.json"), env=farm)
+    assert res.exit_code == 0, res.output
+    rows = json.loads((tmp_path / "sweep.json").read_text())["rows"]
+    assert [r["texture"] for r in rows if r["split"] == "all"] == [f"eps8 ({runs[0].id[:8]})", f"eps16 ({runs[1].id[:8]})"]
+    assert (tmp_path / "cache" / "scenes").is_dir()
+    one = _evaluate(runs[0].id[:8], str(inputs["scene"]), *env, "--json", str(tmp_path / "run.json"), env=farm)
+    assert one.exit_code == 0, one.output
+    assert [r for r in json.loads((tmp_path / "run.json").read_text())["rows"]] == rows[:3]
+    nothing = _evaluate("no-such-sweep", str(inputs["scene"]), *env, env=farm)
+    assert nothing.exit_code != 0 and "TEXTURE no-such-sweep: no such file, and no run or sweep" in nothing.output
 
 
 @pytest.mark.slow

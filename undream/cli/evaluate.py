@@ -5,12 +5,17 @@ import csv
 import io
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, Callable
 
 import click
 
 from undream.cli.errors import one_line_errors
+from undream.cli.farm import settings_options
 from undream.cli.options import local_settings, spp_option
 from undream.errors import SpecError
+
+if TYPE_CHECKING:
+    from undream.settings import Settings
 
 
 @click.command("evaluate")
@@ -25,19 +30,22 @@ from undream.errors import SpecError
 @click.option("--label", default=None, help="The object's class (default: the scene's).")
 @click.option("--json", "json_out", type=click.Path(path_type=Path), default=None, help="Write the rows as JSON.")
 @click.option("--csv", "csv_out", type=click.Path(path_type=Path), default=None, help="Write the rows as CSV.")
+@settings_options
 @one_line_errors
 def evaluate_cmd(texture: Path, scenes: tuple[Path, ...], victims: tuple[str, ...], sim: str, spp: int,
-                 holdout: str, label: str | None, json_out: Path | None, csv_out: Path | None) -> None:
-    """Judge TEXTURE (a .npy, a .png, or an `undream run` output folder) on SCENES (scene directories
-    or spec files) by each victim, rendered by one simulator: per scene and victim, on every frame
-    and apart on the frames a run would attack and hold out, beside the scene's own texture."""
-    from scheduler.evaluate import evaluate, read_texture, run_scene
+                 holdout: str, label: str | None, json_out: Path | None, csv_out: Path | None,
+                 settings: Callable[..., "Settings"]) -> None:
+    """Judge TEXTURE (a .npy, a .png, an `undream run` output folder, or a farm run or sweep by id or
+    name: each of its runs' final textures) on SCENES (scene directories or spec files) by each
+    victim, rendered by one simulator: per scene, victim and texture, on every frame and apart on the
+    frames a run would attack and hold out, beside the scene's own texture."""
+    from scheduler.evaluate import evaluate
 
     for flag, path in (("--json", json_out), ("--csv", csv_out)):  # before the renders, not after
         if path is not None and not path.parent.is_dir():
             raise SpecError(f"{flag} {path}: its folder {path.parent} does not exist")
-    rows = evaluate(read_texture(texture), scenes, victims, sim=sim, spp=spp, holdout=holdout, label=label,
-                    local=local_settings(), reference=run_scene(texture) if texture.is_dir() else None)
+    rows = evaluate(_textures(texture, settings), scenes, victims, sim=sim, spp=spp, holdout=holdout, label=label,
+                    local=local_settings())
     click.echo(_table(rows))
     if json_out is not None:
         json_out.write_text(json.dumps({"texture": str(texture), "rows": rows}, indent=2, allow_nan=False) + "\n")
@@ -49,13 +57,26 @@ def evaluate_cmd(texture: Path, scenes: tuple[Path, ...], victims: tuple[str, ..
         csv_out.write_text(buf.getvalue())
 
 
+def _textures(texture: Path, settings: Callable[..., "Settings"]) -> dict[str, Any]:
+    """TEXTURE as name → (texture, the scene it was optimised on): a file or output folder, else the
+    farm's run or sweep by that id or name."""
+    from scheduler.evaluate import farm_textures, read_texture, run_scene
+    from undream.store import open_farm_store
+
+    if texture.exists() or texture.suffix.lower() in (".npy", ".png"):
+        return {texture.name: (read_texture(texture), run_scene(texture) if texture.is_dir() else None)}
+    cfg = settings()
+    return farm_textures(open_farm_store(cfg, create=False), str(texture), cfg.cache_dir)
+
+
 def _table(rows: list[dict]) -> str:
-    lines = [f"{'scene':<28} {'victim':<22} {'sim':<8} {'split':<9} {'frames':>6}  metric     benign → texture"]
+    lines = [f"{'scene':<24} {'victim':<20} {'sim':<8} {'texture':<24} {'split':<9} {'frames':>6}  "
+             "metric     benign → texture"]
     for r in rows:
         benign = "n/a" if r["benign"] is None else f"{r['benign']:.3f}"
         adv = "n/a" if r["adversarial"] is None else f"{r['adversarial']:.3f}"
-        lines.append(f"{Path(r['scene']).name[:28]:<28} {r['victim'][-22:]:<22} {r['sim']:<8} {r['split']:<9} "
-                     f"{r['frames']:>6}  {r['metric']:<10} {benign} → {adv}")
+        lines.append(f"{Path(r['scene']).name[:24]:<24} {r['victim'][-20:]:<20} {r['sim']:<8} {r['texture'][:24]:<24} "
+                     f"{r['split']:<9} {r['frames']:>6}  {r['metric']:<10} {benign} → {adv}")
     return "\n".join(lines)
 
 
