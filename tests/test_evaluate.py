@@ -130,3 +130,18 @@ def test_the_same_texture_judged_in_blender(inputs, cycles, tmp_path):
     assert [(r["sim"], r["split"], r["frames"]) for r in rows] == \
         [("blender", "all", 4), ("blender", "attacked", 3), ("blender", "held_out", 1)]
     assert all(0 <= r["adversarial"] <= 1 for r in rows)
+
+
+def test_the_held_out_conditions_wear_the_main_jobs_texture():
+    """examples/conditions/ (scripts/condition_suite.py): each loads, and its object and texture are the
+    main job's scene's, so the main job's texture fits every one; each differs from it in its scene."""
+    from undream.scene.sources import sequence_from_file as load_sequence
+
+    root = Path(__file__).resolve().parents[1] / "examples"
+    main_job = load_sequence(root / "bin_orbit.yaml")
+    specs = sorted((root / "conditions").glob("*.yaml"))
+    assert len(specs) == 8
+    for path in specs:
+        seq = load_sequence(path)
+        assert seq.asset == main_job.asset and len(seq.frames) == len(main_job.frames), path.name
+        assert seq.frames != main_job.frames, path.name
