@@ -148,10 +148,10 @@ def evaluate(textures: Mapping[str, Texture], scenes: Sequence[Path], victims: S
     rows = []
     with tempfile.TemporaryDirectory(prefix="undream-evaluate-") as tmp:
         dirs = [_scene_dir(Path(scene), Path(tmp), local) for scene in scenes]
+        references = {reference for _, reference in textures.values() if reference is not None}  # a sweep's: one
         for scene, scene_dir in zip(scenes, dirs):
-            for _, reference in textures.values():
-                if reference is not None:
-                    check_uv_layout(reference, scene_dir, Path(scene))
+            for reference in references:
+                check_uv_layout(reference, scene_dir, Path(scene))
         contexts = []
         try:
             for scene, scene_dir in zip(scenes, dirs):  # every scene checked before anything renders

@@ -204,11 +204,16 @@ def status_cmd(run: str | None, out: Path | None, limit: int, show_all: bool, st
     click.echo(_table(rows))
 
 
+def _by_state(counts: dict[str, int]) -> str:
+    """`` (3 queued, 2 done)``: runs counted by state, in the states' order; '' without runs."""
+    states = ", ".join(f"{counts[s]} {s}" for s in RUN_STATUSES if counts.get(s))
+    return f" ({states})" if states else ""
+
+
 def _tally(shown: int, total: int, counts: dict[str, int], state: str | None) -> str:
     """The line under a runs table: how many it shows of how many, and every run counted by state."""
-    states = ", ".join(f"{counts[s]} {s}" for s in RUN_STATUSES if counts.get(s))
     line = f"\n{shown} of {total} run{'' if total == 1 else 's'}{f' {state}' if state else ''}, newest first"
-    line += f" ({states})" if states else ""
+    line += _by_state(counts)
     if shown < total:
         line += "; more with --limit N or --all, fewer with --state or --sweep"
     return line
@@ -235,9 +240,9 @@ def _echo_stuck(store: "Store", cfg: "Settings") -> None:
         return
     click.echo(f"stuck: {_count(report['n_waiting'])} waiting, {report['n_failing']} failing")
     click.echo(_table(rows))
-    shown = len(report["waiting"]) + len(report["failing"])
-    if shown < (report["n_waiting"] or 0) + report["n_failing"]:
-        click.echo(f"… {(report['n_waiting'] or 0) + report['n_failing'] - shown} more, stalled less long")
+    hidden = (report["n_waiting"] or 0) + report["n_failing"] - len(rows)
+    if hidden > 0:
+        click.echo(f"… {hidden} more, stalled less long")
 
 
 def _duration(seconds: float) -> str:
@@ -404,10 +409,8 @@ def results_cmd(sweep: str, as_csv: bool, limit: int | None, settings: Callable[
     rows = result_rows(snap.spec, page.runs)
     if not as_csv:
         click.echo(_table(rows))
-        counts = store.status_counts(snap.id)
-        states = ", ".join(f"{counts[s]} {s}" for s in RUN_STATUSES if counts.get(s))
         more = "; more with --limit N or --csv" if len(rows) < page.total else ""
-        click.echo(f"\n{len(rows)} of {page.total} runs of sweep {snap.name}{f' ({states})' if states else ''}{more}")
+        click.echo(f"\n{len(rows)} of {page.total} runs of sweep {snap.name}{_by_state(store.status_counts(snap.id))}{more}")
         return
     buf = io.StringIO()
     writer = csv.DictWriter(buf, fieldnames=list(rows[0]) if rows else ["run"], lineterminator="\n")

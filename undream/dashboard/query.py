@@ -17,14 +17,12 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 from scheduler.query import current_phase
 from undream.dashboard.errors import BadRequest
-from undream.errors import StoreError
-from undream.runlist import MAX_PAGE
-from undream.store import RUN_STATUSES
+from undream.runlist import ACTIVE_STATUSES, MAX_PAGE
+from undream.store import RUN_STATUSES, BadCursor
 
 if TYPE_CHECKING:
     from undream.store import IterationSnapshot, JobLine, JobSnapshot, RunSnapshot, Store
 
-ACTIVE_STATUSES = ("queued", "running", "evaluating")
 Memo = Callable[[tuple[Any, ...], Callable[[], Any]], Any]  # cache.get(key, make)
 EVAL_VIEWS = {"benign": "pre", "adversarial": "adversarial"}  # URL name → job phase
 SLOW_FACTOR = 2.0  # a job this many times the run's median job time is slow
@@ -135,9 +133,7 @@ def runs_page(store: "Store", status: str | None = None, sweep_id: str | None = 
     status = check_status(status)
     try:
         page = store.runs_page(status, sweep_id or None, limit, cursor or None)
-    except StoreError as err:
-        if "cursor" not in str(err):
-            raise
+    except BadCursor as err:
         raise BadRequest(str(err)) from None
     reads = ListReads(store, [run.id for run in page.runs])
     rows = []

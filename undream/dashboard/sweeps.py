@@ -5,7 +5,7 @@ from typing import TYPE_CHECKING, Any
 
 from scheduler.query import result_rows
 from undream.dashboard.errors import BadRequest
-from undream.errors import StoreError
+from undream.store import BadCursor
 
 if TYPE_CHECKING:
     from undream.store import Store
@@ -41,7 +41,7 @@ def sweep_detail(store: "Store", sweep_ref: str, limit: int = 100, cursor: str |
     sweep = store.find_sweep(sweep_ref)
     try:
         page = store.runs_page(sweep_id=sweep.id, limit=limit, after=cursor or None, newest_first=False)
-    except StoreError as err:
+    except BadCursor as err:
         raise BadRequest(str(err)) from None
     rows = result_rows(sweep.spec, page.runs)
     for row, run in zip(rows, page.runs):

@@ -17,14 +17,14 @@ from undream.store.db import NoDatabase, make_engine, mask_url, open_farm_store,
 from undream.store.jobs import UNFINISHED, EvalResult, JobResult
 from undream.store.models import JOB_PHASES, JOB_STATUSES, RUN_STATUSES, SCHEMA_VERSION
 from undream.store.newrun import NewRun
-from undream.store.pages import MAX_PAGE, RunPage
+from undream.store.pages import MAX_PAGE, BadCursor, RunPage
 from undream.store.snapshots import (
     FrameGrad, IterationSnapshot, JobLine, JobSnapshot, RunSnapshot, SweepSnapshot,
 )
 from undream.store.store import ACTIVE, TRANSITIONS, Store
 
 __all__ = [
-    "ACTIVE", "BlobOptions", "BlobStore", "DATABASE", "EvalResult", "FrameGrad", "IterationSnapshot", "JOB_PHASES",
+    "ACTIVE", "BadCursor", "BlobOptions", "BlobStore", "DATABASE", "EvalResult", "FrameGrad", "IterationSnapshot", "JOB_PHASES",
     "JOB_STATUSES", "JobLine", "JobResult", "JobSnapshot", "MAX_PAGE", "NewRun", "NoDatabase", "RECORD_FIELDS",
     "RUN_STATUSES", "RunPage", "RunSnapshot", "SCHEMA_VERSION", "Store",
     "SweepSnapshot", "TRANSITIONS", "UNFINISHED", "attack_state_key", "blob_root", "check_key",

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any, Collection, NamedTuple, Sequence
 
 from sqlalchemy import and_, case, func, or_, select
 
+from undream.runlist import ACTIVE_STATUSES
 from undream.store.jobs import IN_CHUNK, UNFINISHED
 from undream.store.models import FrameJob, Run
 from undream.store.snapshots import loads
@@ -24,9 +25,6 @@ if TYPE_CHECKING:
     from contextlib import AbstractContextManager
 
     from sqlalchemy.orm import Session
-
-ACTIVE_RUNS = ("queued", "running", "evaluating")  # a run in one of these has work left
-
 
 class WorkerTally(NamedTuple):
     """One worker's jobs of one status in the window: how many finished in it, and its latest
@@ -107,7 +105,7 @@ class ActivityTables:
         updated since then, started or finished since then); and every started job of an active
         run, however old (a long job, or one whose worker is gone)."""
         fj, r = FrameJob.__table__, Run.__table__
-        recent = or_(r.c.status.in_(ACTIVE_RUNS), r.c.updated >= since)
+        recent = or_(r.c.status.in_(ACTIVE_STATUSES), r.c.updated >= since)
         tallies = (select(fj.c.worker, fj.c.status,
                           func.sum(case((fj.c.finished >= since, 1), else_=0)),
                           func.max(fj.c.started), func.max(fj.c.finished))
@@ -116,7 +114,7 @@ class ActivityTables:
                    .group_by(fj.c.worker, fj.c.status))
         current = (select(fj.c.worker, fj.c.run_id, r.c.name, fj.c.phase, fj.c.k, fj.c.frame, fj.c.started)
                    .join(r, r.c.id == fj.c.run_id)
-                   .where(r.c.status.in_(ACTIVE_RUNS), fj.c.status == "started", fj.c.worker.is_not(None))
+                   .where(r.c.status.in_(ACTIVE_STATUSES), fj.c.status == "started", fj.c.worker.is_not(None))
                    .order_by(fj.c.worker, fj.c.started, fj.c.run_id, fj.c.frame))
         with self._tx("worker_activity", write=False) as s:
             rows = s.execute(tallies).all()
@@ -129,10 +127,10 @@ class ActivityTables:
         process): the active runs less the owned ones, each counted down an index."""
         r = Run.__table__
         with self._tx("active_farm_runs", write=False) as s:
-            active = s.scalar(select(func.count()).select_from(r).where(r.c.status.in_(ACTIVE_RUNS))) or 0
+            active = s.scalar(select(func.count()).select_from(r).where(r.c.status.in_(ACTIVE_STATUSES))) or 0
             # by owner alone, so that the owner index serves it (the owned runs are few)
             owned = [status for (status,) in s.execute(select(r.c.status).where(r.c.owner > ""))]
-        return active - sum(status in ACTIVE_RUNS for status in owned)
+        return active - sum(status in ACTIVE_STATUSES for status in owned)
 
     def _progress(self, s: "Session", run_ids: "Sequence[str] | None" = None) -> Any:
         """Per active run (or the runs ``run_ids``), its jobs at its current iteration: unfinished,
@@ -143,7 +141,7 @@ class ActivityTables:
                         func.sum(case((fj.c.status.in_(UNFINISHED), 1), else_=0)).label("unfinished"),
                         func.sum(case((errored, 1), else_=0)).label("errored"),
                         func.max(fj.c.started).label("started"), func.max(fj.c.finished).label("finished"))
-                 .join(r, r.c.id == fj.c.run_id).where(r.c.status.in_(ACTIVE_RUNS), fj.c.k == r.c.iteration))
+                 .join(r, r.c.id == fj.c.run_id).where(r.c.status.in_(ACTIVE_STATUSES), fj.c.k == r.c.iteration))
         if run_ids is not None:
             query = query.where(fj.c.run_id.in_(list(run_ids)))
         return query.group_by(fj.c.run_id).subquery()
@@ -160,7 +158,7 @@ class ActivityTables:
                                          fj.c.status.in_(UNFINISHED)).exists())
         queued = r.c.status == "queued"
         of_kind = {"queued": queued, "jobs": and_(~queued, pending), "callback": and_(~queued, ~pending)}
-        farm = and_(r.c.status.in_(ACTIVE_RUNS), r.c.owner.is_(None))
+        farm = and_(r.c.status.in_(ACTIVE_STATUSES), r.c.owner.is_(None))
         with self._tx("stalled_runs", write=False) as s:  # each run's EXISTS once: sums, not a GROUP BY
             n_queued, n_jobs, n_all = s.execute(select(func.sum(case((queued, 1), else_=0)),
                                                        func.sum(case((of_kind["jobs"], 1), else_=0)),
@@ -198,7 +196,7 @@ class ActivityTables:
         iteration = select(r.c.iteration).where(r.c.id == fj.c.run_id).scalar_subquery()
         failed = (select(fj.c.run_id, fj.c.phase, fj.c.k, fj.c.frame, fj.c.status, fj.c.attempts, fj.c.error,
                          newest.label("n"))
-                  .where(errored, fj.c.run_id.in_(select(r.c.id).where(r.c.status.in_(ACTIVE_RUNS))),
+                  .where(errored, fj.c.run_id.in_(select(r.c.id).where(r.c.status.in_(ACTIVE_STATUSES))),
                          fj.c.k == iteration).subquery())
         with self._tx("failing_runs", write=False) as s:
             errors = {e.run_id: JobError(*e) for e in s.execute(select(*list(failed.c)[:-1]).where(failed.c.n == 1))}

@@ -25,7 +25,7 @@ from sqlalchemy.exc import SQLAlchemyError
 from undream.errors import StoreError
 from undream.store.blob_backends import BlobInfo, BlobMissing
 from undream.store.models import Blob, utcnow
-from undream.store.store import WRITE_OPTION
+from undream.store.store import WRITE_OPTION, db_reason
 
 _CHUNK = 500  # keys per DELETE … IN (...)
 
@@ -60,8 +60,7 @@ class DatabaseBackend:
             with (self._writer if write else self.engine).begin() as conn:
                 yield conn
         except SQLAlchemyError as exc:
-            reason = str(getattr(exc, "orig", None) or exc).strip().splitlines()[0]
-            raise StoreError(f"blob {key!r}: cannot {op} it in the {self.where}: {reason}") from exc
+            raise StoreError(f"blob {key!r}: cannot {op} it in the {self.where}: {db_reason(exc)}") from exc
 
     @property
     def _dialect(self) -> Any:
@@ -85,12 +84,16 @@ class DatabaseBackend:
         self.write(key, data)
         return len(data)
 
-    def read(self, key: str) -> bytes:
-        with self._conn("read", key, write=False) as conn:
-            data = conn.scalar(select(Blob.data).where(Blob.key == key))
-        if data is None:
+    def _column(self, op: str, key: str, column: Any) -> Any:
+        """``column`` of blob ``key``; BlobMissing when there is none."""
+        with self._conn(op, key, write=False) as conn:
+            value = conn.scalar(select(column).where(Blob.key == key))
+        if value is None:
             raise BlobMissing(key)
-        return bytes(data)
+        return value
+
+    def read(self, key: str) -> bytes:
+        return bytes(self._column("read", key, Blob.data))
 
     def local_path(self, key: str) -> Path | None:
         return None
@@ -100,11 +103,7 @@ class DatabaseBackend:
             return conn.scalar(select(func.count()).where(Blob.key == key)) == 1
 
     def size(self, key: str) -> int:
-        with self._conn("look up", key, write=False) as conn:
-            size = conn.scalar(select(Blob.size).where(Blob.key == key))
-        if size is None:
-            raise BlobMissing(key)
-        return int(size)
+        return int(self._column("look up", key, Blob.size))
 
     def listing(self, prefix: str) -> list[BlobInfo]:
         with self._conn("list", prefix, write=False) as conn:
@@ -133,8 +132,7 @@ class DatabaseBackend:
                              .on_conflict_do_nothing())
                 tx.rollback()
         except SQLAlchemyError as exc:
-            reason = str(getattr(exc, "orig", None) or exc).strip().splitlines()[0]
-            raise StoreError(f"{self.where}: cannot write a blob there ({reason}); the farm's "
+            raise StoreError(f"{self.where}: cannot write a blob there ({db_reason(exc)}); the farm's "
                              "processes write textures and gradients there") from None
 
     def close(self) -> None:

@@ -36,7 +36,7 @@ from undream.store.blob_db import DatabaseBackend
 from undream.store.blob_s3 import S3Backend  # imports boto3 only when it makes a client
 from undream.store.blobs import DATABASE, BlobOptions, BlobStore, BlobURL, parse_blob_url
 from undream.store.models import SCHEMA_VERSION, Base, SchemaVersion
-from undream.store.store import WRITE_OPTION, Store
+from undream.store.store import WRITE_OPTION, Store, db_reason
 
 if TYPE_CHECKING:
     from alembic.config import Config as AlembicConfig
@@ -132,8 +132,7 @@ def check_database(url: str) -> None:
         with engine.connect() as conn:
             conn.execute(text("SELECT 1"))
     except SQLAlchemyError as exc:
-        reason = str(getattr(exc, "orig", None) or exc).strip().splitlines()[0]
-        raise StoreError(f"cannot reach the run database at {mask_url(url)!r}: {reason}") from None
+        raise StoreError(f"cannot reach the run database at {mask_url(url)!r}: {db_reason(exc)}") from None
     finally:
         engine.dispose()
 
@@ -236,7 +235,7 @@ def create_tables(engine: Engine, url: str, create: bool = True) -> None:
 
                 command.stamp(_alembic(conn), "head")
     except SQLAlchemyError as exc:
-        reason = str(getattr(exc, "orig", None) or exc).strip().splitlines()[0]
+        reason = db_reason(exc)
         password = make_url(url).password
         if password:
             reason = reason.replace(str(password), "***")

@@ -108,6 +108,17 @@ def _eval_values(item: Any, now: dt.datetime) -> dict[str, Any]:
             "finite": True}
 
 
+def _checked_frames(n_frames: int, frames: Iterable[Any], unique: bool = True) -> list[int]:
+    """``frames``, each an integer in [0, n_frames - 1] and, if ``unique``, given once (a batch
+    records each job once); StoreError naming the first bad one."""
+    checked = [integer("frame", f, 0, n_frames - 1) for f in frames]
+    twice = [f for f, n in Counter(checked).items() if n > 1] if unique else []
+    if twice:
+        raise StoreError(f"frames: frame {twice[0]} is given more than once; a batch records "
+                         "each frame once")
+    return checked
+
+
 @functools.lru_cache(maxsize=32)
 def _upsert(dialect_name: str, update: tuple[str, ...] | None, attempt: bool) -> Any:
     """The ``INSERT … ON CONFLICT`` statement of :meth:`JobTables._upsert_jobs`, built once per
@@ -135,6 +146,10 @@ class JobTables:
     def _run(session: Session, run_id: str) -> Run:  # pragma: no cover
         raise NotImplementedError
 
+    @staticmethod
+    def _run_snapshot(session: Session, run_id: str) -> RunSnapshot:  # pragma: no cover
+        raise NotImplementedError
+
     _frame_counts: dict[str, int]  # run id → its number of frames, once read (it never changes)
 
     def _n_frames(self, s: Session, run_id: str) -> int:
@@ -150,21 +165,15 @@ class JobTables:
         return n
 
     def _frames(self, s: Session, run_id: str, frames: Iterable[Any], unique: bool = True) -> list[int]:
-        """``frames`` checked against the run: each an integer in [0, n_frames - 1] and, if
-        ``unique``, given once (a batch records each job once)."""
-        n_frames = self._n_frames(s, run_id)
-        checked = [integer("frame", f, 0, n_frames - 1) for f in frames]
-        twice = [f for f, n in Counter(checked).items() if n > 1] if unique else []
-        if twice:
-            raise StoreError(f"frames: frame {twice[0]} is given more than once; a batch records "
-                             "each frame once")
-        return checked
+        """``frames`` checked against the run (:func:`_checked_frames`)."""
+        return _checked_frames(self._n_frames(s, run_id), frames, unique)
 
     def _batch_frames(self, op: str, run_id: str, frames: Iterable[Any]) -> list[int]:
         """:meth:`_frames` before any blob is written (in a read transaction of its own the first
         time this process meets the run)."""
-        if isinstance(run_id, str) and run_id in self._frame_counts:
-            return self._frames(None, run_id, frames)  # type: ignore[arg-type]  # no query: known count
+        known = self._frame_counts.get(run_id) if isinstance(run_id, str) else None
+        if known is not None:
+            return _checked_frames(known, frames)
         with self._tx(op, write=False) as s:
             return self._frames(s, run_id, frames)
 
@@ -274,12 +283,8 @@ class JobTables:
     def batch_view(self, run_id: str, k: int, phase: str, frames: Sequence[int]) -> tuple[RunSnapshot, list[JobSnapshot]]:
         """The run and its jobs ``frames`` of ``phase`` at ``k``, in one transaction: what a batch
         task reads before it works (:func:`scheduler.stages.run_batch`)."""
-        table = Run.__table__
         with self._tx("batch_view", write=False) as s:
-            row = s.execute(select(table).where(table.c.id == run_id)).first() if isinstance(run_id, str) else None
-            if row is None:
-                raise StoreError(f"run {run_id!r}: not found")
-            return RunSnapshot.of(row), self._read_jobs(s, run_id, k, phase, frames)  # type: ignore[arg-type]
+            return self._run_snapshot(s, run_id), self._read_jobs(s, run_id, k, phase, frames)
 
     @staticmethod
     def _read_jobs(s: Session, run_id: str, k: int | None, phase: str,

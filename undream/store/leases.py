@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 from sqlalchemy import or_, select, update
 
 from undream.errors import StoreError
+from undream.runlist import ACTIVE_STATUSES
 from undream.store.models import Run, utcnow
 from undream.store.snapshots import RunSnapshot
 
@@ -26,7 +27,7 @@ if TYPE_CHECKING:
 
     from sqlalchemy.orm import Session
 
-LIVE = ("queued", "running", "evaluating")  # statuses in which a run can be owned
+LIVE = ACTIVE_STATUSES  # statuses in which a run can be owned
 
 
 def _owner(owner: object) -> str:

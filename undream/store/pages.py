@@ -32,6 +32,10 @@ if TYPE_CHECKING:
 
 
 
+class BadCursor(StoreError):
+    """A cursor that no page of this list gave (the caller's mistake, not the database's)."""
+
+
 @dataclass(frozen=True)
 class RunPage:
     """One page of runs, newest first: ``next`` is the cursor of the page after it (None: the last
@@ -49,16 +53,16 @@ def encode_cursor(run: RunSnapshot) -> str:
 
 
 def decode_cursor(cursor: str) -> tuple[dt.datetime, str]:
-    """(created, id) of a cursor from :func:`encode_cursor`; StoreError naming it when it is not one."""
+    """(created, id) of a cursor from :func:`encode_cursor`; :class:`BadCursor` naming it when it is not one."""
     try:
         text = base64.urlsafe_b64decode(cursor + "=" * (-len(cursor) % 4)).decode()
         stamp, run_id = text.split("|", 1)
         created = dt.datetime.fromisoformat(stamp)
     except (binascii.Error, UnicodeDecodeError, ValueError):
-        raise StoreError(f"cursor {cursor[:60]!r}: not a cursor of this list; page from the first page "
+        raise BadCursor(f"cursor {cursor[:60]!r}: not a cursor of this list; page from the first page "
                          "and pass on the 'next' each page gives") from None
     if created.tzinfo is None or not run_id:
-        raise StoreError(f"cursor {cursor[:60]!r}: not a cursor of this list")
+        raise BadCursor(f"cursor {cursor[:60]!r}: not a cursor of this list")
     return created.astimezone(dt.timezone.utc), run_id
 
 

@@ -60,6 +60,11 @@ TRANSITIONS: dict[str, tuple[str, ...]] = {
 ACTIVE = ("queued", "running")  # statuses in which a run may advance
 
 
+def db_reason(exc: SQLAlchemyError) -> str:
+    """The first line of a database error's own message (the driver's, inside SQLAlchemy's wrapper)."""
+    return str(getattr(exc, "orig", None) or exc).strip().splitlines()[0]
+
+
 def _state_doc(blobs: BlobStore, run_id: str, field: str, state: Any,
                arrays: Mapping[str, np.ndarray] | None) -> dict[str, Any]:
     """The JSON document of an attack state: ``state``'s scalars, ``arrays`` as blob references."""
@@ -113,9 +118,18 @@ class Store(JobTables, LeaseMethods, ListMethods, ActivityTables):
                 with self.blobs.joined(session.connection()):  # blobs in the database: one transaction
                     yield session
         except SQLAlchemyError as exc:
-            reason = str(getattr(exc, "orig", None) or exc).strip().splitlines()[0]
+            reason = db_reason(exc)
             url = self.engine.url.render_as_string(hide_password=True)
             raise StoreError(f"{op}: database error at {url!r}: {reason}") from exc
+
+    @staticmethod
+    def _run_snapshot(session: Session, run_id: str) -> RunSnapshot:
+        """The run read as a plain row (every job reads its run, so no ORM object); StoreError if none."""
+        table = Run.__table__
+        row = session.execute(select(table).where(table.c.id == run_id)).first() if isinstance(run_id, str) else None
+        if row is None:
+            raise StoreError(f"run {run_id!r}: not found")
+        return RunSnapshot.of(row)  # type: ignore[arg-type]
 
     @staticmethod
     def _run(session: Session, run_id: str) -> Run:
@@ -195,13 +209,9 @@ class Store(JobTables, LeaseMethods, ListMethods, ActivityTables):
         return True
 
     def get_run(self, run_id: str) -> RunSnapshot:
-        """The run as stored (read as a plain row: every job reads its run, so no ORM object)."""
-        table = Run.__table__
+        """The run as stored."""
         with self._tx("get_run", write=False) as s:
-            row = s.execute(select(table).where(table.c.id == run_id)).first() if isinstance(run_id, str) else None
-        if row is None:
-            raise StoreError(f"run {run_id!r}: not found")
-        return RunSnapshot.of(row)  # type: ignore[arg-type]
+            return self._run_snapshot(s, run_id)
 
     def find_run(self, ref: str) -> RunSnapshot:
         """The run whose id is ``ref`` or starts with it (at least 4 characters, unique)."""
