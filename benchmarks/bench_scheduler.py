@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import signal
 import statistics
 import subprocess
 import sys
@@ -81,7 +80,7 @@ def _steady(store: Any, run_id: str, steps: int) -> tuple[list[Any], list[float]
 def measure(name: str, args: argparse.Namespace, inputs: dict[str, Any]) -> dict[str, Any]:
     import yaml
 
-    from farm_support import postgres_database, redis_client, run_config
+    from farm_support import finished_runs, postgres_database, redis_client, run_config, stop_workers, wait_for
     from undream.store import open_store
 
     url, drop = postgres_database(PG_ADMIN_URL) if name == "postgresql" else (None, None)
@@ -105,14 +104,8 @@ def measure(name: str, args: argparse.Namespace, inputs: dict[str, Any]) -> dict
                                  cwd=ROOT, env=env, capture_output=True, text=True)
             assert res.returncode == 0, res.stderr
             with open_store(url, root / "blobs") as store:
-                while True:
-                    runs = store.runs_page(limit=args.runs).runs
-                    if all(r.status in ("done", "failed", "cancelled") for r in runs):
-                        break
-                    if time.monotonic() - t0 > args.timeout:
-                        raise SystemExit(f"{name}: runs not done after {args.timeout} s: "
-                                         f"{[(r.status, r.iteration) for r in runs]}")
-                    time.sleep(0.5)
+                runs = wait_for(lambda: finished_runs(store, args.runs), args.timeout - (time.monotonic() - t0),
+                                f"{name}: the runs to finish", interval=0.5)
                 commands = redis_client(args.db).info("stats")["total_commands_processed"] - commands0
                 n_jobs = sum(len(store.jobs(r.id, None, phase)) for r in runs for phase in ("attack", "pre", "adversarial"))
                 bad = [r for r in runs if r.status != "done"]
@@ -123,12 +116,7 @@ def measure(name: str, args: argparse.Namespace, inputs: dict[str, Any]) -> dict
                     jobs += j
                     gaps += g
         finally:
-            for proc in workers:
-                try:
-                    os.killpg(proc.pid, signal.SIGTERM)
-                    proc.wait(20)
-                except (ProcessLookupError, subprocess.TimeoutExpired):
-                    os.killpg(proc.pid, signal.SIGKILL)
+            stop_workers(workers, 20)
             if drop is not None:
                 drop()
     start, end = min(j.started for j in jobs), max(j.finished for j in jobs)

@@ -17,11 +17,9 @@ from __future__ import annotations
 import argparse
 import os
 import shutil
-import signal
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 from typing import Any
 
@@ -44,7 +42,7 @@ def _workers(env: dict[str, str], root: Path, n: int) -> list[subprocess.Popen]:
 
 def sweep_wall(args: argparse.Namespace, n_workers: int, sweep: Path, tmp: Path) -> dict[str, Any]:
     sys.path.insert(0, str(ROOT / "tests"))
-    from farm_support import redis_client
+    from farm_support import finished_runs, redis_client, stop_workers, wait_for
     from undream.settings import load_settings
     from undream.store import open_farm_store
 
@@ -61,25 +59,14 @@ def sweep_wall(args: argparse.Namespace, n_workers: int, sweep: Path, tmp: Path)
         assert res.returncode == 0, res.stderr[-2000:]
         settings = load_settings(env={k: v for k, v in env.items() if k.startswith("UNDREAM_")})
         with open_farm_store(settings) as store:
-            t0 = time.monotonic()
-            while True:
-                runs = store.runs_page(limit=args.runs).runs
-                if runs and all(r.status in ("done", "failed", "cancelled") for r in runs):
-                    break
-                if time.monotonic() - t0 > args.timeout:
-                    raise SystemExit(f"{n_workers} worker(s): not done after {args.timeout} s")
-                time.sleep(0.5)
+            runs = wait_for(lambda: finished_runs(store, args.runs), args.timeout,
+                            f"{n_workers} worker(s): the sweep to finish", interval=0.5)
             bad = [(r.name, r.status, r.error) for r in runs if r.status != "done"]
             assert not bad, bad
             starts = [j.started for r in runs for j in store.jobs(r.id, 0) if j.started]
             wall = (max(r.updated for r in runs) - min(starts)).total_seconds()
     finally:
-        for proc in procs:
-            try:
-                os.killpg(proc.pid, signal.SIGTERM)
-                proc.wait(30)
-            except (ProcessLookupError, subprocess.TimeoutExpired):
-                os.killpg(proc.pid, signal.SIGKILL)
+        stop_workers(procs, 30)
     return {"workers": n_workers, "wall": wall}
 
 

@@ -7,6 +7,7 @@ service is a skip that says why, never a silent pass.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -15,7 +16,7 @@ import sys
 import time
 import uuid
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
@@ -209,13 +210,7 @@ class Farm:
         proc.wait(10)
 
     def stop(self) -> None:
-        for proc in self.workers:
-            if proc.poll() is None:
-                try:
-                    os.killpg(proc.pid, signal.SIGTERM)
-                    proc.wait(10)
-                except (ProcessLookupError, subprocess.TimeoutExpired):
-                    self.kill_worker(proc)
+        stop_workers(self.workers)
         self.workers.clear()
         if self._store is not None:
             self._store.close()
@@ -246,6 +241,44 @@ def wait_for(cond: Callable[[], Any], timeout: float, what: str, interval: float
             return value
         time.sleep(interval)
     raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+
+
+def stop_workers(procs: list[subprocess.Popen], wait_s: float = 10) -> None:
+    """SIGTERM each worker's process group (a worker finishes its job), SIGKILL one still there after ``wait_s``."""
+    for proc in procs:
+        if proc.poll() is not None:
+            continue
+        try:
+            os.killpg(proc.pid, signal.SIGTERM)
+            proc.wait(wait_s)
+        except (ProcessLookupError, subprocess.TimeoutExpired):
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(10)
+
+
+def finished_runs(store: Any, n: int) -> list[Any] | None:
+    """The ``n`` newest runs once every one is done, failed or cancelled, else None (for :func:`wait_for`)."""
+    runs = store.runs_page(limit=n).runs
+    return runs if runs and all(r.status in ("done", "failed", "cancelled") for r in runs) else None
+
+
+@contextlib.contextmanager
+def sql_statements() -> Iterator[list[str]]:
+    """Every SQL statement any engine of this process executes inside the block."""
+    from sqlalchemy import event
+    from sqlalchemy.engine import Engine
+
+    seen: list[str] = []
+
+    def count(conn, cursor, statement, parameters, context, executemany):  # noqa: ANN001
+        seen.append(statement)
+
+    event.listen(Engine, "before_cursor_execute", count)
+    try:
+        yield seen
+    finally:
+        event.remove(Engine, "before_cursor_execute", count)
 
 
 def postgres_database(admin_url: str) -> tuple[str, Callable[[], None]]:

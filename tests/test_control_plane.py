@@ -7,32 +7,15 @@ jobs, so the number of SQL statements does not grow with the number of runs.
 """
 from __future__ import annotations
 
-import contextlib
 from pathlib import Path
-from typing import Iterator
 
 from click.testing import CliRunner
 from sqlalchemy import event
-from sqlalchemy.engine import Engine
 
+from farm_support import sql_statements
 from undream.cli import main
 from undream.spec.run import RunConfig
 from undream.store import open_store
-
-
-@contextlib.contextmanager
-def _statements() -> Iterator[list[str]]:
-    """Every SQL statement any engine of this process executes inside the block."""
-    seen: list[str] = []
-
-    def count(conn, cursor, statement, parameters, context, executemany):  # noqa: ANN001
-        seen.append(statement)
-
-    event.listen(Engine, "before_cursor_execute", count)
-    try:
-        yield seen
-    finally:
-        event.remove(Engine, "before_cursor_execute", count)
 
 
 def _farm(blobs: Path, n_runs: int) -> None:
@@ -48,7 +31,7 @@ def _farm(blobs: Path, n_runs: int) -> None:
 
 
 def _status(blobs: Path, *args: str) -> tuple[str, int]:
-    with _statements() as seen:
+    with sql_statements() as seen:
         res = CliRunner().invoke(main, ["status", *args], env={"UNDREAM_BLOB_URL": str(blobs)},
                                  catch_exceptions=False)
     assert res.exit_code == 0, res.output
@@ -91,7 +74,7 @@ def test_the_dashboards_runs_list_reads_any_number_of_runs_in_the_same_number_of
         _farm(blobs, n)
         client = create_app(load_settings(env={"UNDREAM_BLOB_URL": str(blobs)})).test_client()
         client.get("/api/runs")  # the store opened and warmed once
-        with _statements() as seen:
+        with sql_statements() as seen:
             answer = client.get("/api/runs")
         assert answer.status_code == 200 and len(answer.get_json()["runs"]) == min(n, 50)
         assert answer.get_json()["total"] == n

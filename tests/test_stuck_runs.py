@@ -3,21 +3,16 @@ consumes, or failing with the reason, in ``undream status``, on the workers page
 ``/api/workers``; the workers page reads the store in a fixed number of queries."""
 from __future__ import annotations
 
-import contextlib
-import datetime as dt
 import json
 import sys
 from pathlib import Path
-from typing import Iterator
 
 import pytest
 from click.testing import CliRunner
-from sqlalchemy import event
-from sqlalchemy.engine import Engine
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from conftest import service_missing  # noqa: E402
-from farm_support import Farm, free_db, redis_client, redis_up, release_db, wait_for  # noqa: E402
+from farm_support import Farm, free_db, redis_client, redis_up, release_db, sql_statements, wait_for  # noqa: E402
 
 from undream.cli import main  # noqa: E402
 from undream.dashboard import create_app  # noqa: E402
@@ -143,20 +138,6 @@ def test_api_workers_and_the_workers_page_show_stuck_runs(tmp_path):
     app.extensions["undream"].close()
 
 
-@contextlib.contextmanager
-def _statements() -> Iterator[list[str]]:
-    seen: list[str] = []
-
-    def count(conn, cursor, statement, parameters, context, executemany):  # noqa: ANN001
-        seen.append(statement)
-
-    event.listen(Engine, "before_cursor_execute", count)
-    try:
-        yield seen
-    finally:
-        event.remove(Engine, "before_cursor_execute", count)
-
-
 def test_the_workers_page_reads_any_number_of_runs_in_the_same_number_of_queries(tmp_path):
     counts = []
     for n in (2, 40):
@@ -173,7 +154,7 @@ def test_the_workers_page_reads_any_number_of_runs_in_the_same_number_of_queries
                                             "UNDREAM_CONNECT_TIMEOUT": "1"}))
         client = app.test_client()
         client.get("/api/workers")  # the store opened and warmed once
-        with _statements() as seen:
+        with sql_statements() as seen:
             body = client.get("/api/workers").get_json()
         assert {w["worker"] for w in body["workers"]} >= {f"node-{i % 3}:1" for i in range(n)}
         assert body["stuck"]["active"] == n + 2  # farm runs: the queued ones, frames and failing (not the local one)
