@@ -17,12 +17,12 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
-from scheduler.preflight import check_output_folder, preflight, scene_source
+from scheduler.preflight import check_output_folder, preflight, scene_source, scene_sources
 from undream.color import to_uint8
 from undream.errors import SpecError
 from undream.progress import progress as progress_bar
 from undream.settings import LocalSettings
-from undream.spec.run import RunConfig, split_frames
+from undream.spec.run import RunConfig
 
 MARK = "baseline.json"
 
@@ -41,7 +41,7 @@ def run_patch_baseline(config: RunConfig, out: Path, base_dir: Path, force: bool
 
     out = Path(out).resolve()
     check_output_folder(out, scene_source(config, base_dir), force, command="undream baseline", marker=MARK,
-                        inputs=(source,))
+                        inputs=(source, *scene_sources(config, base_dir)[1:]))
     victim = preflight(config, base_dir, source, local).victim
     try:
         check_attack(make_attack(config.attack))
@@ -51,7 +51,7 @@ def run_patch_baseline(config: RunConfig, out: Path, base_dir: Path, force: bool
         shutil.rmtree(out)
     out.mkdir(parents=True)
     ctx = build_context(config, resolve_scene(config, out, base_dir, local=local), victim=victim, local=local)
-    attacked, held = split_frames(config.holdout, len(ctx.sequence.frames))
+    attacked, held = config.split(ctx.sequence)
     T0 = start_texture(ctx)
     frames = benign_frames(ctx, attacked, T0)
     bar = progress_bar(ctx.attack.config.steps, "patch", "step", progress)

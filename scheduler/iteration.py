@@ -18,7 +18,7 @@ import numpy as np
 
 from scheduler.state import decode_state, encode_state
 from undream.errors import AttackError, StoreError, UndreamError
-from undream.spec.run import split_frames
+from scheduler.options import attacked_frames  # noqa: F401  (re-exported: tests and readers import it here)
 
 if TYPE_CHECKING:
     from undream.attacks.base import Attack
@@ -39,11 +39,6 @@ class MissingResults(UndreamError):
         super().__init__(f"run {run_id!r} iteration {k}: no result yet for frame(s) "
                          f"{', '.join(map(str, frames))}; not stepping on fewer frames")
         self.frames = frames
-
-
-def attacked_frames(run: "RunSnapshot") -> list[int]:
-    """The frame positions the attack may render for its gradient (the held-out ones excluded)."""
-    return split_frames(run.run_config.holdout, run.n_frames)[0]
 
 
 def expected_frames(run: "RunSnapshot", frames_per_step: int | None, k: int) -> list[int]:

@@ -14,7 +14,9 @@ from pathlib import Path
 from typing import Any
 
 from scheduler import stages
-from scheduler.preflight import check_output_folder, is_run_output, is_scene, mark_output, preflight, scene_source
+from scheduler.options import attacked_positions
+from scheduler.preflight import (check_output_folder, is_run_output, is_scene, mark_output, preflight, scene_source,
+                                 scene_sources)
 from undream.engine.context import RunContext, build_context
 from undream.scenedir.init import InitOptions, init_scene
 from undream.settings import LocalSettings
@@ -37,16 +39,20 @@ class RunFailed(UndreamError):
 
 def resolve_scene(config: RunConfig, out: Path, base_dir: Path, reuse: bool = False,
                   local: LocalSettings = LocalSettings()) -> Path:
-    """The run's scene directory: given, or initialised from a spec file into ``out/scene``
-    (``reuse``: the one an earlier start of the run already initialised there, if any;
+    """The run's scene directory: given, or initialised from a spec file (or a multi-condition run's
+    scenes, :mod:`undream.scenedir.conditions`) into ``out/scene`` (``reuse``: the one an earlier start of the run already initialised there, if any;
     ``local``: this process's settings, read at the edge: the memory limit)."""
     src = join_against(config.scene, base_dir)
-    if is_scene(src):
+    if is_scene(src) and config.conditions is None:
         return src
     if not src.exists():
         raise SpecError(f"scene: {src} is neither a scene directory nor a spec file")
     if reuse and is_scene(out / "scene"):
         return out / "scene"
+    if config.conditions is not None:  # every condition's frames in one scene directory
+        from undream.scenedir.conditions import conditions_sequence
+
+        src = conditions_sequence(config, base_dir)
     return init_scene(src, out / "scene", InitOptions(force=True, memory_limit=local.memory_limit))
 
 
@@ -110,7 +116,7 @@ def run_local(config: RunConfig, out: str | Path, base_dir: Path | None = None, 
         if force:
             raise SpecError("--resume continues the run in --out and --force replaces it: give one of them")
         return resume_local(config, out, base_dir, progress, source, local)
-    check_output_folder(out, scene_source(config, base_dir), force, inputs=(source,))  # cheap refusals first
+    check_output_folder(out, scene_source(config, base_dir), force, inputs=(source, *scene_sources(config, base_dir)[1:]))  # cheap refusals first
     victim = preflight(config, base_dir, source, local).victim  # nothing written or deleted before this passes
     if out.exists() and any(out.iterdir()):
         shutil.rmtree(out)  # check_output_folder: --force and a folder `undream run` wrote
@@ -121,8 +127,9 @@ def run_local(config: RunConfig, out: str | Path, base_dir: Path | None = None, 
         ctx: RunContext = build_context(config, scene_dir, victim=victim, local=local)
         store = open_store(config.store, out / "store")
         n = len(ctx.sequence.frames)
-        run_id = stages.create(store, config, n, stages.FarmOptions(frames_per_task=n, **LOCAL_OPTIONS),
-                               out_dir=str(out))
+        options = stages.FarmOptions(frames_per_task=n, **LOCAL_OPTIONS,
+                                     attacked=attacked_positions(config, ctx.sequence))
+        run_id = stages.create(store, config, n, options, out_dir=str(out))
     except BaseException:
         shutil.rmtree(out, ignore_errors=True)
         raise
@@ -134,7 +141,7 @@ def check_run(config: RunConfig, out: str | Path, base_dir: Path | None = None,
     """``undream run --check``: every check :func:`run_local` makes before it writes, nothing
     written; the run's estimate (:class:`undream.render.budget.Estimate`)."""
     out, base_dir = Path(out).resolve(), base_dir or Path.cwd()
-    check_output_folder(out, scene_source(config, base_dir), force, inputs=(source,))
+    check_output_folder(out, scene_source(config, base_dir), force, inputs=(source, *scene_sources(config, base_dir)[1:]))
     return preflight(config, base_dir, source, local).estimate
 
 

@@ -12,6 +12,7 @@ from undream.spec.run import split_frames
 
 if TYPE_CHECKING:
     from undream.settings import Settings
+    from undream.spec import Sequence
     from undream.spec.run import RunConfig
     from undream.store import RunSnapshot
 
@@ -23,19 +24,41 @@ class FarmOptions:
     frames_per_task: int = 1
     max_attempts: int = 3
     failure_budget: int = 2
+    # A multi-condition run's attacked frame positions (its split needs the sequence's conditions,
+    # which a reader of the run does not load); None: split_frames of the run's holdout.
+    attacked: tuple[int, ...] | None = None
 
     @classmethod
     def of(cls, run: "RunSnapshot") -> "FarmOptions":
         return cls(**{k: v for k, v in run.farm.items() if k in cls.__dataclass_fields__})
 
     @classmethod
-    def from_settings(cls, settings: "Settings", config: "RunConfig", n_frames: int) -> "FarmOptions":
-        """The settings' options for a run of ``config`` over ``n_frames`` frames: tasks sized for the
+    def from_settings(cls, settings: "Settings", config: "RunConfig", sequence: "Sequence") -> "FarmOptions":
+        """The settings' options for a run of ``config`` over ``sequence``: tasks sized for the
         frames an iteration renders (the attacked ones, or ``frames_per_step`` of them), so each
         iteration's frames spread evenly over the farm's slots."""
-        attacked = len(split_frames(config.holdout, n_frames)[0])
+        attacked = len(config.split(sequence).attacked)
         per_iteration = min(config.attack.frames_per_step or attacked, attacked)
-        return cls(settings.frames_per_task_for(per_iteration), settings.max_attempts, settings.failure_budget)
+        return cls(settings.frames_per_task_for(per_iteration), settings.max_attempts, settings.failure_budget,
+                   attacked_positions(config, sequence))
 
     def to_json(self) -> dict[str, Any]:
-        return asdict(self)
+        d = asdict(self)
+        if self.attacked is None:
+            del d["attacked"]  # a run of one scene: as before multi-condition runs
+        else:
+            d["attacked"] = list(self.attacked)
+        return d
+
+
+def attacked_positions(config: "RunConfig", sequence: "Sequence") -> tuple[int, ...] | None:
+    """What :attr:`FarmOptions.attacked` records for a run of ``config`` over ``sequence``."""
+    return tuple(config.split(sequence).attacked) if config.conditions is not None else None
+
+
+def attacked_frames(run: "RunSnapshot") -> list[int]:
+    """The frame positions the attack may render for its gradient (the held-out ones excluded)."""
+    recorded = FarmOptions.of(run).attacked
+    if recorded is not None:
+        return list(recorded)
+    return split_frames(run.run_config.holdout, run.n_frames).attacked

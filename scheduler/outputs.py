@@ -25,7 +25,6 @@ from undream.metrics import classification_attack_report, detection_attack_repor
 from undream.redact import redact
 from undream.scene.layout import frame_name
 from undream.spec.io import atomic_write
-from undream.spec.run import split_frames
 from undream.versions import versions
 
 if TYPE_CHECKING:
@@ -56,13 +55,21 @@ def results(store: "Store", ctx: "RunContext", run: "RunSnapshot", k: int) -> di
                  for j in store.jobs(run.id, k, "adversarial")]
     benign, adv = judge(ctx, benign_preds), judge(ctx, adv_preds)
     report = _success(ctx, benign_preds, adv_preds, list(range(len(benign_preds))))
-    attacked, held = split_frames(run.run_config.holdout, run.n_frames)
-    splits = {name: None if not positions else {
-        "frames": [ctx.sequence.frames[i].index for i in positions],
-        "benign": _headline(judge(ctx, benign_preds, positions)),
-        "adversarial": _headline(judge(ctx, adv_preds, positions)),
-        "attack_success": _success(ctx, benign_preds, adv_preds, positions).to_dict()["aggregate"]}
-        for name, positions in (("attacked", attacked), ("held_out", held))}
+    split = run.run_config.split(ctx.sequence)
+
+    def part(positions: list[int]) -> dict[str, Any] | None:
+        return None if not positions else {
+            "frames": [ctx.sequence.frames[i].index for i in positions],
+            "benign": _headline(judge(ctx, benign_preds, positions)),
+            "adversarial": _headline(judge(ctx, adv_preds, positions)),
+            "attack_success": _success(ctx, benign_preds, adv_preds, positions).to_dict()["aggregate"]}
+
+    splits: dict[str, Any] = {"attacked": part(split.attacked), "held_out": part(split.held_out)}
+    if ctx.sequence.conditions:  # a multi-condition run: conditions never attacked apart, and each condition
+        held = set(run.run_config.conditions.holdout) if run.run_config.conditions else set()
+        splits["held_out_conditions"] = part(split.held_out_conditions)
+        splits["conditions"] = [{"name": c.name, "held_out": c.name in held, **(part(list(span)) or {})}
+                                for c, span in ctx.sequence.condition_ranges()]
     iters = store.iterations(run.id)
     times = _timings(store, run.id, k)
     times["wall"] = (dt.datetime.now(dt.timezone.utc) - run.created).total_seconds()

@@ -25,7 +25,7 @@ from undream.settings import LocalSettings
 from undream.sim import check_simulator
 from undream.spec import load_sequence
 from undream.spec.io import check_writable_target, resolve_against
-from undream.spec.run import RunConfig, split_frames
+from undream.spec.run import RunConfig
 
 if TYPE_CHECKING:
     from undream.render.budget import Estimate
@@ -39,6 +39,12 @@ MARKER = "undream_output"  # key of the metadata.json written when a run starts
 def scene_source(config: RunConfig, base_dir: Path) -> Path:
     """The run's scene as the user named it: a scene directory or a spec file (absolute)."""
     return Path(resolve_against(config.scene, base_dir))
+
+
+def scene_sources(config: RunConfig, base_dir: Path) -> list[Path]:
+    """Every scene the run names: :func:`scene_source` and a multi-condition run's ``conditions.scenes``."""
+    more = config.conditions.scenes if config.conditions is not None else ()
+    return [scene_source(config, base_dir)] + [Path(resolve_against(s, base_dir)) for s in more]
 
 
 @dataclass(frozen=True)
@@ -82,21 +88,27 @@ def _preflight(config: RunConfig, base_dir: Path, local: LocalSettings) -> Check
         from undream.store.db import check_database
 
         check_database(config.store)  # reachable, and a database: before anything is written
-    seq = _sequence(scene_source(config, base_dir), local.memory_limit)
-    check_frames(config, len(seq.frames))
+    if config.conditions is not None:
+        from undream.scenedir.conditions import conditions_sequence
+
+        # what `undream init` checks before writing OUT/scene, on every condition's frames
+        seq = check_source(conditions_sequence(config, base_dir), InitOptions(memory_limit=local.memory_limit)).sequence
+    else:
+        seq = _sequence(scene_source(config, base_dir), local.memory_limit)
+    check_frames(config, seq)
     estimate = run_estimate(seq, config, limit=local.memory_limit)
     victim = load_victim(config.victim, device=config.device, task=task_of(config), offline=local.hf_offline)
     class_ids(config, seq, victim)
     return Checked(victim, seq, estimate)
 
 
-def check_frames(config: RunConfig, n_frames: int) -> None:
+def check_frames(config: RunConfig, sequence: "Sequence") -> None:
     """The held-out split fits the sequence, and ``frames_per_step`` the frames left to attack."""
-    attacked, held = split_frames(config.holdout, n_frames)
+    attacked, held = config.split(sequence)
     per_step = config.attack.frames_per_step
     if per_step is not None and per_step > len(attacked):
         raise SpecError(f"attack.frames_per_step: {per_step} is more than the {len(attacked)} frames left "
-                        f"to attack (the sequence's {n_frames} frames, {len(held)} held out)")
+                        f"to attack (the sequence's {len(sequence.frames)} frames, {len(held)} held out)")
 
 
 def _sequence(src: Path, memory_limit: int | None = None) -> "Sequence":

@@ -38,7 +38,11 @@ class Prepared:
 
     config: RunConfig
     scene_dir: Path
-    n_frames: int
+    sequence: Any  # undream.spec.Sequence
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.sequence.frames)
 
 
 def _signature(config: RunConfig, scene_dir: Path) -> str:
@@ -53,15 +57,16 @@ class Validator:
     def __init__(self, work_dir: Path, local: LocalSettings = LocalSettings()) -> None:
         self.work_dir = Path(work_dir)
         self.local = local  # this process's settings, read at the edge
-        self._scenes: dict[Path, Path] = {}
+        self._scenes: dict[tuple[Path, str | None], Path] = {}  # (scene, conditions) → scene directory
         self._sequences: dict[str, Any] = {}
 
     def scene(self, config: RunConfig, base_dir: Path) -> Path:
         src = Path(resolve_against(config.scene, base_dir))
-        if src not in self._scenes:
-            self._scenes[src] = resolve_scene(config, self.work_dir / str(len(self._scenes)), base_dir,
+        key = (src, None if config.conditions is None else json.dumps(config.conditions.to_json(), sort_keys=True))
+        if key not in self._scenes:
+            self._scenes[key] = resolve_scene(config, self.work_dir / str(len(self._scenes)), base_dir,
                                               local=self.local)
-        return self._scenes[src]
+        return self._scenes[key]
 
     def __call__(self, config: RunConfig, base_dir: Path) -> Prepared:
         from undream.attacks import make_attack
@@ -76,9 +81,9 @@ class Validator:
         else:  # same scene and victim: only the attack can differ
             make_attack(config.attack)
         sequence = self._sequences[key]
-        check_frames(config, len(sequence.frames))
+        check_frames(config, sequence)
         run_estimate(sequence, config, limit=self.local.memory_limit)  # the renders fit in memory; one line naming the field if not
-        return Prepared(config, scene_dir, len(sequence.frames))
+        return Prepared(config, scene_dir, sequence)
 
 
 def new_runs(store: "Store", runs: Sequence[Prepared], settings: "Settings", out: Path | None = None,
@@ -97,7 +102,7 @@ def new_runs(store: "Store", runs: Sequence[Prepared], settings: "Settings", out
         if p.scene_dir not in keys:
             keys[p.scene_dir] = store_scene(store.blobs, p.scene_dir)
         folder = None if out is None else Path(out).resolve() / (p.config.name if out_per_run else "")
-        options = stages.FarmOptions.from_settings(settings, p.config, p.n_frames)
+        options = stages.FarmOptions.from_settings(settings, p.config, p.sequence)
         new.append(stages.new_run(p.config, p.n_frames, options, scene_ref=keys[p.scene_dir],
                                   out_dir=None if folder is None else str(folder)))
     return new

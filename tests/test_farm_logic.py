@@ -10,6 +10,7 @@ import json
 import subprocess
 import sys
 import threading
+from types import SimpleNamespace
 from pathlib import Path
 
 import numpy as np
@@ -440,9 +441,10 @@ def test_tasks_split_an_iterations_frames_evenly_over_the_slots():
 
     s = load_settings(env={})
     cfg = RunConfig(scene="s", holdout="auto")
-    assert stages.FarmOptions.from_settings(s, cfg, 24).frames_per_task == 9
+    seq = SimpleNamespace(frames=[None] * 24, condition_ranges=lambda: [])  # what the split reads of a sequence
+    assert stages.FarmOptions.from_settings(s, cfg, seq).frames_per_task == 9
     minibatch = RunConfig(scene="s", holdout="none", attack={"name": "pgd", "frames_per_step": 4})
-    assert stages.FarmOptions.from_settings(s, minibatch, 24).frames_per_task == 2
+    assert stages.FarmOptions.from_settings(s, minibatch, seq).frames_per_task == 2
     assert stages.batches(range(18), 9) == [list(range(9)), list(range(9, 18))]
     assert [len(b) for b in stages.batches(range(24), 9)] == [8, 8, 8]  # the evaluation's 24 frames
     assert stages.batches([4, 7, 9], 10) == [[4, 7, 9]] and stages.batches([], 3) == []

@@ -119,14 +119,14 @@ def _cell(value: Any) -> str:
 @one_line_errors
 def submit_cmd(run_yaml: Path, out: Path | None, check: bool, settings: Callable[..., "Settings"]) -> None:
     """Validate RUN_YAML, then queue it on the farm; prints the run id (--check: validate only)."""
-    from scheduler.preflight import scene_source
+    from scheduler.preflight import scene_sources
     from scheduler.submit import Validator, dispatch_starts, record
     from undream.spec.run import load_run_config
 
     cfg = settings()
     config = load_run_config(run_yaml)
     if out is not None:
-        _check_farm_out(out, [scene_source(config, run_yaml.parent)], run_yaml, "undream submit")
+        _check_farm_out(out, scene_sources(config, run_yaml.parent), run_yaml, "undream submit")
     with tempfile.TemporaryDirectory(prefix="undream-submit-") as tmp:
         try:  # the run's own checks first: bad input is refused before the services are needed
             prepared = Validator(Path(tmp), local_settings())(config, run_yaml.parent)
@@ -350,9 +350,9 @@ def sweep_cmd(sweep_yaml: Path, out: Path | None, max_runs: int | None, check: b
     cfg = settings()
     sweep = load_sweep(sweep_yaml) if max_runs is None else load_sweep(sweep_yaml, max_runs)
     if out is not None:
-        from scheduler.preflight import scene_source
+        from scheduler.preflight import scene_sources
 
-        scenes = sorted({scene_source(r.config, r.base_dir) for r in sweep.runs})
+        scenes = sorted({s for r in sweep.runs for s in scene_sources(r.config, r.base_dir)})
         _check_farm_out(out, scenes, sweep_yaml, "undream sweep")
     with tempfile.TemporaryDirectory(prefix="undream-sweep-") as tmp:
         prepared = _validate_sweep(sweep, sweep_yaml, Path(tmp))  # before the services are needed

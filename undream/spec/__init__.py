@@ -6,6 +6,7 @@ from undream.spec.model import (
     ActorPose,
     Asset,
     Camera,
+    Condition,
     Environment,
     Frame,
     Sequence,
@@ -15,6 +16,6 @@ from undream.spec.model import (
 )
 
 __all__ = [
-    "ActorPose", "Asset", "BACKGROUNDS", "Camera", "Environment", "Frame", "Sequence",
+    "ActorPose", "Asset", "BACKGROUNDS", "Camera", "Condition", "Environment", "Frame", "Sequence",
     "TextureParam", "Transform", "WEATHERS", "load_sequence", "save_sequence", "sun_direction",
 ]

@@ -411,8 +411,39 @@ SEQUENCE_VERSION = 1
 
 
 @dataclass(frozen=True)
+class Condition:
+    """One condition of a multi-condition sequence: ``frames`` consecutive frames that were one
+    scene of their own (``seed``: that scene's, which places its background props)."""
+
+    name: str
+    frames: int
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        c.name("name", self.name)
+        c.integer("frames", self.frames, 1, MAX_FRAMES)
+        c.integer("seed", self.seed, 0, 2**32 - 1)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"name": self.name, "frames": self.frames, "seed": self.seed}
+
+    @classmethod
+    def from_json(cls, d: Any) -> "Condition":
+        d = c.mapping("condition", d)
+        c.no_extra(d, {"name", "frames", "seed"})
+        c.require(d, "name")
+        c.require(d, "frames")
+        return cls(**d)
+
+
+@dataclass(frozen=True)
 class Sequence:
-    """Ordered frames of one adversarial object among extra actors."""
+    """Ordered frames of one adversarial object among extra actors.
+
+    ``conditions``: empty for one scene; for a multi-condition sequence (several scenes of one
+    object, :mod:`undream.scenedir.conditions`) the scenes in frame order, their frame counts
+    summing to the frames'.
+    """
 
     name: str
     asset: Asset
@@ -421,6 +452,7 @@ class Sequence:
     fps: float = 10.0
     source: str = "json"
     seed: int = 0
+    conditions: tuple[Condition, ...] = ()
 
     def __post_init__(self) -> None:
         c.name("name", self.name)
@@ -449,6 +481,37 @@ class Sequence:
                 if a.name not in names:
                     raise SpecError(f"frames[{f.index}].actors: unknown actor {a.name!r} "
                                     f"(declared: {', '.join(sorted(names)) or 'none'})")
+        object.__setattr__(self, "conditions", tuple(self.conditions))
+        if self.conditions:
+            counted = sum(k.frames for k in self.conditions)
+            if counted != len(frames):
+                raise c.fail("conditions", [k.name for k in self.conditions],
+                             f"must hold the {len(frames)} frames between them (they hold {counted})")
+            cnames = [k.name for k in self.conditions]
+            if len(set(cnames)) != len(cnames):
+                raise c.fail("conditions", cnames, "must have unique names")
+
+    def condition_ranges(self) -> list[tuple[Condition, range]]:
+        """Each condition and its frame positions (one unnamed condition, the sequence's own
+        seed, for a sequence of one scene)."""
+        parts = self.conditions or (Condition(self.name, len(self.frames), self.seed),)
+        out, first = [], 0
+        for part in parts:
+            out.append((part, range(first, first + part.frames)))
+            first += part.frames
+        return out
+
+    def scene_of(self, frame: Frame) -> "Sequence":
+        """The scene ``frame`` belongs to: the sequence itself, or its condition's frames alone
+        with that condition's seed (its background props are the ones that scene had alone)."""
+        if not self.conditions:
+            return self
+        position = next(i for i, f in enumerate(self.frames) if f.index == frame.index)
+        for part, span in self.condition_ranges():
+            if position in span:
+                return Sequence(name=self.name, asset=self.asset, frames=self.frames[span.start:span.stop],
+                                actors=self.actors, fps=self.fps, source=self.source, seed=part.seed)
+        raise AssertionError("unreachable: the conditions hold every frame")
 
     @property
     def texture(self) -> TextureParam:
@@ -459,12 +522,13 @@ class Sequence:
         return {"version": SEQUENCE_VERSION, "name": self.name, "fps": self.fps,
                 "source": self.source, "seed": self.seed, "asset": self.asset.to_json(),
                 "actors": [a.to_json() for a in self.actors],
-                "frames": [f.to_json() for f in self.frames]}
+                "frames": [f.to_json() for f in self.frames],
+                **({"conditions": [k.to_json() for k in self.conditions]} if self.conditions else {})}
 
     @classmethod
     def from_json(cls, d: Any) -> "Sequence":
         d = c.mapping("sequence", d)
-        c.no_extra(d, {"version", "name", "fps", "source", "seed", "asset", "actors", "frames"})
+        c.no_extra(d, {"version", "name", "fps", "source", "seed", "asset", "actors", "frames", "conditions"})
         kw = dict(d)
         version = kw.pop("version", SEQUENCE_VERSION)
         if version != SEQUENCE_VERSION:
@@ -475,6 +539,7 @@ class Sequence:
             kw["asset"] = Asset.from_json(kw["asset"])
         kw["actors"] = tuple(_each("actors", kw.get("actors", []), Asset.from_json))
         kw["frames"] = tuple(_each("frames", kw["frames"], Frame.from_json))
+        kw["conditions"] = tuple(_each("conditions", kw.get("conditions", []), Condition.from_json))
         return cls(**kw)
 
 

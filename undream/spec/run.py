@@ -7,7 +7,7 @@ numbers through :class:`RunConfig` (``RunSnapshot.run_config`` for a stored run)
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -48,7 +48,8 @@ class RunConfig:
     always comes from Mitsuba's gradient scene. ``victim_batch``: the most
     frames the victim sees in one pass (forward and backward) during the
     attack and the evaluation (a job's frames in order; results agree to float
-    rounding whatever the batches).
+    rounding whatever the batches). ``conditions``: attack one texture over
+    several scenes of the object at once (:class:`ConditionsConfig`).
     """
 
     scene: str
@@ -73,6 +74,8 @@ class RunConfig:
     holdout: Any = "auto"  # frames the attack never sees, evaluated apart: see split_frames
     eot: Mapping[str, float] | None = None  # camera and light jitter per iteration: see EOT_FIELDS
     sim: str = "mitsuba"  # the simulator backend: one of SIMULATORS
+    # A mapping (as in RUN.yaml) is parsed into a ConditionsConfig; None: the one scene.
+    conditions: "ConditionsConfig | None" = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.scene, str) or not self.scene:
@@ -106,6 +109,8 @@ class RunConfig:
                 raise c.fail("eot", self.eot, f"needs sim: mitsuba (the {self.sim!r} simulator cannot move "
                              "the camera and light per render)")
         c.choice("sim", self.sim, SIMULATORS)
+        if self.conditions is not None and not isinstance(self.conditions, ConditionsConfig):
+            object.__setattr__(self, "conditions", ConditionsConfig.from_json(self.conditions))
 
     def _typed_attack(self) -> AttackConfig:
         if isinstance(self.attack, AttackConfig):
@@ -117,7 +122,15 @@ class RunConfig:
 
     def to_json(self) -> dict[str, Any]:
         """Every field, the attack block complete (its defaults filled in): what the store keeps."""
-        return asdict(self)
+        d = asdict(self)
+        d["conditions"] = None if self.conditions is None else self.conditions.to_json()
+        return d
+
+    def split(self, sequence: Any) -> "Split":
+        """The run's frames of ``sequence`` (an :class:`undream.spec.Sequence`) split by
+        :func:`split_frames` (per condition) and ``conditions.holdout``."""
+        return split_frames(self.holdout, len(sequence.frames), sequence.condition_ranges(),
+                            () if self.conditions is None else self.conditions.holdout)
 
     @classmethod
     def from_json(cls, d: Any) -> "RunConfig":
@@ -128,6 +141,66 @@ class RunConfig:
 
 
 DEFAULT_ATTACK = {"name": "pgd", "eps": 8.0, "steps": 10}  # a run config without an attack block
+
+
+@dataclass(frozen=True)
+class ConditionsConfig:
+    """A multi-condition run's scenes: ``scene`` and ``scenes``, or ``scene`` over ``grid``.
+
+    ``grid``: dotted fields of the ``scene`` spec file (``environment.weather``,
+    ``camera.path.height``, ...) → values; each combination is one condition
+    (the spec with those values), named ``weather_rain-height_2`` from the
+    fields' last parts and the values. Without a grid, ``scene`` itself is the
+    first condition. ``scenes``: more spec files or scene directories, one
+    condition each (named by their file or folder name). Every condition shows
+    the same mesh with the same UVs and texture size; the attack's frames are
+    all of theirs, and a minibatch draws across them. ``holdout``: names of
+    conditions never attacked, judged apart (``held_out_conditions`` in the
+    results); ``holdout`` of the run holds views out within each attacked one.
+    """
+
+    grid: Mapping[str, tuple[Any, ...]] = field(default_factory=dict)
+    scenes: tuple[str, ...] = ()
+    holdout: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        grid = c.mapping("conditions.grid", self.grid)
+        checked = {}
+        for key, values in grid.items():
+            if not isinstance(key, str) or not key or not all(part.isidentifier() for part in key.split(".")):
+                raise c.fail("conditions.grid", key, "keys must be dotted spec fields such as environment.weather")
+            if isinstance(values, (str, bytes)) or not isinstance(values, (list, tuple)) or not values:
+                raise c.fail(f"conditions.grid.{key}", values, "must be a non-empty list of values")
+            for v in values:
+                if isinstance(v, bool) or not isinstance(v, (str, int, float)):
+                    raise c.fail(f"conditions.grid.{key}", v, "values must be strings or numbers")
+            if len(set(map(str, values))) != len(values):
+                raise c.fail(f"conditions.grid.{key}", values, "must not repeat a value")
+            checked[key] = tuple(values)
+        object.__setattr__(self, "grid", checked)
+        for name in ("scenes", "holdout"):
+            items = getattr(self, name)
+            if isinstance(items, (str, bytes)) or not isinstance(items, (list, tuple)):
+                raise c.fail(f"conditions.{name}", items, "must be a list")
+            for i, item in enumerate(items):
+                if not isinstance(item, str) or not item:
+                    raise c.fail(f"conditions.{name}[{i}]", item, "must be a non-empty string")
+            object.__setattr__(self, name, tuple(items))
+        if not checked and not self.scenes:
+            raise c.fail("conditions", {}, "needs a grid or scenes (a run of one scene has no conditions block)")
+        if len(set(self.holdout)) != len(self.holdout):
+            raise c.fail("conditions.holdout", list(self.holdout), "must name each condition once")
+
+    def to_json(self) -> dict[str, Any]:
+        return {"grid": {k: list(v) for k, v in self.grid.items()}, "scenes": list(self.scenes),
+                "holdout": list(self.holdout)}
+
+    @classmethod
+    def from_json(cls, d: Any) -> "ConditionsConfig":
+        d = c.mapping("conditions", d)
+        with c.at("conditions"):
+            c.no_extra(d, {"grid", "scenes", "holdout"})
+        return cls(**d)
 
 
 # eot: field → (largest value, unit and meaning). Each iteration draws, per frame, a camera shift
@@ -172,17 +245,64 @@ def _check_holdout(value: Any) -> None:
     c.integer("holdout.offset", value.get("offset", 0), 0, 10**6)
 
 
-def split_frames(holdout: Any, n_frames: int) -> tuple[list[int], list[int]]:
+@dataclass(frozen=True)
+class Split:
+    """A run's frame positions: ``attacked``, ``held_out`` (views held out within the attacked
+    conditions) and ``held_out_conditions`` (every frame of a held-out condition). Unpacks as
+    (attacked, every held-out position)."""
+
+    attacked: list[int]
+    held_out: list[int]
+    held_out_conditions: list[int] = field(default_factory=list)
+
+    @property
+    def held(self) -> list[int]:
+        return sorted(self.held_out + self.held_out_conditions)
+
+    def __iter__(self) -> Any:
+        return iter((self.attacked, self.held))
+
+
+def split_frames(holdout: Any, n_frames: int, conditions: Any = None, held_conditions: Any = ()) -> Split:
     """(attacked, held-out) frame positions of a sequence of ``n_frames`` under ``holdout``.
 
     ``"auto"``: every 4th frame (positions 3, 7, ...) is held out when there are
     at least 4; ``"none"``: none; ``{every: N, offset: K}``: positions K, K + N, ...;
     ``{frames: [...]}``: those positions. Held-out frames are never rendered
     for a gradient; at least one frame must be left to attack.
+
+    ``conditions``: a multi-condition sequence's ``(condition, positions)`` pairs
+    (:meth:`undream.spec.Sequence.condition_ranges`): ``holdout`` applies within
+    each condition (positions counted from its first frame), and the conditions named in
+    ``held_conditions`` are held out whole.
     """
+    parts = list(conditions or [])
+    if len(parts) <= 1 and not held_conditions:
+        return _split_views(holdout, n_frames)
+    names = [part.name for part, _ in parts]
+    unknown = [h for h in held_conditions if h not in names]
+    if unknown:
+        raise c.fail("conditions.holdout", unknown, f"must name conditions of the run ({', '.join(names)})")
+    out = Split([], [], [])
+    for part, span in parts:
+        if part.name in held_conditions:
+            out.held_out_conditions.extend(span)
+            continue
+        try:
+            attacked, held = _split_views(holdout, len(span))
+        except SpecError as err:
+            raise SpecError(f"condition {part.name!r}: {err}") from None
+        out.attacked.extend(span.start + p for p in attacked)
+        out.held_out.extend(span.start + p for p in held)
+    if not out.attacked:
+        raise c.fail("conditions.holdout", list(held_conditions), "holds out every condition; leave one to attack")
+    return out
+
+
+def _split_views(holdout: Any, n_frames: int) -> Split:
     _check_holdout(holdout)
     if holdout == "none" or (holdout == "auto" and n_frames < HOLDOUT_EVERY):
-        return list(range(n_frames)), []
+        return Split(list(range(n_frames)), [])
     if holdout == "auto":
         holdout = {"every": HOLDOUT_EVERY, "offset": HOLDOUT_EVERY - 1}
     if "frames" in holdout:
@@ -195,7 +315,7 @@ def split_frames(holdout: Any, n_frames: int) -> tuple[list[int], list[int]]:
     attacked = [f for f in range(n_frames) if f not in set(held)]
     if not attacked:
         raise c.fail("holdout", holdout, f"holds out all {n_frames} frames; leave at least one to attack")
-    return attacked, held
+    return Split(attacked, held)
 
 
 def load_run_config(path: str | Path) -> RunConfig:
@@ -206,7 +326,10 @@ def load_run_config(path: str | Path) -> RunConfig:
         config = RunConfig.from_json(data)
     except SpecError as err:
         raise SpecError(f"{path}: {err}") from None
-    scene = Path(config.scene) if Path(config.scene).is_absolute() else path.parent / config.scene
-    if not ((scene / "sequence.json").is_file() or scene.is_file()):
-        raise SpecError(f"{path}: scene: {scene} is neither a scene directory nor a spec file")
+    named = [("scene", config.scene)] + [(f"conditions.scenes[{i}]", s) for i, s in
+                                         enumerate(config.conditions.scenes if config.conditions else ())]
+    for field_name, value in named:
+        scene = Path(value) if Path(value).is_absolute() else path.parent / value
+        if not ((scene / "sequence.json").is_file() or scene.is_file()):
+            raise SpecError(f"{path}: {field_name}: {scene} is neither a scene directory nor a spec file")
     return config

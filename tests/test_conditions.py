@@ -1,0 +1,174 @@
+"""Multi-condition runs: one texture attacked over several scenes of one object (issue #22).
+
+Through ``undream run`` and ``undream submit`` (a real worker on a real broker): the frames of
+every condition are the attack's, whole conditions held out are never attacked and are judged
+apart, each condition's frames are the ones its scene has alone, and a farm run ends on the
+local run's texture. Bad conditions are refused in one line, before anything is written.
+"""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import service_missing
+from farm_support import Farm, make_scene, make_victim, redis_up, run_config, write_yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+
+SPEC = {  # a small park scene: its background props depend on the scene's cameras and seed
+    "name": "ball", "seed": 3, "frames": 4, "fps": 4,
+    "camera": {"fov": 40, "resolution": [16, 16],
+               "path": {"type": "orbit", "center": [0, 0, 0], "radius": 2.6, "height": 1.0,
+                        "start_deg": 0, "end_deg": 90},
+               "look_at": "object", "look_at_offset": [0, 0.4, 0]},
+    "object": {"asset": {"name": "ball", "mesh": "builtin:sphere",
+                         "texture": {"resolution": [16, 8], "init": [0.5, 0.5, 0.5]}},
+               "path": {"type": "static", "position": [0, 0, 0]}},
+    "environment": {"weather": "clear", "time_of_day": 14.0, "background": "park"},
+}
+GRID = {"camera.path.height": [0.6, 1.4], "environment.weather": ["clear", "fog"]}  # in the order YAML keeps
+NAMES = ["height_0p6-weather_clear", "height_0p6-weather_fog", "height_1p4-weather_clear", "height_1p4-weather_fog"]
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory, mi):
+    root = tmp_path_factory.mktemp("conditions")
+    spec = write_yaml(root / "ball.yaml", SPEC)
+    return {"root": root, "spec": spec, "victim": make_victim(root / "victim")}
+
+
+def _config(inputs, name: str, **extra) -> dict:
+    cfg = run_config(inputs["spec"], inputs["victim"], name=name, steps=3, **extra)
+    cfg.setdefault("conditions", {"grid": GRID, "holdout": [NAMES[3]]})
+    return cfg
+
+
+def _undream(*args: str, cwd: Path = ROOT) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "undream.cli", *map(str, args)], capture_output=True, text=True,
+                          cwd=cwd)
+
+
+@pytest.fixture(scope="module")
+def local_run(inputs):
+    """The grid run through `undream run` (4 conditions × 4 frames, one held out)."""
+    out = inputs["root"] / "out"
+    res = _undream("run", write_yaml(inputs["root"] / "grid.yaml", _config(inputs, "grid")), "--out", out,
+                   "--no-progress")
+    assert res.returncode == 0, res.stderr
+    return {"out": out, "stdout": res.stdout, "results": json.loads((out / "results.json").read_text())}
+
+
+def test_a_grid_run_attacks_every_condition_but_the_held_out_one(local_run):
+    from undream.spec import load_sequence
+    from undream.store import open_store
+
+    seq = load_sequence(local_run["out"] / "scene" / "sequence.json")
+    assert [c.name for c in seq.conditions] == NAMES and len(seq.frames) == 16
+    res = local_run["results"]
+    # holdout auto within each condition (its 4th frame), the last condition whole
+    assert res["attacked"]["frames"] == [0, 1, 2, 4, 5, 6, 8, 9, 10]
+    assert res["held_out"]["frames"] == [3, 7, 11]
+    assert res["held_out_conditions"]["frames"] == [12, 13, 14, 15]
+    rows = {row["name"]: row for row in res["conditions"]}
+    assert list(rows) == NAMES and [r["held_out"] for r in rows.values()] == [False, False, False, True]
+    assert rows[NAMES[2]]["frames"] == [8, 9, 10, 11]
+    per_frame = {r["frame"]: r for r in res["adversarial"]["per_frame"]}
+    accuracy = np.mean([per_frame[f]["correct"] for f in (12, 13, 14, 15)])
+    assert res["held_out_conditions"]["adversarial"]["value"] == pytest.approx(accuracy)
+    with open_store(None, local_run["out"] / "store") as store:
+        (run,) = store.runs()
+        attacked = {j.frame for j in store.jobs(run.id, None, "attack")}
+        judged = {j.frame for j in store.jobs(run.id, run.iteration, "adversarial")}
+    assert attacked == {0, 1, 2, 4, 5, 6, 8, 9, 10}  # never a held-out view or condition
+    assert judged == set(range(16))
+    assert run.farm["attacked"] == sorted(attacked)
+
+
+def test_each_condition_renders_as_its_own_scene_would(local_run, inputs):
+    """A condition's frames are its scene's alone: same cameras, weather and background props."""
+    from undream.scenedir.conditions import grid_sequences
+    from undream.scenedir.init import InitOptions, init_scene
+
+    (name, seq), = [(n, s) for n, s in grid_sequences(inputs["spec"], GRID) if n == NAMES[2]]
+    alone = init_scene(seq, inputs["root"] / "alone", InitOptions(verify_spp=1))
+    scene = local_run["out"] / "scene"
+    for k in range(4):  # condition 2's frames are 8..11 of the run
+        for kind in ("sim", "grad"):
+            assert (scene / "frames" / f"{kind}_{8 + k:04d}.xml").read_text() == \
+                (alone / "frames" / f"{kind}_{k:04d}.xml").read_text()
+    assert "prop_" in (alone / "frames" / "sim_0000.xml").read_text()  # the park's props are there
+
+
+def test_scenes_of_one_object_make_a_run_and_a_scene_directory_is_one(inputs):
+    """``conditions.scenes``: spec files and scene directories, each a condition named by its file."""
+    root = inputs["root"]
+    night = write_yaml(root / "night.yaml", {**SPEC, "environment": {"weather": "night", "time_of_day": 22.0}})
+    street = _undream("init", write_yaml(root / "street.yaml", {**SPEC, "environment": {"background": "street"}}),
+                      "--out", root / "street_scene", "--no-progress")
+    assert street.returncode == 0, street.stderr
+    cfg = _config(inputs, "scenes", holdout="none",
+                  conditions={"scenes": [str(night), str(root / "street_scene")], "holdout": ["street_scene"]})
+    out = root / "out_scenes"
+    res = _undream("run", write_yaml(root / "scenes.yaml", cfg), "--out", out, "--no-progress")
+    assert res.returncode == 0, res.stderr
+    results = json.loads((out / "results.json").read_text())
+    assert [r["name"] for r in results["conditions"]] == ["ball", "night", "street_scene"]
+    assert results["attacked"]["frames"] == list(range(8)) and results["held_out"] is None
+    assert results["held_out_conditions"]["frames"] == [8, 9, 10, 11]
+
+
+@pytest.mark.parametrize("conditions, expected", [
+    ({"scenes": ["cone.yaml"]}, "condition 'cone': its object (builtin:traffic_cone"),
+    ({"scenes": ["big.yaml"]}, "condition 'big': its texture (adv_texture, 32×8"),
+    ({"grid": GRID, "holdout": ["weather_snow"]}, "conditions.holdout: 'weather_snow' is not a condition"),
+    ({"grid": {"environment.wether": ["clear"]}}, "wether"),
+    ({"grid": {"camera.path.height": []}}, "conditions.grid.camera.path.height: must be a non-empty list"),
+    ({"grid": GRID, "holdout": NAMES}, "conditions.holdout"),
+    ({"scenes": ["missing.yaml"]}, "conditions.scenes[0]"),
+])
+def test_bad_conditions_are_refused_in_one_line_before_anything_is_written(inputs, conditions, expected):
+    root = inputs["root"]
+    write_yaml(root / "cone.yaml", {**SPEC, "object": {**SPEC["object"], "asset": {
+        **SPEC["object"]["asset"], "mesh": "builtin:traffic_cone"}}})
+    write_yaml(root / "big.yaml", {**SPEC, "object": {**SPEC["object"], "asset": {
+        **SPEC["object"]["asset"], "texture": {"resolution": [32, 8]}}}})
+    out = root / "refused"
+    res = _undream("run", write_yaml(root / "bad.yaml", _config(inputs, "bad", conditions=conditions)),
+                   "--out", out, "--no-progress", cwd=root)
+    assert res.returncode != 0
+    message = res.stderr.strip()
+    assert expected in message and len(message.splitlines()) == 1, message
+    assert not out.exists()
+
+
+def test_a_grid_needs_a_spec_file(tmp_path, inputs):
+    scene = make_scene(tmp_path / "scene", n_frames=2, size=16)
+    cfg = _config(inputs, "dir", conditions={"grid": GRID})
+    cfg["scene"] = str(scene)
+    res = _undream("run", write_yaml(tmp_path / "run.yaml", cfg), "--out", tmp_path / "out", "--no-progress")
+    assert res.returncode != 0 and "conditions.grid: needs scene to be a YAML spec file" in res.stderr
+
+
+def test_a_multi_condition_run_on_the_farm_ends_on_the_local_runs_texture(inputs, local_run):
+    reason = redis_up()
+    if reason:
+        service_missing(reason)
+    farm = Farm(inputs["root"] / "farm")
+    farm.root.mkdir()
+    try:
+        farm.start_worker()
+        run_id = farm.submit(write_yaml(farm.root / "grid.yaml", _config(inputs, "grid")))
+        run = farm.wait_status(run_id, timeout=180)
+        assert run.status == "done", run.error
+        assert {j.frame for j in farm.store.jobs(run_id, None, "attack")} == {0, 1, 2, 4, 5, 6, 8, 9, 10}
+        out = farm.blobs / "outputs" / f"grid-{run_id[:8]}"
+        assert np.array_equal(np.load(out / "texture_final.npy"), np.load(local_run["out"] / "texture_final.npy"))
+        held = json.loads((out / "results.json").read_text())["held_out_conditions"]
+        assert held == local_run["results"]["held_out_conditions"]
+    finally:
+        farm.stop()
