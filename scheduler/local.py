@@ -18,6 +18,7 @@ from scheduler.options import attacked_positions
 from scheduler.preflight import (check_output_folder, is_run_output, is_scene, mark_output, preflight, scene_source,
                                  scene_sources)
 from undream.engine.context import RunContext, build_context
+from undream.scenedir.conditions import conditions_sequence
 from undream.scenedir.init import InitOptions, init_scene
 from undream.settings import LocalSettings
 from undream.errors import SpecError, UndreamError
@@ -50,8 +51,6 @@ def resolve_scene(config: RunConfig, out: Path, base_dir: Path, reuse: bool = Fa
     if reuse and is_scene(out / "scene"):
         return out / "scene"
     if config.conditions is not None:  # every condition's frames in one scene directory
-        from undream.scenedir.conditions import conditions_sequence
-
         src = conditions_sequence(config, base_dir)
     return init_scene(src, out / "scene", InitOptions(force=True, memory_limit=local.memory_limit))
 

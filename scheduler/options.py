@@ -61,4 +61,4 @@ def attacked_frames(run: "RunSnapshot") -> list[int]:
     recorded = FarmOptions.of(run).attacked
     if recorded is not None:
         return list(recorded)
-    return split_frames(run.run_config.holdout, run.n_frames).attacked
+    return split_frames(run.run_config.holdout, run.n_frames)[0]

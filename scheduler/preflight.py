@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING
 from undream.errors import SpecError, StoreError, UndreamError, already_exists
 from undream.redact import MASK, redact
 from undream.render.budget import run_estimate
+from undream.scenedir.conditions import conditions_sequence
 from undream.scenedir.init import InitOptions, check_source
 from undream.scenedir.verify import check_visible
 from undream.settings import LocalSettings
@@ -89,8 +90,6 @@ def _preflight(config: RunConfig, base_dir: Path, local: LocalSettings) -> Check
 
         check_database(config.store)  # reachable, and a database: before anything is written
     if config.conditions is not None:
-        from undream.scenedir.conditions import conditions_sequence
-
         # what `undream init` checks before writing OUT/scene, on every condition's frames
         seq = check_source(conditions_sequence(config, base_dir), InitOptions(memory_limit=local.memory_limit)).sequence
     else:

@@ -441,7 +441,10 @@ def test_tasks_split_an_iterations_frames_evenly_over_the_slots():
 
     s = load_settings(env={})
     cfg = RunConfig(scene="s", holdout="auto")
-    seq = SimpleNamespace(frames=[None] * 24, condition_ranges=lambda: [])  # what the split reads of a sequence
+    from undream.spec import Condition
+
+    # what the split reads of a sequence: a scene of 24 frames
+    seq = SimpleNamespace(frames=[None] * 24, condition_ranges=lambda: [(Condition("s", 24), range(24))])
     assert stages.FarmOptions.from_settings(s, cfg, seq).frames_per_task == 9
     minibatch = RunConfig(scene="s", holdout="none", attack={"name": "pgd", "frames_per_step": 4})
     assert stages.FarmOptions.from_settings(s, minibatch, seq).frames_per_task == 2

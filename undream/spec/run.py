@@ -129,8 +129,8 @@ class RunConfig:
     def split(self, sequence: Any) -> "Split":
         """The run's frames of ``sequence`` (an :class:`undream.spec.Sequence`) split by
         :func:`split_frames` (per condition) and ``conditions.holdout``."""
-        return split_frames(self.holdout, len(sequence.frames), sequence.condition_ranges(),
-                            () if self.conditions is None else self.conditions.holdout)
+        return split_conditions(self.holdout, sequence.condition_ranges(),
+                                () if self.conditions is None else self.conditions.holdout)
 
     @classmethod
     def from_json(cls, d: Any) -> "RunConfig":
@@ -263,22 +263,12 @@ class Split:
         return iter((self.attacked, self.held))
 
 
-def split_frames(holdout: Any, n_frames: int, conditions: Any = None, held_conditions: Any = ()) -> Split:
-    """(attacked, held-out) frame positions of a sequence of ``n_frames`` under ``holdout``.
-
-    ``"auto"``: every 4th frame (positions 3, 7, ...) is held out when there are
-    at least 4; ``"none"``: none; ``{every: N, offset: K}``: positions K, K + N, ...;
-    ``{frames: [...]}``: those positions. Held-out frames are never rendered
-    for a gradient; at least one frame must be left to attack.
-
-    ``conditions``: a multi-condition sequence's ``(condition, positions)`` pairs
-    (:meth:`undream.spec.Sequence.condition_ranges`): ``holdout`` applies within
-    each condition (positions counted from its first frame), and the conditions named in
-    ``held_conditions`` are held out whole.
-    """
-    parts = list(conditions or [])
-    if len(parts) <= 1 and not held_conditions:
-        return _split_views(holdout, n_frames)
+def split_conditions(holdout: Any, conditions: Any, held_conditions: Any = ()) -> Split:
+    """The :class:`Split` of a sequence's ``(condition, positions)`` pairs
+    (:meth:`undream.spec.Sequence.condition_ranges`; one pair for a sequence of one scene):
+    :func:`split_frames` of ``holdout`` within each condition (positions counted from its first
+    frame), and every frame of the conditions named in ``held_conditions``."""
+    parts = list(conditions)
     names = [part.name for part, _ in parts]
     unknown = [h for h in held_conditions if h not in names]
     if unknown:
@@ -289,8 +279,10 @@ def split_frames(holdout: Any, n_frames: int, conditions: Any = None, held_condi
             out.held_out_conditions.extend(span)
             continue
         try:
-            attacked, held = _split_views(holdout, len(span))
+            attacked, held = split_frames(holdout, len(span))
         except SpecError as err:
+            if len(parts) == 1:
+                raise
             raise SpecError(f"condition {part.name!r}: {err}") from None
         out.attacked.extend(span.start + p for p in attacked)
         out.held_out.extend(span.start + p for p in held)
@@ -299,10 +291,17 @@ def split_frames(holdout: Any, n_frames: int, conditions: Any = None, held_condi
     return out
 
 
-def _split_views(holdout: Any, n_frames: int) -> Split:
+def split_frames(holdout: Any, n_frames: int) -> tuple[list[int], list[int]]:
+    """(attacked, held-out) frame positions of a sequence of ``n_frames`` under ``holdout``.
+
+    ``"auto"``: every 4th frame (positions 3, 7, ...) is held out when there are
+    at least 4; ``"none"``: none; ``{every: N, offset: K}``: positions K, K + N, ...;
+    ``{frames: [...]}``: those positions. Held-out frames are never rendered
+    for a gradient; at least one frame must be left to attack.
+    """
     _check_holdout(holdout)
     if holdout == "none" or (holdout == "auto" and n_frames < HOLDOUT_EVERY):
-        return Split(list(range(n_frames)), [])
+        return list(range(n_frames)), []
     if holdout == "auto":
         holdout = {"every": HOLDOUT_EVERY, "offset": HOLDOUT_EVERY - 1}
     if "frames" in holdout:
@@ -315,7 +314,7 @@ def _split_views(holdout: Any, n_frames: int) -> Split:
     attacked = [f for f in range(n_frames) if f not in set(held)]
     if not attacked:
         raise c.fail("holdout", holdout, f"holds out all {n_frames} frames; leave at least one to attack")
-    return Split(attacked, held)
+    return attacked, held
 
 
 def load_run_config(path: str | Path) -> RunConfig:
