@@ -8,6 +8,7 @@ local run's texture. Bad conditions are refused in one line, before anything is 
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -89,19 +90,29 @@ def test_a_grid_run_attacks_every_condition_but_the_held_out_one(local_run):
     assert run.farm["attacked"] == sorted(attacked)
 
 
-def test_each_condition_renders_as_its_own_scene_would(local_run, inputs):
-    """A condition's frames are its scene's alone: same cameras, weather and background props."""
+def _without_props(xml: str) -> str:
+    return re.sub(r'\s*<shape type="\w+" id="prop_\d+">.*?</shape>', "", xml, flags=re.S)
+
+
+def _props(xml: str) -> list[str]:
+    return re.findall(r'<shape type="\w+" id="prop_\d+">.*?</shape>', xml, flags=re.S)
+
+
+def test_each_condition_renders_its_own_scene_in_one_place(local_run, inputs):
+    """A condition's frames are its scene's (cameras, weather, light, object); the background props are
+    placed once for the run, the same in every condition (one park, seen under every condition)."""
     from undream.scenedir.conditions import grid_sequences
     from undream.scenedir.init import InitOptions, init_scene
 
     (name, seq), = [(n, s) for n, s in grid_sequences(inputs["spec"], GRID) if n == NAMES[2]]
     alone = init_scene(seq, inputs["root"] / "alone", InitOptions(verify_spp=1))
-    scene = local_run["out"] / "scene"
+    frames = local_run["out"] / "scene" / "frames"
     for k in range(4):  # condition 2's frames are 8..11 of the run
         for kind in ("sim", "grad"):
-            assert (scene / "frames" / f"{kind}_{8 + k:04d}.xml").read_text() == \
-                (alone / "frames" / f"{kind}_{k:04d}.xml").read_text()
-    assert "prop_" in (alone / "frames" / "sim_0000.xml").read_text()  # the park's props are there
+            mine, theirs = ((d / f"{kind}_{i:04d}.xml").read_text() for d, i in ((frames, 8 + k), (alone / "frames", k)))
+            assert _without_props(mine) == _without_props(theirs)
+    props = [_props((frames / f"sim_{i:04d}.xml").read_text()) for i in range(16)]
+    assert props[0] and all(p == props[0] for p in props)  # the park's props are there, and never move
 
 
 def test_scenes_of_one_object_make_a_run_and_a_scene_directory_is_one(inputs):
@@ -172,3 +183,37 @@ def test_a_multi_condition_run_on_the_farm_ends_on_the_local_runs_texture(inputs
         assert held == local_run["results"]["held_out_conditions"]
     finally:
         farm.stop()
+
+
+def test_the_report_shows_the_runs_transfer_to_its_conditions(local_run, tmp_path):
+    import csv
+    import io
+
+    res = _undream("report", local_run["out"], "--out", tmp_path / "report")
+    assert res.returncode == 0, res.stderr
+    rows = list(csv.DictReader(io.StringIO((tmp_path / "report" / "conditions.csv").read_text())))
+    assert [r["condition"] for r in rows] == NAMES
+    assert [r["held_out"] for r in rows] == ["False", "False", "False", "True"]
+    held = local_run["results"]["held_out_conditions"]["adversarial"]["value"]
+    assert float(rows[3]["adversarial"]) == pytest.approx(held)
+    page = (tmp_path / "report" / "index.html").read_text()
+    assert "<h2>Conditions</h2>" in page and "held-out conditions" in page and NAMES[3] in page
+    headline = (tmp_path / "report" / "headline.csv").read_text()
+    assert "held-out conditions" in headline
+    assert "held-out conditions (4)" in local_run["stdout"]
+
+
+def test_a_sequences_conditions_round_trip_and_must_hold_its_frames(local_run):
+    from dataclasses import replace
+
+    from undream.errors import SpecError
+    from undream.spec import Condition, Sequence, load_sequence
+
+    seq = load_sequence(local_run["out"] / "scene" / "sequence.json")
+    assert Sequence.from_json(seq.to_json()) == seq
+    with pytest.raises(SpecError, match="must hold the 16 frames between them"):
+        replace(seq, conditions=seq.conditions[:3])
+    with pytest.raises(SpecError, match="unique names"):
+        replace(seq, conditions=(Condition("a", 8), Condition("a", 8)))
+    alone = replace(seq, conditions=())
+    assert "conditions" not in alone.to_json()  # a sequence of one scene: its file as before

@@ -92,7 +92,8 @@ def run_cmd(run_yaml: Path, out: Path, force: bool, resume: bool, check: bool, p
         return
     res = run_local(config, out, base_dir=run_yaml.parent, progress=progress, force=force, resume=resume,
                     source=run_yaml, local=local)
-    for name, split in (("attacked frames", res.get("attacked")), ("held-out frames", res.get("held_out"))):
+    for name, split in (("attacked frames", res.get("attacked")), ("held-out frames", res.get("held_out")),
+                        ("held-out conditions", res.get("held_out_conditions"))):
         if split:
             b, a = split["benign"], split["adversarial"]
             click.echo(f"{name} ({len(split['frames'])}): {b['metric']} benign {_fmt(b['value'])} → "

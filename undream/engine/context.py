@@ -70,6 +70,18 @@ def task_of(config: RunConfig) -> str:
     return next(t for t, kinds in TASK_LOSSES.items() if config.loss in kinds)
 
 
+def refresh_iterations(config: RunConfig, seq: Sequence) -> int:
+    """Iterations between two captures of a frame's transport: ``transport_refresh`` passes over the
+    attacked frames. A run that renders every attacked frame per iteration passes once per iteration;
+    a minibatched one (``attack.frames_per_step``) once per ⌈attacked / frames_per_step⌉ iterations, so
+    each frame is captured about every ``transport_refresh`` uses, not at nearly every use."""
+    per_step = config.attack.frames_per_step
+    if per_step is None:
+        return config.transport_refresh
+    attacked = len(config.split(seq).attacked)
+    return config.transport_refresh * max(1, -(-attacked // per_step))
+
+
 def build_context(config: RunConfig, scene_dir: Path, *, victim: "Victim | None" = None,
                   scenes: SceneCache | None = None, local: LocalSettings = LocalSettings()) -> RunContext:
     """Load the sequence, scenes, victim and attack of a run.
@@ -100,5 +112,5 @@ def build_context(config: RunConfig, scene_dir: Path, *, victim: "Victim | None"
         scenes = SceneCache(scene_dir, frozen=local.frozen)
     sim = make_backend(config.sim, scene_dir, **({"scenes": scenes} if config.sim == "mitsuba" else {}),
                        **backend_options(config.sim, local))
-    gradients = GradientPath(scenes, config.gradient, config.transport_refresh, config.seed)
+    gradients = GradientPath(scenes, config.gradient, refresh_iterations(config, seq), config.seed)
     return RunContext(config, scene_dir, seq, scenes, sim, victim, targets, attack, gradients)

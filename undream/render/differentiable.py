@@ -54,10 +54,10 @@ def render_linear(scenes: SceneCache, index: int, texture_srgb: np.ndarray, spp:
 
 def render_frozen(scenes: SceneCache, kind: str, active: ActiveFrame, spp: int, seed: int) -> np.ndarray:
     """``mi.render`` of ``active`` as it is set up: H×W×3 linear radiance; a Dr.Jit frozen function
-    (one recording per kind and spp, replayed) when ``scenes.frozen``."""
+    (one recording per kind, loaded scene and spp, replayed) when ``scenes.frozen``."""
     mi = scenes.mi
     if scenes.frozen:
-        img = scenes.frozen_call(f"render/{kind}", _render, active.scene, mi.UInt32(seed), spp)
+        img = scenes.frozen_call(f"render/{kind}", _render, active.scene, mi.UInt32(seed), spp, scene=active.scene)
     else:
         img = mi.render(active.scene, spp=spp, seed=seed)
     return np.array(img, dtype=np.float32)

@@ -78,20 +78,25 @@ class SceneCache:
     """A scene directory's ``sim`` and ``grad`` scenes, loaded once per group of equal frames.
 
     ``max_loaded`` bounds the scenes kept loaded at once (least recently used
-    ones are dropped and reloaded when needed again). ``frozen`` runs the
+    ones are dropped and reloaded when needed again; a drop also clears the
+    frozen recordings). 8: a multi-condition scene's weathers × backgrounds make
+    several sim groups besides the gradient one, and with 4 a 16-condition run
+    dropped and re-recorded scenes at every iteration (measured on the scene of
+    examples/runs/bin_orbit_conditions.yaml: 270 ms per frame's render and
+    capture with 4, 40–90 ms with 8). ``frozen`` runs the
     renders as Dr.Jit frozen functions (default: on; the edge passes
     ``UNDREAM_FROZEN=0`` as False). ``share=False`` gives every frame a scene of
     its own (the engine's former behaviour, kept for benchmarks and tests).
     """
 
-    def __init__(self, scene_dir: str | Path, mi: ModuleType | None = None, max_loaded: int = 4,
+    def __init__(self, scene_dir: str | Path, mi: ModuleType | None = None, max_loaded: int = 8,
                  frozen: bool = True, share: bool = True):
         self.dir = Path(scene_dir)
         self.mi = mi or mitsuba()
         self.max_loaded = max_loaded
         self.share = share
         self.frozen = bool(frozen)
-        self._frozen: dict[str, Any] = {}
+        self._frozen: dict[tuple[str, int | None], Any] = {}  # (name, id of its scene) → frozen function
         self.render_texture: LastArray[Any] = LastArray()  # the last sRGB texture rendered → its tensor
         self._groups: dict[tuple[str, tuple[str, int]], _Group] = {}
         self._states: dict[tuple[str, int], _FrameState] = {}
@@ -119,13 +124,17 @@ class SceneCache:
         """How many Mitsuba scenes this cache keeps loaded now."""
         return sum(g.loaded is not None for g in self._groups.values())
 
-    def frozen_call(self, name: str, fn: Any, *args: Any) -> Any:
-        """``fn(*args)`` as a Dr.Jit frozen function (one per ``name`` and cache): recorded, then replayed."""
+    def frozen_call(self, name: str, fn: Any, *args: Any, scene: Any = None) -> Any:
+        """``fn(*args)`` as a Dr.Jit frozen function (one per ``name`` and loaded ``scene``): recorded,
+        then replayed. A frozen function per scene: one shared by a multi-condition scene's groups
+        was recorded again at nearly every switch between them (Dr.Jit's dry run of a recording
+        made with another scene fails)."""
         import drjit as dr
 
-        if name not in self._frozen:
-            self._frozen[name] = dr.freeze(fn)
-        return self._frozen[name](*args)
+        key = (name, None if scene is None else id(scene))
+        if key not in self._frozen:
+            self._frozen[key] = dr.freeze(fn)
+        return self._frozen[key](*args)
 
     def group_count(self, kind: str) -> int:
         """How many groups of ``kind`` the frames seen so far fall into."""
@@ -241,8 +250,9 @@ class SceneCache:
             self._lru.drop_oldest()
 
     def _unload(self, gkey: tuple[str, tuple[str, int]], group: _Group) -> None:
-        for f in self._frozen.values():  # recordings may refer to the scene being dropped
-            f.clear()
+        if group.loaded is not None:  # the recordings that may refer to the scene being dropped
+            for key in [k for k in self._frozen if k[1] in (id(group.loaded.scene), None)]:
+                self._frozen.pop(key).clear()
         group.loaded = None
 
     def _apply(self, group: _Group, active: ActiveFrame, state: _FrameState,

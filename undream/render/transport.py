@@ -248,7 +248,7 @@ def _replay(scenes: SceneCache, scene: Any, spp: int, seed: int) -> dict[str, np
     obj_index, _ = _object_shape(scene)
     obj_ptr = mi.UInt32(dr.reinterpret_array(mi.UInt32, scene.shapes_dr())[obj_index])
     args = (scene, mi.UInt32(seed), spp, obj_ptr, taps)
-    value, keep, uv, base, wx, wy, weights = (scenes.frozen_call("transport/replay", _trace, *args)
+    value, keep, uv, base, wx, wy, weights = (scenes.frozen_call("transport/replay", _trace, *args, scene=scene)
                                               if scenes.frozen else _trace(*args))
     idx = np.flatnonzero(np.array(keep, dtype=bool))
     wsum = np.array(weights, np.float64)

@@ -73,7 +73,8 @@ def run_files(data: RunData, command: str, back: str | None = None) -> dict[str,
     headline = tables.headline_rows(data.results)
     sheet, _ = contact_sheet(data)
     unseen = charts.unseen_sentence(data)
-    body = page.run_body(data, headline, unseen, command)
+    conditions = tables.condition_rows(data.results)
+    body = page.run_body(data, headline, unseen, command, conditions)
     if back is not None:
         body = f'<p class=meta><a href="{back}">← the sweep</a></p>' + body
     return {
@@ -83,6 +84,7 @@ def run_files(data: RunData, command: str, back: str | None = None) -> dict[str,
         "texture.png": charts.texture_png(data, command),
         "headline.csv": tables.to_csv(headline).encode(),
         "frames.csv": tables.to_csv(tables.frame_rows(data)).encode(),
+        **({"conditions.csv": tables.to_csv(conditions).encode()} if conditions else {}),
     }
 
 

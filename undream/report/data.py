@@ -82,9 +82,10 @@ def check_done(run: "RunSnapshot") -> dict[str, Any]:
 
 
 def held_out_indices(results: dict[str, Any]) -> set[int]:
-    """Frame indices the attack never rendered for a gradient (results.json ``held_out``)."""
-    block = results.get("held_out") or {}
-    return {int(i) for i in block.get("frames") or []}
+    """Frame indices the attack never rendered for a gradient (results.json ``held_out`` and
+    ``held_out_conditions``)."""
+    blocks = [results.get("held_out") or {}, results.get("held_out_conditions") or {}]
+    return {int(i) for block in blocks for i in block.get("frames") or []}
 
 
 def _jobs(store: "Store", run: "RunSnapshot", side: str) -> dict[int, "JobSnapshot"]:

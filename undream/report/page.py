@@ -106,14 +106,34 @@ def _legend() -> str:
             "never rendered for a gradient.")
 
 
-def run_body(data: RunData, headline: list[dict[str, Any]], unseen: str, command: str) -> str:
-    """The sections of a run's page (headline, contact sheet, loss, texture, config)."""
+def conditions_table(rows: list[dict[str, Any]]) -> str:
+    """A multi-condition run's transfer: condition | attacked or held out | frames | benign → adversarial | success."""
+    out = ["<table><tr><th>condition</th><th></th><th>frames</th><th>metric</th><th>benign → adversarial</th>"
+           "<th>attack success</th></tr>"]
+    for r in rows:
+        out.append(f"<tr><td>{escape(r['condition'])}</td><td>{'held out' if r['held_out'] else 'attacked'}</td>"
+                   f"<td class=n>{r['n_frames']}</td><td>{escape(metric_name(r['metric']))}</td>"
+                   f"<td class=n>{fmt(r['benign'], True)} → {fmt(r['adversarial'], True)}</td>"
+                   f"<td>{escape(_success_cell(r))}</td></tr>")
+    return "".join(out) + "</table>"
+
+
+def run_body(data: RunData, headline: list[dict[str, Any]], unseen: str, command: str,
+             conditions: list[dict[str, Any]] | None = None) -> str:
+    """The sections of a run's page (headline, conditions of a multi-condition run, contact sheet, loss,
+    texture, config)."""
     loss = data.run.run_config.loss
+    transfer = [] if not conditions else [
+        "<h2>Conditions</h2>", conditions_table(conditions),
+        '<p class=meta>Every frame of each condition (scene) of the run; a condition held out was never '
+        'attacked: what the texture does where it was not optimised. <a href="conditions.csv">conditions.csv</a>'
+        '</p>']
     return "".join([
         f"<h1>Run {escape(data.run.name)}</h1>", _meta(data),
         "<h2>Headline</h2>", headline_table(headline),
         '<p class=meta>Held-out frames say whether the texture works beyond the views it was optimised on. '
         'Tables: <a href="headline.csv">headline.csv</a>, <a href="frames.csv">frames.csv</a> (per frame).</p>',
+        *transfer,
         "<h2>Contact sheet</h2>",
         figure("contact_sheet.png", "benign and adversarial frames side by side",
                f"One row per frame: benign texture (left), adversarial texture (right), enlarged by a whole "

@@ -20,7 +20,8 @@ from undream.report.data import SPLITS, RunData
 if TYPE_CHECKING:
     from undream.store import RunSnapshot, SweepSnapshot
 
-SPLIT_NAMES = {"attacked": "attacked frames", "held_out": "held-out frames", "all": "all frames"}
+SPLIT_NAMES = {"attacked": "attacked frames", "held_out": "held-out frames",
+               "held_out_conditions": "held-out conditions", "all": "all frames"}
 SEED_AXES = ("seed", "attack.seed")  # grid fields whose values are repeats, averaged in the chart
 X_AXIS = "attack.eps"
 
@@ -47,18 +48,27 @@ def headline_rows(results: Mapping[str, Any]) -> list[dict[str, Any]]:
     """Per split: frames, metric, benign → adversarial value, and attack success (fooled of the
     frames the victim got right before the attack)."""
     rows = []
-    for split in (*SPLITS, "all"):
+    for split in (*SPLITS, "held_out_conditions", "all"):
         block = _split_block(results, split)
-        if block is None:
-            continue
-        success = block.get("attack_success") or {}
-        rows.append({"split": SPLIT_NAMES[split], "n_frames": len(block.get("frames") or []),
-                     "frames": " ".join(str(f) for f in block.get("frames") or []),
-                     "metric": (block.get("benign") or {}).get("metric"),
-                     "benign": _value(block.get("benign")), "adversarial": _value(block.get("adversarial")),
-                     "success_rate": success.get("success_rate"), "n_success": success.get("n_success"),
-                     "n_eligible": success.get("n_eligible")})
+        if block is not None:
+            rows.append({"split": SPLIT_NAMES[split], **_block_row(block)})
     return rows
+
+
+def _block_row(block: Mapping[str, Any]) -> dict[str, Any]:
+    success = block.get("attack_success") or {}
+    return {"n_frames": len(block.get("frames") or []), "frames": " ".join(str(f) for f in block.get("frames") or []),
+            "metric": (block.get("benign") or {}).get("metric"),
+            "benign": _value(block.get("benign")), "adversarial": _value(block.get("adversarial")),
+            "success_rate": success.get("success_rate"), "n_success": success.get("n_success"),
+            "n_eligible": success.get("n_eligible")}
+
+
+def condition_rows(results: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """A multi-condition run's transfer: per condition (attacked, or held out whole), its frames,
+    benign → adversarial value and attack success; [] for a run of one scene."""
+    return [{"condition": c["name"], "held_out": bool(c.get("held_out")), **_block_row(c)}
+            for c in results.get("conditions") or []]
 
 
 def frame_rows(data: RunData) -> list[dict[str, Any]]:

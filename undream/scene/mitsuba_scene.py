@@ -126,7 +126,7 @@ def scene_dict(seq: Sequence, frame: Frame, paths: ScenePaths, kind: str) -> dic
                 "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": _rgb(asset.color)}}}
         d[f"actor_{asset.name}"] = _occluder(node, kind)
     if kind != "grad":
-        for i, p in enumerate(background.props(seq.scene_of(frame), env.background)):
+        for i, p in enumerate(background.props(seq, env.background)):
             node = {"type": p.shape, "to_world": Mat4.of(p.to_world),
                     "bsdf": {"type": "diffuse", "reflectance": _rgb(p.colour)}}
             d[f"prop_{i:02d}"] = _occluder(node, kind)

@@ -7,8 +7,10 @@ they show the same object (mesh, UVs and texture size) and chains their frames
 into one sequence whose ``conditions`` say which frames were which scene, so
 that ``undream init`` writes one scene directory and everything downstream (the
 farm, the transports, the evaluation) sees an ordinary, longer sequence. Each
-frame keeps its own camera, pose and environment; its background props are
-those its scene had alone (:meth:`Sequence.scene_of`).
+frame keeps its own camera, pose and environment. Background props are placed
+once, from the first condition's seed and clear of every condition's lines of
+sight: one place under several conditions (and no prop moves when a render
+switches conditions, which would rebuild the scene's BVH).
 """
 from __future__ import annotations
 
@@ -159,7 +161,7 @@ def compose(parts: list[tuple[str, Sequence]], name: str) -> Sequence:
         for f in seq.frames:
             frames.append(replace(f, index=len(frames), time=t0 + (f.time - seq.frames[0].time)))
         t0 = frames[-1].time + 1.0 / seq.fps
-        conditions.append(Condition(cname, len(seq.frames), seq.seed))
+        conditions.append(Condition(cname, len(seq.frames)))
     return Sequence(name=name, asset=first.asset, frames=tuple(frames), actors=tuple(actors.values()),
                     fps=first.fps, source="conditions", seed=first.seed, conditions=tuple(conditions))
 

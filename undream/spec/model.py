@@ -413,24 +413,22 @@ SEQUENCE_VERSION = 1
 @dataclass(frozen=True)
 class Condition:
     """One condition of a multi-condition sequence: ``frames`` consecutive frames that were one
-    scene of their own (``seed``: that scene's, which places its background props)."""
+    scene of their own."""
 
     name: str
     frames: int
-    seed: int = 0
 
     def __post_init__(self) -> None:
         c.name("name", self.name)
         c.integer("frames", self.frames, 1, MAX_FRAMES)
-        c.integer("seed", self.seed, 0, 2**32 - 1)
 
     def to_json(self) -> dict[str, Any]:
-        return {"name": self.name, "frames": self.frames, "seed": self.seed}
+        return {"name": self.name, "frames": self.frames}
 
     @classmethod
     def from_json(cls, d: Any) -> "Condition":
         d = c.mapping("condition", d)
-        c.no_extra(d, {"name", "frames", "seed"})
+        c.no_extra(d, {"name", "frames"})
         c.require(d, "name")
         c.require(d, "frames")
         return cls(**d)
@@ -442,7 +440,8 @@ class Sequence:
 
     ``conditions``: empty for one scene; for a multi-condition sequence (several scenes of one
     object, :mod:`undream.scenedir.conditions`) the scenes in frame order, their frame counts
-    summing to the frames'.
+    summing to the frames'. Background props are placed once for the whole sequence (clear of
+    every frame's line of sight): one place seen under every condition.
     """
 
     name: str
@@ -492,26 +491,14 @@ class Sequence:
                 raise c.fail("conditions", cnames, "must have unique names")
 
     def condition_ranges(self) -> list[tuple[Condition, range]]:
-        """Each condition and its frame positions (one unnamed condition, the sequence's own
-        seed, for a sequence of one scene)."""
-        parts = self.conditions or (Condition(self.name, len(self.frames), self.seed),)
+        """Each condition and its frame positions (one, named as the sequence, for a sequence of
+        one scene)."""
+        parts = self.conditions or (Condition(self.name, len(self.frames)),)
         out, first = [], 0
         for part in parts:
             out.append((part, range(first, first + part.frames)))
             first += part.frames
         return out
-
-    def scene_of(self, frame: Frame) -> "Sequence":
-        """The scene ``frame`` belongs to: the sequence itself, or its condition's frames alone
-        with that condition's seed (its background props are the ones that scene had alone)."""
-        if not self.conditions:
-            return self
-        position = next(i for i, f in enumerate(self.frames) if f.index == frame.index)
-        for part, span in self.condition_ranges():
-            if position in span:
-                return Sequence(name=self.name, asset=self.asset, frames=self.frames[span.start:span.stop],
-                                actors=self.actors, fps=self.fps, source=self.source, seed=part.seed)
-        raise AssertionError("unreachable: the conditions hold every frame")
 
     @property
     def texture(self) -> TextureParam:

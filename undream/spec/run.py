@@ -41,7 +41,9 @@ class RunConfig:
     texel → pixel transport where the gradient scene is linear in the
     texture (else by Mitsuba's prb backward pass), ``transport`` requires
     that, ``prb`` always renders; ``transport_refresh``: capture each frame
-    again with a new sample pattern every this many iterations. ``sim``: the
+    again with a new sample pattern every this many passes over the attacked
+    frames (iterations, unless ``attack.frames_per_step`` draws minibatches:
+    :func:`undream.engine.context.refresh_iterations`). ``sim``: the
     simulator that renders the frames the victim sees, during the attack and
     in the evaluation (``mitsuba``, embedded; ``blender``: Cycles, needs
     Blender's Python, see :mod:`undream.sim.blender`); the texture gradient
