@@ -217,3 +217,16 @@ def test_a_sequences_conditions_round_trip_and_must_hold_its_frames(local_run):
         replace(seq, conditions=(Condition("a", 8), Condition("a", 8)))
     alone = replace(seq, conditions=())
     assert "conditions" not in alone.to_json()  # a sequence of one scene: its file as before
+
+
+def test_a_minibatched_run_captures_each_frame_about_every_refresh_uses(local_run):
+    from undream.engine.context import refresh_iterations
+    from undream.spec import load_sequence
+    from undream.spec.run import RunConfig
+
+    seq = load_sequence(local_run["out"] / "scene" / "sequence.json")
+    full = RunConfig(scene="s", conditions={"grid": GRID, "holdout": [NAMES[3]]}, transport_refresh=5)
+    assert refresh_iterations(full, seq) == 5  # every attacked frame each iteration
+    mini = RunConfig(scene="s", conditions={"grid": GRID, "holdout": [NAMES[3]]}, transport_refresh=5,
+                     attack={"name": "pgd", "frames_per_step": 2})
+    assert refresh_iterations(mini, seq) == 5 * 5  # 9 attacked frames, 2 per iteration: 5 iterations a pass

@@ -126,9 +126,9 @@ class SceneCache:
 
     def frozen_call(self, name: str, fn: Any, *args: Any, scene: Any = None) -> Any:
         """``fn(*args)`` as a Dr.Jit frozen function (one per ``name`` and loaded ``scene``): recorded,
-        then replayed. A frozen function per scene: one shared by a multi-condition scene's groups
-        was recorded again at nearly every switch between them (Dr.Jit's dry run of a recording
-        made with another scene fails)."""
+        then replayed. Per scene, so that dropping a scene drops only its own recordings (a
+        multi-condition scene keeps several groups loaded; the 16-condition example printed Dr.Jit's
+        "recorded N times" warnings with one function for all, none with one per scene)."""
         import drjit as dr
 
         key = (name, None if scene is None else id(scene))
