@@ -27,7 +27,7 @@ from undream.scene.mesh import Mesh, read_ply
 from undream.scene.mitsuba_scene import OBJECT_ID
 from undream.scenedir.init import InitOptions, init_scene
 from undream.settings import LocalSettings
-from undream.spec.run import RunConfig, split_frames
+from undream.spec.run import RunConfig, split_conditions
 
 if TYPE_CHECKING:
     from undream.store import Store
@@ -135,7 +135,8 @@ def farm_textures(store: "Store", ref: str, cache_dir: Path | str) -> dict[str, 
 def evaluate(textures: Mapping[str, Texture], scenes: Sequence[Path], victims: Sequence[str], sim: str = "mitsuba",
              spp: int = 32, holdout: Any = "auto", label: str | None = None, seed: int = 0,
              local: LocalSettings = LocalSettings()) -> list[dict[str, Any]]:
-    """One row per (scene, victim, texture, split ``all``/``attacked``/``held_out``): frames, metric,
+    """One row per (scene, victim, texture, split ``all``/``attacked``/``held_out``, and ``condition NAME``
+    for each condition of a multi-condition scene directory): frames, metric,
     the scene's own texture's value (``benign``) and the texture's (``adversarial``), fractions in
     [0, 1]. ``textures``: name → (texture, the scene directory it was optimised on or None), whose
     object's UV layout every scene's must share (:func:`check_uv_layout`)."""
@@ -167,8 +168,10 @@ def evaluate(textures: Mapping[str, Texture], scenes: Sequence[Path], victims: S
                                             f"but scene {scene}'s texture is {wanted[1]}×{wanted[0]}: a texture "
                                             "made for another object or UV layout")
             for scene, name, ctx in contexts:
-                attacked, held = split_frames(holdout, len(ctx.sequence.frames))
-                splits = {"all": attacked + held, "attacked": attacked, "held_out": held}
+                split = split_conditions(holdout, ctx.sequence.condition_ranges())
+                splits = {"all": sorted(split.attacked + split.held), "attacked": split.attacked, "held_out": split.held}
+                if ctx.sequence.conditions:  # a multi-condition scene: a row per condition too
+                    splits.update({f"condition {part.name}": list(span) for part, span in ctx.sequence.condition_ranges()})
                 benign = evaluate_texture(ctx, start_texture(ctx), splits)
                 for texture_name, (texture, _) in textures.items():
                     for split, judged in evaluate_texture(ctx, texture, splits).items():

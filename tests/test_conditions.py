@@ -230,3 +230,14 @@ def test_a_minibatched_run_captures_each_frame_about_every_refresh_uses(local_ru
     mini = RunConfig(scene="s", conditions={"grid": GRID, "holdout": [NAMES[3]]}, transport_refresh=5,
                      attack={"name": "pgd", "frames_per_step": 2})
     assert refresh_iterations(mini, seq) == 5 * 5  # 9 attacked frames, 2 per iteration: 5 iterations a pass
+
+
+def test_undream_evaluate_judges_a_multi_condition_scene_per_condition(local_run, tmp_path):
+    out = tmp_path / "rows.json"
+    res = _undream("evaluate", local_run["out"], local_run["out"] / "scene", "--victim",
+                   local_run["results"]["victim"], "--spp", 2, "--json", out)
+    assert res.returncode == 0, res.stderr
+    rows = {r["split"]: r for r in json.loads(out.read_text())["rows"]}
+    assert [s for s in rows if s.startswith("condition ")] == [f"condition {n}" for n in NAMES]
+    assert rows[f"condition {NAMES[1]}"]["frames"] == 4 and rows["all"]["frames"] == 16
+    assert rows["held_out"]["frames"] == 4  # each condition's 4th view
