@@ -146,8 +146,7 @@ class Detector(Victim):
         dev = log_probs.device
         y = torch.tensor([t.label for t in targets], dtype=torch.long, device=dev)
         true_boxes = self._true_boxes(targets, images.shape[-2:], kind)
-        weights = losses.match_weights(log_probs, boxes, y,
-                                       None if true_boxes is None else true_boxes.to(dev))
+        weights = self._object_weights(raw, y, None if true_boxes is None else true_boxes.to(dev))
         if kind == "vanish":
             return losses.det_vanish(log_probs, y, weights, self.vanish_reduce, reduction="none")
         if kind == "mislabel":
@@ -155,6 +154,11 @@ class Detector(Victim):
             return losses.det_mislabel(log_probs, t, weights, reduction="none")
         boxes_true = cast(torch.Tensor, true_boxes)  # _true_boxes raised if any was missing
         return losses.det_box(boxes, boxes_true.to(dev, boxes.dtype), weights, reduction="none")
+
+    def _object_weights(self, raw: DetectionOutput, labels: torch.Tensor,
+                        true_boxes: torch.Tensor | None) -> torch.Tensor:
+        """``B×Q`` weights of the queries that are the object: :func:`losses.match_weights`."""
+        return losses.match_weights(raw.log_probs, raw.boxes_xyxy, labels, true_boxes)
 
     @staticmethod
     def _true_boxes(targets: list[Target], hw: Sequence[int], kind: str) -> torch.Tensor | None:

@@ -19,6 +19,11 @@ of a DETR-style detector, already turned into
   image width and height: see :func:`cxcywh_to_xyxy`;
 - ``weights``: ``B×Q`` non-negative, summing to 1 per image, saying which
   queries are "the object": see :func:`match_weights`.
+
+Dense (one-stage, YOLO-style) detectors use the same three losses on their
+candidates BEFORE non-maximum suppression (NMS picks boxes and has no useful
+gradient), with "queries" = candidates and log-sigmoid scores; only the
+weights differ: :func:`dense_weights`.
 """
 from __future__ import annotations
 
@@ -156,6 +161,37 @@ def match_weights(log_probs: torch.Tensor, boxes: torch.Tensor, labels: torch.Te
         total = iou.sum(1, keepdim=True)
         by_iou = iou / total.clamp(min=1e-12)
         return torch.where(total > 0, by_iou, by_prob)
+
+
+def dense_weights(log_probs: torch.Tensor, boxes: torch.Tensor, labels: torch.Tensor | int,
+                  true_boxes: torch.Tensor | None = None, points: torch.Tensor | None = None,
+                  min_iou: float = 0.3) -> torch.Tensor:
+    """Which candidates of a dense detector are "the object": ``B×N`` weights, >= 0,
+    summing to 1 per image.
+
+    A candidate is ON the object when its box overlaps the true box at IoU >=
+    ``min_iou``, or when its cell centre (``points`` ``N×2``, normalised xy;
+    None: this criterion is not used) lies inside the true box. On-object
+    candidates are weighted by their score, their best class's probability (what
+    NMS ranks them by), so that the candidates that become detections count
+    most. Without a true box (``true_boxes`` None or a NaN row), or where no
+    candidate is on the object, every candidate is weighted by its probability
+    of the true class, as :func:`match_weights` does. Detached.
+    """
+    with torch.no_grad():
+        p_true = _query_log_prob(log_probs, labels).exp()
+        by_prob = p_true / p_true.sum(1, keepdim=True).clamp(min=1e-12)
+        if true_boxes is None:
+            return by_prob
+        iou, _ = box_iou_giou(boxes, true_boxes[:, None, :])
+        on = torch.nan_to_num(iou, nan=0.0) >= min_iou
+        if points is not None:
+            tb = true_boxes[:, None, :]
+            on |= ((points[None, :, 0] >= tb[..., 0]) & (points[None, :, 0] <= tb[..., 2])
+                   & (points[None, :, 1] >= tb[..., 1]) & (points[None, :, 1] <= tb[..., 3]))
+        score = log_probs.max(-1).values.exp() * on
+        total = score.sum(1, keepdim=True)
+        return torch.where(total > 0, score / total.clamp(min=1e-30), by_prob)
 
 
 # --------------------------------------------------------------------------- detection losses

@@ -5,21 +5,34 @@ A spec is one of
 - ``bundled:classifier`` / ``bundled:detector``: the small models shipped in
   ``undream/victims/bundled/<name>/`` (a ``save_pretrained`` folder),
   trained on undream's own renders so that everything runs offline;
+- ``bundled:yolo``: undream's YOLO-style detector, where its folder is
+  present (it is not shipped yet: train one with ``undream victims train
+  --task detection --arch yolo``);
+- the path of an undream YOLO folder (``config.json`` with ``model_type``
+  ``undream_yolo``: :mod:`undream.victims.yolo_load`);
+- the path of a YOLOv8/YOLO11 weights file (``*.pt``), loaded through
+  ``ultralytics`` when it is installed (refused in one line otherwise);
 - ``hf:<id or path>`` or just ``<id or path>``: a Hugging Face hub id (found
   in the local cache, or over the network where allowed) or the path of a
   ``save_pretrained`` folder.
 """
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import torch
 
 from undream.errors import VictimError
 from undream.victims.base import TASKS, Victim
+from undream.victims import yolo_load
+from undream.victims.yolo import is_yolo_folder
 
 BUNDLED_DIR = Path(__file__).resolve().parent / "bundled"
-BUNDLED = {"classifier": "classification", "detector": "detection"}
+BUNDLED = {"classifier": "classification", "detector": "detection", "yolo": "detection"}
+# How to get a bundled victim whose folder is absent.
+NOT_SHIPPED = {"yolo": "none is shipped yet: train one with `undream victims train --task detection "
+                       "--arch yolo` and pass its folder"}
 
 
 def bundled_path(name: str) -> Path:
@@ -33,17 +46,17 @@ def bundled_path(name: str) -> Path:
 def _load_bundled(name: str, task: str | None, device: str | torch.device) -> Victim:
     path = bundled_path(name)
     if not path.is_dir():
+        how = NOT_SHIPPED.get(name, "install a build of undream that ships them, or pass a Hugging "
+                                    "Face id or save_pretrained folder instead")
         raise VictimError(f"bundled victim {name!r}: its weights are not present (expected the "
-                          f"folder {path}); install a build of undream that ships them, or pass a "
-                          f"Hugging Face id or save_pretrained folder instead")
+                          f"folder {path}); {how}")
     if not (path / "config.json").is_file():
         raise VictimError(f"bundled victim {name!r}: {path} has no config.json (expected a "
                           f"save_pretrained folder)")
     own = BUNDLED[name]
     if task is not None and task != own:
         raise VictimError(f"bundled victim {name!r}: does {own}, cannot do {task}")
-    from undream.victims.hf import load_hf_victim
-    return load_hf_victim(str(path), task=own, device=device)
+    return _load_path(str(path), own, device, offline=True)
 
 
 def check_device(device: str | torch.device) -> torch.device:
@@ -77,5 +90,22 @@ def load_victim(spec: str, device: str | torch.device = "cpu", task: str | None 
     check_device(device)
     if spec.startswith("bundled:"):
         return _load_bundled(spec[len("bundled:"):], task, device)
+    if spec.startswith("hf:"):
+        from undream.victims.hf import load_hf_victim
+        return load_hf_victim(spec[len("hf:"):], task, device, offline)
+    return _load_path(spec, task, device, offline)
+
+
+def _load_path(spec: str, task: str | None, device: str | torch.device, offline: bool) -> Victim:
+    """A folder or file by its kind: an undream YOLO folder, ultralytics weights, else Hugging Face."""
     from undream.victims.hf import load_hf_victim
-    return load_hf_victim(spec[len("hf:"):] if spec.startswith("hf:") else spec, task, device, offline)
+
+    path = os.path.expanduser(spec)
+    if is_yolo_folder(path):
+        return yolo_load.load_yolo_victim(spec, device, task)
+    if spec.endswith(yolo_load.ULTRALYTICS_SUFFIXES):
+        return yolo_load.load_ultralytics_victim(spec, device, task)
+    if os.path.isfile(path):
+        raise VictimError(f"victim {spec!r}: is a file; pass a save_pretrained or undream YOLO folder, "
+                          f"a YOLOv8/YOLO11 weights file (*.pt), a Hugging Face hub id or bundled:NAME")
+    return load_hf_victim(spec, task, device, offline)
