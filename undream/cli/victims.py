@@ -65,13 +65,16 @@ def make_dataset_cmd(out: Path, n: int, seed: int, split: str, size: int, spp: i
               help="Detection: start the backbone from this trained classifier folder.")
 @click.option("--threads", default=None, type=click.IntRange(1, 1024),
               help="torch CPU threads (default: torch's choice).")
+@click.option("--arch", default=None, type=click.Choice(["resnet", "detr", "yolo"]),
+              help="The model: classification trains resnet; detection detr (default) or yolo "
+                   "(undream's YOLOv8-shaped detector, from scratch).")
 @one_line_errors
 def train_cmd(task: str, data: Path, test: Path, out: Path, seed: int, epochs: int | None,
-              backbone: Path | None, threads: int | None) -> None:
+              backbone: Path | None, threads: int | None, arch: str | None) -> None:
     """Train a bundled-style victim on DATA and evaluate it on TEST."""
     from undream.training.train import TrainConfig, train
 
-    cfg = TrainConfig(task=task, seed=seed, epochs=epochs, backbone=backbone, threads=threads)
+    cfg = TrainConfig(task=task, seed=seed, epochs=epochs, backbone=backbone, threads=threads, arch=arch)
     result = train(data, test, out, cfg, command=_command())
     click.echo(json.dumps(result["test"], indent=2))
     click.echo(f"wrote {out}")
@@ -79,7 +82,8 @@ def train_cmd(task: str, data: Path, test: Path, out: Path, seed: int, epochs: i
 
 @victims.command("evaluate")
 @click.option("--victim", "victim", required=True,
-              help="bundled:classifier, bundled:detector, a save_pretrained folder or a hub id.")
+              help="bundled:classifier, bundled:detector, a save_pretrained or undream YOLO folder, "
+                   "a YOLOv8/YOLO11 *.pt (needs ultralytics) or a hub id.")
 @click.option("--data", required=True, type=click.Path(path_type=Path), help="Dataset to score.")
 @click.option("--json", "json_out", default=None, type=click.Path(path_type=Path),
               help="Also write the numbers to this JSON file.")

@@ -18,6 +18,7 @@ from typing import Any
 from undream.errors import VictimError
 from undream.training.dataset import BANDS, CLASSES, WEATHER_WEIGHTS
 from undream.victims.registry import BUNDLED, bundled_path
+from undream.victims.yolo import MODEL_TYPE as YOLO_MODEL_TYPE
 
 MAX_WEIGHTS_BYTES = 10 * 1024 * 1024
 WEIGHTS_FILE = "model.safetensors"
@@ -87,6 +88,8 @@ def model_card(folder: str | Path, commands: list[str] | None = None, note: str 
         numbers = [f"- **accuracy: {_fmt(test['accuracy'])}** ({test['n_correct']}/{test['n_images']})",
                    "- per class: " + ", ".join(f"{k} {_fmt(v)}" for k, v in test["per_class"].items()),
                    "- per weather: " + ", ".join(f"{k} {_fmt(v)}" for k, v in test["per_weather"].items())]
+    elif config.get("model_type") == YOLO_MODEL_TYPE:
+        title, arch, numbers = _yolo_card(config, test)
     else:
         d = config
         title = "bundled:detector — DETR object detector"
@@ -163,6 +166,25 @@ def model_card(folder: str | Path, commands: list[str] | None = None, note: str 
         "own scenes: not a general-purpose model.",
         f"- Trained on square images; other aspect ratios are squashed to {px}×{px}.", ""]
     return "\n".join(lines)
+
+
+def _yolo_card(c: dict[str, Any], test: dict[str, Any]) -> tuple[str, str, list[str]]:
+    """Title, architecture and held-out lines of an undream YOLO detector's card."""
+    arch = ("undream's plain-torch YOLOv8-shaped detector (`undream.victims.yolo.YoloNet`): a "
+            f"stride-2 stem and four stride-2 stages (widths {c['widths']}, {c['depth']} residual "
+            f"block{'s' if c['depth'] != 1 else ''} each), a top-down feature pyramid at strides "
+            f"{c['strides']} ({c['neck']} channels) and a decoupled head per level ({c['head']} "
+            "channels: ltrb distances to the box's sides, one sigmoid score per class); trained from "
+            "scratch with centre-sampling assignment, BCE on the class scores and 1 − GIoU on the "
+            "boxes (`undream.training.yolo`).")
+    numbers = [f"- **AP@0.5: {_fmt(test['ap50'])}** (mean over the 6 classes of COCO AP at IoU 0.5, "
+               "pycocotools; every detection left by class-aware NMS at IoU 0.7, no score threshold)",
+               "- per class: " + ", ".join(f"{k} {_fmt(v)}" for k, v in test["ap50_per_class"].items()),
+               f"- AP@0.5 counting only detections scoring ≥ 0.5: {_fmt(test['ap50_thr05'])}",
+               f"- top detection has the right class and IoU ≥ 0.5: {_fmt(test['top1_correct'])} "
+               "(per weather: " + ", ".join(f"{k} {_fmt(v)}" for k, v in
+                                           test["top1_per_weather"].items()) + ")"]
+    return "bundled:yolo — YOLO-style one-stage detector", arch, numbers
 
 
 def _commands(rec: dict[str, Any]) -> list[str]:

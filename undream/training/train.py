@@ -16,6 +16,11 @@ so that bundled and user victims share one loading path
   optimum of the no-object weighting), and the duplicates sank AP@0.5 to
   0.18 after 40 epochs; DETR breaks that symmetry only after far longer
   training than a CPU allows.
+- detector, ``arch="yolo"``: undream's plain-torch YOLOv8-shaped detector
+  (:class:`undream.victims.yolo.YoloNet`, :data:`undream.training.yolo.YOLO_ARCH`), trained from
+  scratch with its centre-sampling loss (:mod:`undream.training.yolo`) and
+  saved in its own folder layout (``config.json`` + ``model.safetensors``),
+  which :func:`undream.victims.load_victim` recognises.
 
 Images are 64×64 sRGB renders; the model input is the image resized to
 :data:`INPUT_SIZE` and normalised, by the same differentiable preprocessing
@@ -44,6 +49,8 @@ from undream.metrics import classification_report, is_detected, per_class_ap
 from undream.spec.io import check_new_folder, restored_on_failure
 from undream.versions import versions
 from undream.training.dataset import CLASSES, Dataset, load_dataset
+from undream.training.yolo import build_yolo, yolo_loss
+from undream.victims.registry import load_victim
 from undream.victims.preprocess import PreprocessConfig, preprocess_images
 
 INPUT_SIZE = 64  # model input width = height in pixels (the renders' own size)
@@ -60,6 +67,8 @@ DEFAULTS: dict[str, dict[str, Any]] = {
     "classification": {"epochs": 30, "lr": 2e-3, "weight_decay": 5e-4, "batch_size": 64},
     "detection": {"epochs": 40, "lr": 4e-4, "weight_decay": 1e-4, "batch_size": 32},
 }
+YOLO_DEFAULTS: dict[str, Any] = {"epochs": 60, "lr": 2e-3, "weight_decay": 5e-4, "batch_size": 32}
+ARCHS = {"classification": ("resnet",), "detection": ("detr", "yolo")}
 BACKBONE_LR_FACTOR = 0.1  # detector backbone (from the classifier) learns 10x slower
 TRAINING_FILE = "training.json"
 
@@ -71,6 +80,9 @@ class TrainConfig:
     backbone: for detection, a trained classifier folder whose ResNet starts
     the detector's backbone (recommended; without it the backbone starts
     random and DETR keeps its stem frozen).
+    arch: the model, one of the task's :data:`ARCHS` (default its first:
+    ``resnet`` or ``detr``); ``yolo`` trains :class:`undream.victims.yolo.YoloNet`
+    with :data:`YOLO_DEFAULTS`.
     """
 
     task: str
@@ -81,14 +93,31 @@ class TrainConfig:
     backbone: Path | None = None
     threads: int | None = None
     input_size: int = INPUT_SIZE
+    arch: str | None = None
 
     def __post_init__(self) -> None:
         if self.task not in DEFAULTS:
             raise VictimError(f"train.task: must be one of {', '.join(DEFAULTS)}, got {self.task!r}")
+        if self.arch is not None and self.arch not in ARCHS[self.task]:
+            raise VictimError(f"train.arch: {self.task} trains {', '.join(ARCHS[self.task])}, "
+                              f"got {self.arch!r}")
+        if self.model == "yolo" and self.backbone is not None:
+            raise VictimError("train.backbone: only the DETR detector starts from a classifier's "
+                              "backbone; the yolo detector trains from scratch")
+
+    @property
+    def model(self) -> str:
+        """The architecture trained: ``arch``, or the task's default."""
+        return self.arch or ARCHS[self.task][0]
+
+    @property
+    def defaults(self) -> dict[str, Any]:
+        """The defaults of this task and architecture (:data:`DEFAULTS`, :data:`YOLO_DEFAULTS`)."""
+        return YOLO_DEFAULTS if self.model == "yolo" else DEFAULTS[self.task]
 
     def get(self, name: str) -> Any:
         value = getattr(self, name)
-        return DEFAULTS[self.task][name] if value is None else value
+        return self.defaults[name] if value is None else value
 
 
 def preprocess_config(size: int = INPUT_SIZE) -> PreprocessConfig:
@@ -134,6 +163,14 @@ def build_detector(backbone: Path | None = None) -> torch.nn.Module:
     for name, p in model.model.backbone.model.named_parameters():  # type: ignore[union-attr]
         p.requires_grad_(not name.startswith(("embedder.", "encoder.stages.0.")))
     return model
+
+
+def build_model(cfg: TrainConfig) -> torch.nn.Module:
+    """A fresh model of ``cfg``'s task and architecture (random weights, or DETR's backbone from
+    ``cfg.backbone``)."""
+    if cfg.model == "yolo":
+        return build_yolo(tuple(CLASSES), cfg.input_size)
+    return build_classifier() if cfg.task == "classification" else build_detector(cfg.backbone)
 
 
 def _copy_backbone(folder: Path, detr: torch.nn.Module) -> None:
@@ -216,9 +253,9 @@ def fit(model: torch.nn.Module, ds: Dataset, cfg: TrainConfig, log: Callable[[st
     images, labels, boxes = _tensors(ds)
     n, (h, w) = len(labels), images.shape[-2:]
     bs, epochs = cfg.get("batch_size"), cfg.get("epochs")
-    lr, wd = cfg.get("lr"), DEFAULTS[cfg.task]["weight_decay"]
-    detection = cfg.task == "detection"
-    if detection:
+    lr, wd = cfg.get("lr"), cfg.defaults["weight_decay"]
+    detection, yolo = cfg.task == "detection", cfg.model == "yolo"
+    if detection and not yolo:
         backbone = [p for name, p in model.named_parameters() if ".backbone." in name and p.requires_grad]
         rest = [p for name, p in model.named_parameters() if ".backbone." not in name and p.requires_grad]
         groups = [{"params": backbone, "lr": lr * BACKBONE_LR_FACTOR}, {"params": rest, "lr": lr}]
@@ -237,7 +274,10 @@ def fit(model: torch.nn.Module, ds: Dataset, cfg: TrainConfig, log: Callable[[st
             idx = order[k:k + bs]
             x, bx = augment(images[idx].float() / 255.0, boxes[idx], gen)
             x = preprocess_images(x, pre)
-            if detection:
+            if yolo:
+                scale = torch.tensor([cfg.input_size / w, cfg.input_size / h] * 2)
+                loss, _ = yolo_loss(model(x), (bx * scale)[:, None], labels[idx][:, None], x.shape[-2:])
+            elif detection:
                 out = model(pixel_values=x, labels=_detr_targets(labels[idx], bx, h, w))
                 loss = out.loss
             else:
@@ -245,7 +285,7 @@ def fit(model: torch.nn.Module, ds: Dataset, cfg: TrainConfig, log: Callable[[st
                 loss = torch.nn.functional.cross_entropy(logits, labels[idx], label_smoothing=0.1)
             opt.zero_grad(set_to_none=True)
             loss.backward()
-            torch.nn.utils.clip_grad_norm_(model.parameters(), 0.1 if detection else 5.0)
+            torch.nn.utils.clip_grad_norm_(model.parameters(), 0.1 if detection and not yolo else 5.0)
             opt.step()
             sched.step()
             total += float(loss.detach()) * len(idx)
@@ -329,7 +369,7 @@ def train(data: str | Path, test: str | Path, out: str | Path, cfg: TrainConfig,
     train_ds, test_ds = load_dataset(data), load_dataset(test)
     log(f"{cfg.task}: {len(train_ds)} training images, {len(test_ds)} held-out images")
     torch.manual_seed(cfg.seed)
-    model = build_classifier() if cfg.task == "classification" else build_detector(cfg.backbone)
+    model = build_model(cfg)
     seconds = fit(model, train_ds, cfg, log)
     out = Path(out)
     check_new_folder(out, inputs=inputs)  # still new after training (another command may have written it)
@@ -339,15 +379,13 @@ def train(data: str | Path, test: str | Path, out: str | Path, cfg: TrainConfig,
 
 def _save_and_evaluate(model: Any, out: Path, cfg: TrainConfig, seconds: float, train_ds: Dataset,
                        test_ds: Dataset, data: str | Path, test: str | Path, command: str) -> dict[str, Any]:
-    from undream.victims.hf import load_hf_victim
-
     out.mkdir(parents=True, exist_ok=True)
     model.save_pretrained(str(out))
     processor = processor_json(cfg.task, cfg.input_size)
     (out / "preprocessor_config.json").write_text(json.dumps(processor, indent=2) + "\n", encoding="utf-8")
-    victim = load_hf_victim(str(out), task=cfg.task)
+    victim = load_victim(str(out), task=cfg.task)
     result = {"task": cfg.task, "command": command, "config": _jsonable(asdict(cfg)),
-              "defaults": DEFAULTS[cfg.task], "train_seconds": round(seconds, 1),
+              "defaults": cfg.defaults, "train_seconds": round(seconds, 1),
               "threads": torch.get_num_threads(), "train_data": _about(train_ds, data),
               "test_data": _about(test_ds, test), "test": evaluate(victim, test_ds),
               "parameters": sum(p.numel() for p in model.parameters()),

@@ -97,3 +97,31 @@ def build_yolo(labels: tuple[str, ...], input_size: int, **arch: object) -> Yolo
     :data:`YOLO_ARCH`)."""
     return YoloNet(YoloConfig(labels=tuple(labels), input_size=input_size,
                               **{**YOLO_ARCH, **arch}))  # type: ignore[arg-type]
+
+
+SQUARE_COLOURS = ((1.0, 0.1, 0.1), (0.1, 0.9, 0.1), (0.1, 0.2, 1.0))  # classes 0, 1, 2: red, green, blue
+
+
+def synthetic_squares(n: int, size: int, gen: torch.Generator, max_objects: int = 2
+                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A synthetic detection set for tests and smoke runs (nothing rendered).
+
+    ``n`` sRGB [0, 1] images ``n×3×size×size`` of uniform noise in [0.25, 0.75]
+    holding 1 to ``max_objects`` solid squares (side ``size/5`` to ``size/2``,
+    later ones painted over earlier ones), each red, green or blue (classes 0,
+    1, 2: :data:`SQUARE_COLOURS`). Returns the images, their boxes ``n×M×4``
+    (xyxy pixels) and labels ``n×M`` (``-1`` for padding).
+    """
+    images = torch.rand(n, 3, size, size, generator=gen) * 0.5 + 0.25
+    boxes = torch.zeros(n, max_objects, 4)
+    labels = torch.full((n, max_objects), -1, dtype=torch.long)
+    colours = torch.tensor(SQUARE_COLOURS)
+    for i in range(n):
+        for j in range(int(torch.randint(1, max_objects + 1, (1,), generator=gen))):
+            side = int(torch.randint(size // 5, size // 2 + 1, (1,), generator=gen))
+            x0, y0 = (int(v) for v in torch.randint(0, size - side + 1, (2,), generator=gen))
+            c = int(torch.randint(0, len(SQUARE_COLOURS), (1,), generator=gen))
+            images[i, :, y0:y0 + side, x0:x0 + side] = colours[c][:, None, None]
+            boxes[i, j] = torch.tensor([x0, y0, x0 + side, y0 + side], dtype=torch.float32)
+            labels[i, j] = c
+    return images, boxes, labels
