@@ -372,3 +372,56 @@ def test_bundled_yolo_absent_and_present(monkeypatch, tmp_path):
     assert isinstance(victim, DenseDetector) and victim.labels == list(LABELS)
     with pytest.raises(VictimError, match="does detection, cannot do classification"):
         load_victim("bundled:yolo", task="classification")
+
+
+# --------------------------------------------------------------------------- undream victims train --arch yolo
+
+def _synthetic_dataset(folder, n: int, seed: int):
+    """A dataset folder in make-dataset's layout, of synthetic squares (classes 0-2 of CLASSES)."""
+    import numpy as np
+    from PIL import Image
+
+    from undream.training.dataset import CLASSES
+
+    gen = torch.Generator().manual_seed(seed)
+    images, boxes, labels = synthetic_squares(n, SIZE, gen, max_objects=1)
+    (folder / "images").mkdir(parents=True)
+    lines = []
+    for i in range(n):
+        Image.fromarray((images[i].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)).save(
+            folder / "images" / f"{i:05d}.png")
+        lab = int(labels[i, 0])
+        lines.append(json.dumps({"file": f"images/{i:05d}.png", "index": i, "label": lab, "name": CLASSES[lab],
+                                 "box": boxes[i, 0].tolist(), "params": {"environment": {"weather": "clear"}}}))
+    (folder / "labels.jsonl").write_text("\n".join(lines) + "\n")
+    (folder / "metadata.json").write_text(json.dumps({
+        "classes": list(CLASSES), "command": "synthetic squares (tests/test_yolo.py)",
+        "config": {"n": n, "seed": seed, "size": SIZE, "spp": 1, "split": "train"}}))
+    return folder
+
+
+def test_victims_train_arch_yolo_end_to_end(tmp_path):
+    from click.testing import CliRunner
+
+    from undream.cli.victims import victims
+
+    data = _synthetic_dataset(tmp_path / "data", 24, 0)
+    out = tmp_path / "out"
+    res = CliRunner().invoke(victims, ["train", "--task", "detection", "--arch", "yolo", "--data", str(data),
+                                       "--test", str(data), "--out", str(out), "--epochs", "1",
+                                       "--threads", "1"])
+    assert res.exit_code == 0, res.output
+    assert {p.name for p in out.iterdir()} >= {"config.json", "model.safetensors", "preprocessor_config.json",
+                                               "training.json", "MODEL_CARD.md"}
+    record = json.loads((out / "training.json").read_text())
+    assert record["config"]["arch"] == "yolo" and record["defaults"]["lr"] == 2e-3
+    assert 0.0 <= record["test"]["ap50"] <= 1.0
+    assert (out / "MODEL_CARD.md").read_text().startswith("# bundled:yolo — YOLO-style one-stage detector")
+    victim = load_victim(str(out))
+    assert isinstance(victim, DenseDetector) and victim.preprocess_config.mean == (0.485, 0.456, 0.406)
+    for args, message in ((["--task", "classification", "--arch", "yolo"], "classification trains resnet, got 'yolo'"),
+                          (["--task", "detection", "--arch", "yolo", "--backbone", str(data)],
+                           "the yolo detector trains from scratch")):
+        res = CliRunner().invoke(victims, ["train", *args, "--data", str(data), "--test", str(data),
+                                           "--out", str(tmp_path / "new")])
+        assert res.exit_code == 2 and res.output.strip().count("\n") == 0 and message in res.output, res.output
