@@ -3,8 +3,10 @@
 Images in are sRGB values in [0, 1], ``B×3×H×W`` float torch tensors. Every
 victim's :meth:`~Victim.loss` is MAXIMISED by the attack (larger = more
 successful). Load one with :func:`load_victim` (a Hugging Face hub id, a
-``save_pretrained`` folder, or ``bundled:classifier``/``bundled:detector``),
-or wrap any ``torch.nn.Module`` in :class:`Classifier` or :class:`Detector`.
+``save_pretrained`` folder, an undream YOLO folder, a YOLOv8/YOLO11 ``*.pt``
+where ultralytics is installed, or ``bundled:NAME``), or wrap any
+``torch.nn.Module`` in :class:`Classifier`, :class:`Detector` (DETR-style set
+prediction) or :class:`DenseDetector` (YOLO-style dense candidates).
 
 The Hugging Face adapters (:class:`HFClassifier`, :class:`HFDetector`) are
 imported on first use so that importing this package does not import
@@ -23,6 +25,7 @@ from undream.victims.base import (
     check_images,
 )
 from undream.victims.classifier import CLASSIFICATION_LOSSES, Classifier
+from undream.victims.dense import DenseDetector, DenseOutput
 from undream.victims.detector import DETECTION_LOSSES, DetectionOutput, Detector
 from undream.victims.preprocess import PreprocessConfig, preprocess_images
 from undream.victims.registry import BUNDLED, bundled_path, load_victim
@@ -31,7 +34,8 @@ _LAZY = {"HFClassifier", "HFDetector", "load_hf_victim"}
 
 __all__ = [
     "BUNDLED", "CLASSIFICATION_LOSSES", "DETECTION_LOSSES", "TASKS",
-    "ClassPrediction", "Classifier", "DetPrediction", "DetectionOutput", "Detector",
+    "ClassPrediction", "Classifier", "DenseDetector", "DenseOutput", "DetPrediction",
+    "DetectionOutput", "Detector",
     "PreprocessConfig", "Target", "Victim", "bundled_path", "check_images",
     "load_victim", "preprocess_images", *sorted(_LAZY),
 ]
