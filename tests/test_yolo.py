@@ -11,6 +11,7 @@ import json
 import sys
 import types
 
+import numpy as np
 import pytest
 import torch
 
@@ -73,7 +74,7 @@ def trained():
 def _square(label: int = 0, box=(18, 14, 46, 42), seed: int = 1) -> torch.Tensor:
     g = torch.Generator().manual_seed(seed)
     x = torch.rand(1, 3, SIZE, SIZE, generator=g) * 0.5 + 0.25
-    x0, y0, x1, y1 = box
+    x0, y0, x1, y1 = (int(v) for v in box)
     x[0, :, y0:y1, x0:x1] = torch.tensor(((1.0, 0.1, 0.1), (0.1, 0.9, 0.1), (0.1, 0.2, 1.0))[label])[:, None, None]
     return x
 
@@ -378,7 +379,6 @@ def test_bundled_yolo_absent_and_present(monkeypatch, tmp_path):
 
 def _synthetic_dataset(folder, n: int, seed: int):
     """A dataset folder in make-dataset's layout, of synthetic squares (classes 0-2 of CLASSES)."""
-    import numpy as np
     from PIL import Image
 
     from undream.training.dataset import CLASSES
@@ -425,3 +425,25 @@ def test_victims_train_arch_yolo_end_to_end(tmp_path):
         res = CliRunner().invoke(victims, ["train", *args, "--data", str(data), "--test", str(data),
                                            "--out", str(tmp_path / "new")])
         assert res.exit_code == 2 and res.output.strip().count("\n") == 0 and message in res.output, res.output
+
+
+def test_the_attack_engine_runs_a_dense_victim(trained):
+    """The engine's victim pass (loss, image gradient, prediction record) and its judge (AP@0.5) on a
+    DenseDetector, as a run with ``victim: bundled:yolo`` or a YOLO folder would call them."""
+    from types import SimpleNamespace
+
+    from undream.engine.algorithm import judge
+    from undream.engine.job import victim_pass
+
+    victim = DenseDetector(trained["model"], LABELS, PRE)
+    targets = [Target(0, box=(18, 14, 46, 42)), Target(0, box=(8, 30, 30, 60))]
+    ctx = SimpleNamespace(victim=victim, targets=targets, config=SimpleNamespace(loss="vanish"),
+                          sequence=SimpleNamespace(frames=[SimpleNamespace(index=3), SimpleNamespace(index=4)]))
+    frames = [_square(0, box=t.box, seed=s)[0].permute(1, 2, 0).numpy() for t, s in zip(targets, (1, 2))]
+    values, grads, records = victim_pass(ctx, [0, 1], frames)
+    assert len(values) == 2 and all(-1.0 <= v < -0.5 for v in values), values  # the squares are found
+    assert grads[0].shape == (SIZE, SIZE, 3) and all(bool(abs(g).sum() > 0) for g in grads)
+    assert [r["detected"] for r in records] == [True, True] and records[0]["score"] > 0.5
+    verdict = judge(ctx, victim.predict(torch.from_numpy(np.stack(frames)).permute(0, 3, 1, 2)))
+    assert verdict["metric"] == "ap50" and verdict["value"] == pytest.approx(1.0)
+    assert [r["frame"] for r in verdict["per_frame"]] == [3, 4]
