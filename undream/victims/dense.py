@@ -25,8 +25,8 @@ import torch
 
 from undream.errors import VictimError
 from undream.victims import losses
-from undream.victims.detector import Detector
 from undream.victims.base import DetPrediction
+from undream.victims.detector import Detector
 from undream.victims.nms import select_detections
 from undream.victims.preprocess import PreprocessConfig
 from undream.victims.yolo import STRIDES, anchor_points
