@@ -8,6 +8,7 @@ from the plain-torch detector's candidates, and its package by a stand-in module
 from __future__ import annotations
 
 import json
+import re
 import sys
 import types
 
@@ -447,3 +448,53 @@ def test_the_attack_engine_runs_a_dense_victim(trained):
     verdict = judge(ctx, victim.predict(torch.from_numpy(np.stack(frames)).permute(0, 3, 1, 2)))
     assert verdict["metric"] == "ap50" and verdict["value"] == pytest.approx(1.0)
     assert [r["frame"] for r in verdict["per_frame"]] == [3, 4]
+
+
+@pytest.mark.parametrize("kind", ["vanish", "mislabel", "box"])
+def test_dense_loss_gradient_matches_finite_differences(trained, kind):
+    """In float64, the image gradient's directional derivative equals a central difference of the
+    loss with the weights held where they are at the image: weights are detached by design (they
+    select and weigh candidates; their own change with the image is no part of the gradient)."""
+    import copy
+
+    victim = DenseDetector(copy.deepcopy(trained["model"]).double(), LABELS, PRE)
+    x = _square(0).double()
+    target = Target(0, target_label=1, box=(18, 14, 46, 42))
+    y, t = torch.tensor([0]), torch.tensor([1])
+    truth = torch.tensor([target.box], dtype=torch.float64) / SIZE
+    with torch.no_grad():
+        raw = victim.forward_raw(x)
+        w = losses.dense_weights(raw.log_probs, raw.boxes_xyxy, y, truth, raw.points_norm)
+
+    def fixed(image):  # the loss with the weights w
+        out = victim.forward_raw(image)
+        if kind == "vanish":
+            return losses.det_vanish(out.log_probs, y, w)
+        if kind == "mislabel":
+            return losses.det_mislabel(out.log_probs, t, w)
+        return losses.det_box(out.boxes_xyxy, truth, w)
+
+    d = torch.randn(x.shape, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    xg = x.clone().requires_grad_(True)
+    (g,) = torch.autograd.grad(victim.loss(xg, target, kind), xg)
+    h = 1e-6
+    with torch.no_grad():
+        fd = (fixed(x + h * d) - fixed(x - h * d)) / (2 * h)
+    assert float(fd) == pytest.approx(float((g * d).sum()), rel=1e-5, abs=1e-9)
+
+
+def test_dense_detector_settings_checked():
+    for kw, message in (({"iou_threshold": 1.5}, "iou_threshold must be in [0, 1], got 1.5"),
+                        ({"min_iou": -0.1}, "min_iou must be in [0, 1], got -0.1"),
+                        ({"max_detections": 0}, "max_detections must be an integer >= 1, got 0"),
+                        ({"score_threshold": 2.0}, "score_threshold must be in [0, 1], got 2.0"),
+                        ({"vanish_reduce": "sum"}, "vanish_reduce must be 'mean' or 'max', got 'sum'")):
+        with pytest.raises(VictimError, match=re.escape(message)):
+            DenseDetector(_tiny(), LABELS, PRE, **kw)
+    with pytest.raises(VictimError, match=r"model output must be a tensor of candidates \(native layout\), got dict"):
+        DenseDetector(_DictOut(), LABELS, PRE).predict(torch.rand(1, 3, 64, 64))
+
+
+class _DictOut(torch.nn.Module):
+    def forward(self, x):
+        return {"one2one": x}
