@@ -109,13 +109,14 @@ def _write(args: argparse.Namespace, rows: list[dict]) -> None:
     summary: dict = {}
     for c in conditions:
         mine = [r for r in rows if r["condition"] == c]
-        summary[c] = {"benign": statistics.fmean(r["benign"] for r in mine)}
+        summary[c] = {"benign": statistics.fmean(r["benign"] for r in mine if r["run"] == runs[0])}  # its scene's
         cells = []
         for run in runs:
             values = [r["adversarial"] for r in mine if r["run"] == run]
             summary[c][run] = statistics.fmean(values)
             cells.append(_stats(values))
-        print(f"| {c} | {mine[0]['frames']} | {_stats([r['benign'] for r in mine if r['run'] == runs[0]])} | "
+        frames = " / ".join(dict.fromkeys(str(r["frames"]) for r in mine))  # a run's own held-out views differ
+        print(f"| {c} | {frames} | {_stats([r['benign'] for r in mine if r['run'] == runs[0]])} | "
               + " | ".join(cells) + " |")
     held = [c for c in conditions if not c.startswith("as attacked")]
     print("| mean of the held-out conditions | | " + f"{statistics.fmean(summary[c]['benign'] for c in held):.2f} | "
@@ -146,7 +147,7 @@ def _chart(args: argparse.Namespace, conditions: list[str], runs: list[str], sum
     ax.set_title(f"textures on held-out conditions: ε={args.eps:g}, {args.steps} steps, "
                  f"mean of seeds {args.seeds}", fontsize=8)
     ax.legend(fontsize=7)
-    runs_arg = " ".join(str(p.relative_to(ROOT)) if p.resolve().is_relative_to(ROOT) else str(p) for p in args.runs)
+    runs_arg = " ".join(str(p.resolve().relative_to(ROOT)) if p.resolve().is_relative_to(ROOT) else str(p) for p in args.runs)
     victim = f" --victim {args.victim}" if args.victim else ""
     fig.text(0.01, 0.01, f"made by: scripts/condition_suite.py --out {args.out} --seeds "
              f"{' '.join(map(str, args.seeds))} --eps {args.eps:g} --steps {args.steps} --runs {runs_arg}{victim}",
