@@ -38,6 +38,10 @@ class AttackError(UndreamError, ValueError):
     """An attack was given a bad texture, gradient, loss or state."""
 
 
+class DatasetError(UndreamError, ValueError):
+    """A dataset of the bundled victims could not be made or read (bad config, missing or corrupt files)."""
+
+
 class StoreError(UndreamError):
     """The run store could not be read or written."""
 

@@ -39,16 +39,19 @@ def victims() -> None:
 @click.option("--size", default=64, show_default=True, type=click.IntRange(16, 1024),
               help="Image width and height in pixels.")
 @spp_option("--spp", 16, "Samples per pixel.")
+@click.option("--distribution", default="v1", show_default=True, type=click.Choice(["v1", "v2"]),
+              help="v1: the orbiting camera of bundled:classifier/detector; v2: camera height "
+                   "and ground distance, every background and weather (bundled:*-v2).")
 @progress_option
 @one_line_errors
 def make_dataset_cmd(out: Path, n: int, seed: int, split: str, size: int, spp: int,
-                     progress: bool) -> None:
+                     distribution: str, progress: bool) -> None:
     """Render N images of the built-in assets with their classes and boxes."""
     from undream.training.dataset import DatasetConfig, make_dataset
 
     local_settings()  # Mitsuba's variant, from UNDREAM_MI_VARIANT (the dataset's own is set around its renders)
-    done = make_dataset(out, DatasetConfig(n=n, seed=seed, split=split, size=size, spp=spp),
-                        progress=progress, command=_command())
+    cfg = DatasetConfig(n=n, seed=seed, split=split, size=size, spp=spp, distribution=distribution)
+    done = make_dataset(out, cfg, progress=progress, command=_command())
     click.echo(f"wrote {n} images to {done}")
 
 
@@ -82,7 +85,7 @@ def train_cmd(task: str, data: Path, test: Path, out: Path, seed: int, epochs: i
 
 @victims.command("evaluate")
 @click.option("--victim", "victim", required=True,
-              help="bundled:classifier, bundled:detector, a save_pretrained or undream YOLO folder, "
+              help="bundled:NAME (e.g. bundled:classifier-v2), a save_pretrained or undream YOLO folder, "
                    "a YOLOv8/YOLO11 *.pt (needs ultralytics) or a hub id.")
 @click.option("--data", required=True, type=click.Path(path_type=Path), help="Dataset to score.")
 @click.option("--json", "json_out", default=None, type=click.Path(path_type=Path),
@@ -92,7 +95,7 @@ def evaluate_cmd(victim: str, data: Path, json_out: Path | None) -> None:
     """Accuracy (classifier) or AP@0.5 (detector) of VICTIM on a dataset."""
     from undream.victims import load_victim
     from undream.training.dataset import load_dataset
-    from undream.training.train import evaluate
+    from undream.training.evaluation import evaluate
 
     ds = load_dataset(data)  # the cheaper check first
     result = evaluate(load_victim(victim, offline=local_settings(render=False).hf_offline), ds)

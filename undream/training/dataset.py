@@ -42,7 +42,7 @@ import numpy as np
 from PIL import Image
 
 from undream.color import linear_to_srgb, srgb_to_linear, to_uint8
-from undream.errors import UndreamError
+from undream.errors import DatasetError
 from undream.progress import progress as progress_bar
 from undream.scene.builtin import builtin_mesh
 from undream.scene.mesh import write_ply
@@ -52,17 +52,19 @@ from undream.scene.xml import to_mitsuba
 from undream.scenedir.verify import mask_box
 from undream.spec.io import check_new_folder, restored_on_failure
 from undream.spec import Asset, Camera, Environment, Frame, Sequence, TextureParam, Transform
+from undream.training import distribution_v2 as v2
+from undream.training import bands as banding
+from undream.training.bands import SPLITS
+from undream.training.textures import TEXTURE_KINDS, make_texture, texture_recipe
 from undream.variant import mitsuba
 from undream.versions import versions
 
 # The bundled victims' classes: the built-in assets they were trained on (fixed, so that a new
 # built-in asset, such as the pedestrian actor, changes neither the data set nor the victims).
 CLASSES: tuple[str, ...] = ("car", "sphere", "stop_sign", "traffic_cone", "trash_bin", "umbrella")
-SPLITS = ("train", "test")
 DATASET_VERSION = 1
 LABELS_FILE = "labels.jsonl"
 METADATA_FILE = "metadata.json"
-TEXTURE_KINDS = ("solid", "stripes", "checker", "noise", "mix")
 
 # Banded parameters: (low, high, band width); band k = floor((v - low) / width) belongs to
 # train when k is even, to test when k is odd.
@@ -79,14 +81,13 @@ WEATHER_WEIGHTS = {"clear": 0.35, "cloudy": 0.25, "night": 0.2, "fog": 0.2}
 # The backgrounds the bundled victims were trained on (newer ones, e.g. city, stay unseen: held-out scenery,
 # and the data sets stay reproducible bit for bit).
 TRAINING_BACKGROUNDS = ("plain", "park", "street")
+DISTRIBUTIONS = ("v1", v2.NAME)
+# The camera parameters whose test bands the evaluation reports one by one, per distribution.
+CAMERA_BANDS = {"v1": ("elevation_deg", "coverage"), v2.NAME: v2.REPORTED_BANDS}
 MIN_VISIBLE_PIXELS = 60  # pixels at least half covered by the object
 BOX_COVERAGE = 0.1  # a pixel joins the box when the object covers more than this share of it
 MAX_TRIES = 20
 RENDER_VARIANT = "scalar_rgb"  # no JIT: each small scene renders without compiling kernels
-
-
-class DatasetError(UndreamError, ValueError):
-    """A dataset could not be made or read (bad config, missing or corrupt files)."""
 
 
 @dataclass(frozen=True)
@@ -94,7 +95,10 @@ class DatasetConfig:
     """What :func:`make_dataset` renders: ``n`` images of ``split`` from ``seed``.
 
     size: image width = height in pixels; spp: samples per pixel of the image
-    (the mask uses the same count).
+    (the mask uses the same count); distribution: ``v1`` (this module's
+    orbiting camera, the original bundled victims' data, kept bit for bit) or
+    ``v2`` (:mod:`undream.training.distribution_v2`: camera height and ground
+    distance, every background and weather).
     """
 
     n: int
@@ -102,8 +106,12 @@ class DatasetConfig:
     split: str = "train"
     size: int = 64
     spp: int = 16
+    distribution: str = "v1"
 
     def __post_init__(self) -> None:
+        if self.distribution not in DISTRIBUTIONS:
+            raise DatasetError(f"distribution: must be one of {', '.join(DISTRIBUTIONS)}, "
+                               f"got {self.distribution!r}")
         if self.split not in SPLITS:
             raise DatasetError(f"split: must be one of {', '.join(SPLITS)}, got {self.split!r}")
         for name, lo in (("n", 1), ("size", 16), ("spp", 1)):
@@ -136,18 +144,25 @@ class SampleParams:
 # --------------------------------------------------------------------------- the split
 
 def band_index(param: str, value: float) -> int:
-    """The band of ``value`` for the banded parameter ``param`` (see :data:`BANDS`)."""
-    lo, _, width = BANDS[param]
-    return int(math.floor((value - lo) / width + 1e-9))
+    """The band of ``value`` for the ``v1`` banded parameter ``param`` (see :data:`BANDS`)."""
+    return banding.band_index(BANDS, param, value)
 
 
-def split_of(param: str, value: float) -> str:
-    """Which split a value of the banded parameter ``param`` belongs to."""
-    return SPLITS[band_index(param, value) % 2]
+def distribution_of(params: dict[str, Any]) -> str:
+    """The distribution (``v1`` or ``v2``) that drew a label record's ``params``."""
+    return v2.NAME if "height_m" in params else "v1"
+
+
+def bands_of(distribution: str) -> banding.Bands:
+    """The band table of a distribution (:data:`BANDS` or :data:`~.distribution_v2.BANDS_V2`)."""
+    return v2.BANDS_V2 if distribution == v2.NAME else BANDS
 
 
 def banded_values(params: dict[str, Any]) -> dict[str, float]:
-    """The :data:`BANDS` values of one image's parameters (a label record's ``params``)."""
+    """The banded values of one image's parameters (a label record's ``params``), of
+    :data:`BANDS` or, for a ``v2`` record, :data:`~.distribution_v2.BANDS_V2`."""
+    if distribution_of(params) == v2.NAME:
+        return v2.banded_values(params)
     env = params["environment"]
     t = env["time_of_day"]
     out = {k: float(params[k]) for k in ("azimuth_deg", "elevation_deg", "fov_deg", "coverage")}
@@ -161,15 +176,12 @@ def banded_values(params: dict[str, Any]) -> dict[str, float]:
 
 def splits_of(params: dict[str, Any]) -> set[str]:
     """The splits that the banded values of ``params`` belong to (one for a valid image)."""
-    return {split_of(k, v) for k, v in banded_values(params).items()}
+    bands = bands_of(distribution_of(params))
+    return {banding.split_of(bands, k, v) for k, v in banded_values(params).items()}
 
 
 def _banded(rng: np.random.Generator, param: str, split: str) -> float:
-    lo, hi, width = BANDS[param]
-    bands = [k for k in range(int(round((hi - lo) / width))) if k % 2 == SPLITS.index(split)]
-    k = int(rng.choice(bands))
-    # stay clear of the band edges so that float rounding cannot move a value across
-    return lo + (k + rng.uniform(0.001, 0.999)) * width
+    return banding.draw_banded(rng, BANDS, param, split)
 
 
 def _time_of_day(rng: np.random.Generator, weather: str, split: str) -> float:
@@ -199,58 +211,6 @@ def sample_params(rng: np.random.Generator, split: str, label: int | None = None
         fov_deg=_banded(rng, "fov_deg", split), coverage=coverage,
         shift=(float(rng.uniform(-room, room)), float(rng.uniform(-room, room))),
         environment=env, texture=texture_recipe(rng))
-
-
-# --------------------------------------------------------------------------- textures
-
-def _colour(rng: np.random.Generator) -> list[float]:
-    return [float(v) for v in rng.uniform(0.0, 1.0, 3)]
-
-
-def texture_recipe(rng: np.random.Generator) -> dict[str, Any]:
-    """A random texture as a small JSON-able recipe (see :func:`make_texture`)."""
-    kind = str(rng.choice(TEXTURE_KINDS))
-    r: dict[str, Any] = {"kind": kind, "colours": [_colour(rng) for _ in range(3)]}
-    if kind in ("stripes", "checker", "mix"):
-        r["period"] = float(rng.uniform(4.0, 32.0))
-        r["angle_deg"] = float(rng.uniform(0.0, 180.0))
-    if kind in ("noise", "mix"):
-        r["cells"] = int(rng.integers(2, 9))
-        r["noise_seed"] = int(rng.integers(2**31))
-    return r
-
-
-def make_texture(recipe: dict[str, Any], size: int = 64) -> np.ndarray:
-    """The ``size×size×3`` sRGB [0, 1] texture of a :func:`texture_recipe` (float32)."""
-    c = np.asarray(recipe["colours"], dtype=np.float32)
-    kind = recipe["kind"]
-    if kind == "solid":
-        return np.broadcast_to(c[0], (size, size, 3)).astype(np.float32)
-    yy, xx = np.mgrid[0:size, 0:size].astype(np.float32)
-    if kind in ("stripes", "checker", "mix"):
-        a = math.radians(recipe["angle_deg"])
-        u = (xx * math.cos(a) + yy * math.sin(a)) / recipe["period"]
-        v = (-xx * math.sin(a) + yy * math.cos(a)) / recipe["period"]
-        pat = (np.floor(u) % 2) if kind != "checker" else ((np.floor(u) + np.floor(v)) % 2)
-        two = np.where(pat[..., None] > 0, c[0], c[1])
-        if kind != "mix":
-            return two.astype(np.float32)
-    noise = _smooth_noise(np.random.default_rng(recipe["noise_seed"]), recipe["cells"], size)
-    if kind == "noise":
-        return noise
-    w = noise.mean(-1, keepdims=True)  # mix: stripes of two colours, blended into a third by noise
-    return ((1 - w) * two + w * c[2]).astype(np.float32)
-
-
-def _smooth_noise(rng: np.random.Generator, cells: int, size: int) -> np.ndarray:
-    """Random colours on a ``cells×cells`` grid, bilinearly upsampled (periodic), sRGB [0, 1]."""
-    grid = rng.uniform(0.0, 1.0, (cells, cells, 3)).astype(np.float32)
-    t = (np.arange(size, dtype=np.float32) + 0.5) / size * cells - 0.5
-    i0 = np.floor(t).astype(int)
-    f = (t - i0)[:, None]
-    rows = (1 - f[:, :, None]) * grid[i0 % cells] + f[:, :, None] * grid[(i0 + 1) % cells]
-    cols = (1 - f.T[:, :, None]) * rows[:, i0 % cells] + f.T[:, :, None] * rows[:, (i0 + 1) % cells]
-    return cols.astype(np.float32)
 
 
 # --------------------------------------------------------------------------- scenes
@@ -322,9 +282,15 @@ def render_sample(mi: ModuleType, meshes: _Meshes, cfg: DatasetConfig, index: in
     """
     rng = np.random.default_rng([cfg.seed, SPLITS.index(cfg.split), index])
     label = int(rng.integers(len(CLASSES)))
+    sphere = meshes.spheres[CLASSES[label]]
     for attempt in range(MAX_TRIES):
-        p = sample_params(rng, cfg.split, label)
-        seq = sample_frame(p, meshes.spheres[p.name], cfg.size, seed=int(rng.integers(2**31)))
+        p: SampleParams | v2.SampleParamsV2
+        if cfg.distribution == v2.NAME:
+            p = v2.sample_params(rng, cfg.split, label, CLASSES[label], sphere)
+            seq = v2.sample_frame(p, sphere, cfg.size, seed=int(rng.integers(2**31)))
+        else:
+            p = sample_params(rng, cfg.split, label)
+            seq = sample_frame(p, sphere, cfg.size, seed=int(rng.integers(2**31)))
         paths = meshes.paths(p.name)
         mask_img = np.array(mi.render(_scene(mi, seq, paths, "mask", cfg.spp, None), seed=index))
         coverage = mask_img.mean(axis=2)
@@ -385,10 +351,13 @@ def make_dataset(out: str | Path, cfg: DatasetConfig, progress: bool = True,
                 Image.fromarray(image).save(out / rec["file"])
                 fh.write(json.dumps(rec) + "\n")
     partial.replace(out / LABELS_FILE)
-    meta = {"version": DATASET_VERSION, "config": asdict(cfg), "classes": list(CLASSES),
-            "bands": {k: list(v) for k, v in BANDS.items()},
+    v2_data = cfg.distribution == v2.NAME
+    meta = {"version": DATASET_VERSION, "config": asdict(cfg), "distribution": cfg.distribution,
+            "classes": list(CLASSES), "bands": {k: list(v) for k, v in bands_of(cfg.distribution).items()},
             "band_rule": "band k = floor((value - low) / width); even k: train, odd k: test",
-            "weather_weights": WEATHER_WEIGHTS, "mitsuba_variant": variant,
+            "weather_weights": v2.WEATHER_WEIGHTS_V2 if v2_data else WEATHER_WEIGHTS,
+            "backgrounds": list(v2.BACKGROUNDS if v2_data else TRAINING_BACKGROUNDS),
+            **({"coverage": list(v2.COVERAGE)} if v2_data else {}), "mitsuba_variant": variant,
             "versions": versions(), "command": command}
     (out / METADATA_FILE).write_text(json.dumps(meta, indent=2) + "\n", encoding="utf-8")
     return out

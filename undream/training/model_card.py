@@ -17,7 +17,7 @@ from typing import Any
 
 from undream.errors import VictimError
 from undream.training.dataset import BANDS, CLASSES, WEATHER_WEIGHTS
-from undream.victims.registry import BUNDLED, bundled_path
+from undream.victims.registry import BUNDLED, bundled_folder_name, bundled_path
 from undream.victims.yolo import MODEL_TYPE as YOLO_MODEL_TYPE
 
 MAX_WEIGHTS_BYTES = 10 * 1024 * 1024
@@ -44,7 +44,7 @@ def training_record(folder: str | Path) -> dict[str, Any]:
 
 
 def bundled_record(name: str) -> dict[str, Any]:
-    """The training record of the bundled victim ``name`` (``classifier`` or ``detector``)."""
+    """The training record of the bundled victim ``name`` (e.g. ``classifier``, ``detector-v2``)."""
     return training_record(bundled_path(name))
 
 
@@ -220,4 +220,5 @@ def check_bundled(name: str) -> dict[str, Any]:
     if size > MAX_WEIGHTS_BYTES:
         raise VictimError(f"bundled victim {name!r}: weights are {size} bytes, more than "
                           f"{MAX_WEIGHTS_BYTES}")
-    return {"name": name, "task": BUNDLED[name], "folder": str(folder), "weights_bytes": size}
+    return {"name": name, "task": BUNDLED[bundled_folder_name(name)], "folder": str(folder),
+            "weights_bytes": size}

@@ -45,12 +45,12 @@ import numpy as np
 import torch
 
 from undream.errors import VictimError
-from undream.metrics import classification_report, is_detected, per_class_ap
 from undream.spec.io import check_new_folder, restored_on_failure
 from undream.versions import versions
 from undream.training.dataset import CLASSES, Dataset, load_dataset
 from undream.training.yolo import build_yolo, yolo_loss
 from undream.victims.registry import load_victim
+from undream.training.evaluation import evaluate
 from undream.victims.preprocess import PreprocessConfig, preprocess_images
 
 INPUT_SIZE = 64  # model input width = height in pixels (the renders' own size)
@@ -294,65 +294,6 @@ def fit(model: torch.nn.Module, ds: Dataset, cfg: TrainConfig, log: Callable[[st
             f"({time.perf_counter() - start:.0f} s)")
     model.eval()
     return time.perf_counter() - start
-
-
-# --------------------------------------------------------------------------- evaluation
-
-def _batches(ds: Dataset, size: int):
-    for k in range(0, len(ds), size):
-        x = torch.from_numpy(ds.images[k:k + size]).permute(0, 3, 1, 2).float() / 255.0
-        yield k, x
-
-
-def _by(records: list[dict[str, Any]], ok: np.ndarray, key: Callable[[dict[str, Any]], str]
-        ) -> dict[str, float]:
-    groups: dict[str, list[bool]] = {}
-    for rec, good in zip(records, ok):
-        groups.setdefault(key(rec), []).append(bool(good))
-    return {k: float(np.mean(v)) for k, v in sorted(groups.items())}
-
-
-def evaluate(victim: Any, ds: Dataset, batch: int = 100) -> dict[str, Any]:
-    """Held-out numbers of a victim on a dataset.
-
-    Classifier: ``accuracy`` (and per class, per weather). Detector:
-    ``ap50`` = mean over classes of COCO AP at IoU 0.5 (pycocotools, every
-    query's best class and score kept, as COCO scores DETR), ``ap50_thr05``
-    (only detections scoring >= 0.5) and ``top1_correct`` (the best-scoring
-    detection has the right class and IoU >= 0.5).
-    """
-    weather = lambda r: r["params"]["environment"]["weather"]  # noqa: E731
-    name = lambda r: r["name"]  # noqa: E731
-    out: dict[str, Any] = {"n_images": len(ds), "victim": getattr(victim, "name", "?")}
-    if victim.task == "classification":
-        preds = []
-        for _, x in _batches(ds, batch):
-            preds += victim.predict(x)
-        rep = classification_report(preds, ds.labels.tolist())
-        ok = np.array([r["correct"] for r in rep.per_frame])
-        out.update(accuracy=rep.aggregate["accuracy"], n_correct=rep.aggregate["n_correct"],
-                   per_class=_by(ds.records, ok, name), per_weather=_by(ds.records, ok, weather))
-        return out
-    preds = []
-    for _, x in _batches(ds, batch):
-        preds += victim.predict(x, threshold=0.0)
-    truths = [{"boxes": [b.tolist()], "labels": [int(y)]} for b, y in zip(ds.boxes, ds.labels)]
-    classes = list(range(len(CLASSES)))
-    aps = per_class_ap(preds, truths, 0.5, classes)
-    kept = [{"boxes": p.boxes[p.scores >= 0.5], "scores": p.scores[p.scores >= 0.5],
-             "labels": p.labels[p.scores >= 0.5]} for p in preds]
-    aps_thr = per_class_ap(kept, truths, 0.5, classes)
-    top1 = np.array([is_detected({"boxes": p.boxes[:1], "scores": p.scores[:1], "labels": p.labels[:1]},
-                                 t, int(y)) for p, t, y in zip(preds, truths, ds.labels)])
-    out.update(ap50=_mean(aps), ap50_per_class={CLASSES[c]: v for c, v in aps.items()},
-               ap50_thr05=_mean(aps_thr), top1_correct=float(top1.mean()),
-               top1_per_weather=_by(ds.records, top1, weather))
-    return out
-
-
-def _mean(aps: dict[int, float | None]) -> float:
-    vals = [v for v in aps.values() if v is not None]
-    return float(np.mean(vals)) if vals else float("nan")
 
 
 # --------------------------------------------------------------------------- the whole run

@@ -4,7 +4,7 @@ Images in are sRGB values in [0, 1], ``B×3×H×W`` float torch tensors. Every
 victim's :meth:`~Victim.loss` is MAXIMISED by the attack (larger = more
 successful). Load one with :func:`load_victim` (a Hugging Face hub id, a
 ``save_pretrained`` folder, an undream YOLO folder, a YOLOv8/YOLO11 ``*.pt``
-where ultralytics is installed, or ``bundled:NAME``), or wrap any
+where ultralytics is installed, or ``bundled:NAME``, e.g. ``bundled:classifier-v2``), or wrap any
 ``torch.nn.Module`` in :class:`Classifier`, :class:`Detector` (DETR-style set
 prediction) or :class:`DenseDetector` (YOLO-style dense candidates).
 
@@ -28,15 +28,16 @@ from undream.victims.classifier import CLASSIFICATION_LOSSES, Classifier
 from undream.victims.dense import DenseDetector, DenseOutput
 from undream.victims.detector import DETECTION_LOSSES, DetectionOutput, Detector
 from undream.victims.preprocess import PreprocessConfig, preprocess_images
-from undream.victims.registry import BUNDLED, bundled_path, load_victim
+from undream.victims.registry import (BUNDLED, BUNDLED_ALIASES, bundled_names, bundled_path,
+                                      load_victim)
 
 _LAZY = {"HFClassifier", "HFDetector", "load_hf_victim"}
 
 __all__ = [
-    "BUNDLED", "CLASSIFICATION_LOSSES", "DETECTION_LOSSES", "TASKS",
+    "BUNDLED", "BUNDLED_ALIASES", "CLASSIFICATION_LOSSES", "DETECTION_LOSSES", "TASKS",
     "ClassPrediction", "Classifier", "DenseDetector", "DenseOutput", "DetPrediction",
     "DetectionOutput", "Detector",
-    "PreprocessConfig", "Target", "Victim", "bundled_path", "check_images",
+    "PreprocessConfig", "Target", "Victim", "bundled_names", "bundled_path", "check_images",
     "load_victim", "preprocess_images", *sorted(_LAZY),
 ]
 

@@ -2,9 +2,13 @@
 
 A spec is one of
 
-- ``bundled:classifier`` / ``bundled:detector``: the small models shipped in
+- ``bundled:<name>``: the small models shipped in
   ``undream/victims/bundled/<name>/`` (a ``save_pretrained`` folder),
-  trained on undream's own renders so that everything runs offline;
+  trained on undream's own renders so that everything runs offline:
+  ``classifier`` / ``detector`` (the first ones, trained on the ``v1`` data;
+  also named ``classifier-v1`` / ``detector-v1``) and ``classifier-v2`` /
+  ``detector-v2`` (trained on the ``v2`` data: camera heights 0.2–3.5 m,
+  distances 1.5–8 m, every background and weather);
 - ``bundled:yolo``: undream's YOLO-style detector, where its folder is
   present (it is not shipped yet: train one with ``undream victims train
   --task detection --arch yolo``);
@@ -29,18 +33,34 @@ from undream.victims import yolo_load
 from undream.victims.yolo import is_yolo_folder
 
 BUNDLED_DIR = Path(__file__).resolve().parent / "bundled"
-BUNDLED = {"classifier": "classification", "detector": "detection", "yolo": "detection"}
+# Folder name -> task.
+BUNDLED = {"classifier": "classification", "detector": "detection",
+           "classifier-v2": "classification", "detector-v2": "detection", "yolo": "detection"}
 # How to get a bundled victim whose folder is absent.
 NOT_SHIPPED = {"yolo": "none is shipped yet: train one with `undream victims train --task detection "
                        "--arch yolo` and pass its folder"}
+# Other names of bundled victims -> their folder name.
+BUNDLED_ALIASES = {"classifier-v1": "classifier", "detector-v1": "detector"}
+
+
+def bundled_names() -> list[str]:
+    """Every name ``bundled:<name>`` accepts: the folders, then their aliases."""
+    return [*BUNDLED, *BUNDLED_ALIASES]
+
+
+def bundled_folder_name(name: str) -> str:
+    """The folder name of the bundled victim ``name`` (an alias resolved); a
+    :class:`VictimError` listing the valid names for an unknown one."""
+    folder = BUNDLED_ALIASES.get(name, name)
+    if folder not in BUNDLED:
+        raise VictimError(f"bundled victim {name!r}: unknown; valid names are "
+                          f"{', '.join('bundled:' + n for n in bundled_names())}")
+    return folder
 
 
 def bundled_path(name: str) -> Path:
-    """The folder of the bundled victim ``name`` (it may not exist)."""
-    if name not in BUNDLED:
-        raise VictimError(f"bundled victim {name!r}: unknown; valid names are "
-                          f"{', '.join('bundled:' + n for n in BUNDLED)}")
-    return BUNDLED_DIR / name
+    """The folder of the bundled victim ``name`` or alias (it may not exist)."""
+    return BUNDLED_DIR / bundled_folder_name(name)
 
 
 def _load_bundled(name: str, task: str | None, device: str | torch.device) -> Victim:
@@ -53,7 +73,7 @@ def _load_bundled(name: str, task: str | None, device: str | torch.device) -> Vi
     if not (path / "config.json").is_file():
         raise VictimError(f"bundled victim {name!r}: {path} has no config.json (expected a "
                           f"save_pretrained folder)")
-    own = BUNDLED[name]
+    own = BUNDLED[bundled_folder_name(name)]
     if task is not None and task != own:
         raise VictimError(f"bundled victim {name!r}: does {own}, cannot do {task}")
     return _load_path(str(path), own, device, offline=True)
