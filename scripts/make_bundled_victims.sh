@@ -1,34 +1,49 @@
 #!/usr/bin/env bash
-# Reproduce the bundled victims (bundled:classifier, bundled:detector) from scratch:
-# render the training and held-out sets, train both models, evaluate them on the
-# held-out set and write their model cards. CPU only; about 45 minutes on 2 free cores.
+# Reproduce the bundled victims from scratch: render the training and held-out sets, train
+# both models, evaluate them on the held-out set and write their model cards. CPU only.
 #
 #   scripts/make_bundled_victims.sh [WORK_DIR] [OUT_DIR]
+#   DISTRIBUTION=v2 scripts/make_bundled_victims.sh [WORK_DIR] [OUT_DIR]
 #
-# WORK_DIR (default build/bundled-victims) receives the datasets; OUT_DIR (default
-# WORK_DIR/models) the two model folders. Pass OUT_DIR=undream/victims/bundled to
-# replace the shipped models. Set UNDREAM to the command that runs undream.
+# DISTRIBUTION=v1 (default) makes bundled:classifier and bundled:detector (about 45 minutes on
+# 2 free cores); DISTRIBUTION=v2 makes bundled:classifier-v2 and bundled:detector-v2 (camera
+# height and ground distance, every background and weather; about 72 minutes on ONE core:
+# 31 min of renders, 18 min for the classifier, 23 min for the detector).
+#
+# WORK_DIR (default build/bundled-victims, or build/bundled-victims-v2) receives the datasets;
+# OUT_DIR (default WORK_DIR/models) the two model folders. Pass OUT_DIR=undream/victims/bundled
+# to replace the shipped models. Set UNDREAM to the command that runs undream.
 #
 # The seeds, sizes, epochs and torch thread counts below are the ones the shipped models
 # were made with; with the same library versions on the same kind of CPU they give the
 # same weights byte for byte (the thread count changes float summation order, hence the
 # weights). Torch slows down badly when given more threads than there are free cores.
+# The v2 models were made on one core (taskset -c 1, OMP_NUM_THREADS=1).
 set -euo pipefail
 
-WORK=${1:-build/bundled-victims}
+DISTRIBUTION=${DISTRIBUTION:-v1}
+case "$DISTRIBUTION" in
+    v1) N_TRAIN=4000 N_TEST=800 CLS_EPOCHS=30 DET_EPOCHS=40 SUFFIX=
+        CLS_THREADS=${CLS_THREADS:-2} DET_THREADS=${DET_THREADS:-1} ;;
+    v2) N_TRAIN=8000 N_TEST=1200 CLS_EPOCHS=40 DET_EPOCHS=50 SUFFIX=-v2
+        CLS_THREADS=${CLS_THREADS:-1} DET_THREADS=${DET_THREADS:-1} ;;
+    *) echo "DISTRIBUTION must be v1 or v2, got '$DISTRIBUTION'" >&2; exit 2 ;;
+esac
+WORK=${1:-build/bundled-victims${SUFFIX}}
 OUT=${2:-$WORK/models}
 UNDREAM=${UNDREAM:-undream}
-CLS_THREADS=${CLS_THREADS:-2}
-DET_THREADS=${DET_THREADS:-1}
 
-$UNDREAM victims make-dataset --out "$WORK/train" --n 4000 --seed 0 --split train
-$UNDREAM victims make-dataset --out "$WORK/test" --n 800 --seed 0 --split test
+$UNDREAM victims make-dataset --out "$WORK/train" --n "$N_TRAIN" --seed 0 --split train \
+    --distribution "$DISTRIBUTION"
+$UNDREAM victims make-dataset --out "$WORK/test" --n "$N_TEST" --seed 0 --split test \
+    --distribution "$DISTRIBUTION"
 
 $UNDREAM victims train --task classification --data "$WORK/train" --test "$WORK/test" \
-    --out "$OUT/classifier" --seed 0 --threads "$CLS_THREADS"
+    --out "$OUT/classifier$SUFFIX" --seed 0 --epochs "$CLS_EPOCHS" --threads "$CLS_THREADS"
 $UNDREAM victims train --task detection --data "$WORK/train" --test "$WORK/test" \
-    --out "$OUT/detector" --seed 0 --threads "$DET_THREADS" --backbone "$OUT/classifier"
+    --out "$OUT/detector$SUFFIX" --seed 0 --epochs "$DET_EPOCHS" --threads "$DET_THREADS" \
+    --backbone "$OUT/classifier$SUFFIX"
 
-# The held-out numbers of the models as saved.
-$UNDREAM victims evaluate --victim "$OUT/classifier" --data "$WORK/test"
-$UNDREAM victims evaluate --victim "$OUT/detector" --data "$WORK/test"
+# The held-out numbers of the models as saved (overall, per weather, background and camera band).
+$UNDREAM victims evaluate --victim "$OUT/classifier$SUFFIX" --data "$WORK/test"
+$UNDREAM victims evaluate --victim "$OUT/detector$SUFFIX" --data "$WORK/test"

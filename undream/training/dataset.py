@@ -8,6 +8,14 @@ rendered by the project's own scene adapter
 ``volpath`` in fog) and its box comes from the ``mask`` view (the object's
 visible pixels behind every occluder).
 
+Two distributions (:attr:`DatasetConfig.distribution`): ``v1``, below, the
+data of ``bundled:classifier`` / ``bundled:detector`` (a camera orbiting the
+object at a random elevation, three backgrounds, four weathers), and ``v2``
+(:mod:`undream.training.distribution_v2`), the data of the ``-v2`` victims
+(camera height and ground distance, every background and weather). The rest
+of this docstring describes ``v1``; ``v2`` follows the same rules with its
+own parameters.
+
 Held-out split: ``train`` and ``test`` draw the environment and the camera
 from DISJOINT parameter sets. Every banded parameter (:data:`BANDS`) is cut
 into an odd number of equal bands that alternate between the splits (even
@@ -278,11 +286,13 @@ def render_sample(mi: ModuleType, meshes: _Meshes, cfg: DatasetConfig, index: in
     more than half), the drawn parameters (``params``), the
     camera's ``to_world`` and the environment. The class is drawn once; the
     rest is redrawn (up to :data:`MAX_TRIES` times) while the object shows
-    fewer than :data:`MIN_VISIBLE_PIXELS` pixels, so classes stay uniform.
+    fewer than :data:`MIN_VISIBLE_PIXELS` pixels (``v2``: the same share of the
+    frame, :func:`~.distribution_v2.min_visible_pixels`), so classes stay uniform.
     """
     rng = np.random.default_rng([cfg.seed, SPLITS.index(cfg.split), index])
     label = int(rng.integers(len(CLASSES)))
     sphere = meshes.spheres[CLASSES[label]]
+    min_visible = v2.min_visible_pixels(cfg.size) if cfg.distribution == v2.NAME else MIN_VISIBLE_PIXELS
     for attempt in range(MAX_TRIES):
         p: SampleParams | v2.SampleParamsV2
         if cfg.distribution == v2.NAME:
@@ -295,7 +305,7 @@ def render_sample(mi: ModuleType, meshes: _Meshes, cfg: DatasetConfig, index: in
         mask_img = np.array(mi.render(_scene(mi, seq, paths, "mask", cfg.spp, None), seed=index))
         coverage = mask_img.mean(axis=2)
         mask, box = coverage > 0.5, mask_box(coverage > BOX_COVERAGE)
-        if box is not None and int(mask.sum()) >= MIN_VISIBLE_PIXELS:
+        if box is not None and int(mask.sum()) >= min_visible:
             break
     else:
         raise DatasetError(f"sample {index}: the object stayed hidden in {MAX_TRIES} draws")

@@ -49,6 +49,7 @@ BANDS_V2: Bands = {
 WEATHER_WEIGHTS_V2 = {"clear": 0.2, "cloudy": 0.15, "night": 0.15, "fog": 0.2, "rain": 0.15, "snow": 0.15}
 COVERAGE = (0.25, 1.0)  # bounding-sphere angular diameter / horizontal field of view
 MAX_SHIFT = 0.3  # look-at shift, at most this share of the free half frame
+MIN_VISIBLE_SHARE = 60 / 64**2  # of the frame's pixels: v1's 60 pixels of a 64-pixel image
 MAX_POSE_DRAWS = 500  # (distance, fov) draws before giving up: geometry only, no rendering
 # The camera parameters that evaluation reports band by band.
 REPORTED_BANDS = ("height_m", "distance_m")
@@ -69,6 +70,11 @@ class SampleParamsV2:
     shift: tuple[float, float]  # look-at offset, fractions of the half frame (x, y)
     environment: Environment
     texture: dict[str, Any] = field(default_factory=dict)  # kind and its parameters
+
+
+def min_visible_pixels(size: int) -> int:
+    """Pixels the object must cover (by more than half) in a ``size``×``size`` image: 60 at 64 px."""
+    return max(1, round(MIN_VISIBLE_SHARE * size * size))
 
 
 def _environment(rng: np.random.Generator, split: str) -> Environment:

@@ -16,7 +16,9 @@ from pathlib import Path
 from typing import Any
 
 from undream.errors import VictimError
-from undream.training.dataset import BANDS, CLASSES, WEATHER_WEIGHTS
+from undream.training import distribution_v2 as v2
+from undream.training.bands import Bands
+from undream.training.dataset import CLASSES, TRAINING_BACKGROUNDS, WEATHER_WEIGHTS, bands_of
 from undream.victims.registry import BUNDLED, bundled_folder_name, bundled_path
 from undream.victims.yolo import MODEL_TYPE as YOLO_MODEL_TYPE
 
@@ -48,9 +50,9 @@ def bundled_record(name: str) -> dict[str, Any]:
     return training_record(bundled_path(name))
 
 
-def _split_table() -> str:
+def _split_table(bands: Bands) -> str:
     rows = ["| parameter | range | band width | train bands | test bands |", "|---|---|---|---|---|"]
-    for name, (lo, hi, width) in BANDS.items():
+    for name, (lo, hi, width) in bands.items():
         edges = [lo + k * width for k in range(int(round((hi - lo) / width)) + 1)]
         bands = [f"[{a:g}, {b:g})" for a, b in zip(edges, edges[1:])]
         rows.append(f"| {name} | [{lo:g}, {hi:g}) | {width:g} | {' '.join(bands[0::2])} | "
@@ -60,6 +62,60 @@ def _split_table() -> str:
 
 def _fmt(v: Any) -> str:
     return "n/a" if v is None else f"{v:.3f}" if isinstance(v, float) else str(v)
+
+
+GROUP_TITLES = {"weather": "weather", "background": "background", "height_m": "camera height (m)",
+                "distance_m": "camera ground distance (m)", "elevation_deg": "camera elevation (°)",
+                "coverage": "object size / frame width"}
+
+
+def group_tables(test: dict[str, Any]) -> list[str]:
+    """Markdown tables of an evaluation's ``per_group`` numbers (none if it has none)."""
+    per = test.get("per_group", {})
+    lines = ["", "Per group of held-out images (camera bands: the held-out bands):"] if per else []
+    for grouping, groups in per.items():
+        measure = next(k for k in next(iter(groups.values())) if k != "n")
+        lines += ["", f"| {GROUP_TITLES.get(grouping, grouping)} | images | {_MEASURES[measure]} |",
+                  "|---|---|---|"]
+        lines += [f"| {name} | {g['n']} | {_fmt(g[measure])} |" for name, g in groups.items()]
+    return lines
+
+
+_MEASURES = {"accuracy": "accuracy", "ap50": "AP@0.5"}
+
+
+def _data_text(distribution: str) -> str:
+    """What the renders of a distribution show (the model card's Data paragraph, after its size)."""
+    common = ("each with ONE built-in object at a random yaw, with a random texture (solid, stripes, "
+              "checker, smooth noise or a mix, random colours) so that the model learns shape rather "
+              "than a texture, ")
+    if distribution == v2.NAME:
+        return (common + "on a random background (" + ", ".join(v2.BACKGROUNDS) + "), under a random "
+                "environment (weather " + ", ".join(f"{k} {v:.0%}" for k, v in v2.WEATHER_WEIGHTS_V2.items())
+                + "; time of day across the day; sun height; fog density), seen by a camera placed like "
+                "one in a street (distribution `v2`, `undream.training.distribution_v2`): its height "
+                "above the ground (0.2–3.5 m), its horizontal distance from the object (1.5–8 m), its "
+                "azimuth about the object and its field of view (12–66°, redrawn with the distance until "
+                f"the object's bounding sphere spans {v2.COVERAGE[0]:g}–{v2.COVERAGE[1]:g} of the frame "
+                "width), looking at the object with a small off-centre shift. Boxes are the tight box of "
+                "the object's visible pixels (the `mask` view).")
+    return (common + "on a random background (plain, park with trees, street with buildings), under a "
+            "random environment (weather " + ", ".join(f"{k} {v:.0%}" for k, v in WEATHER_WEIGHTS.items())
+            + "; time of day; sun height; fog density), seen by a random camera (azimuth and "
+            "elevation about the object, field of view, object size in the frame, off-centre "
+            "look-at). Boxes are the tight box of the object's visible pixels (the `mask` view).")
+
+
+def _split_text(distribution: str) -> str:
+    if distribution == v2.NAME:
+        return ("No held-out image shares a time of day, fog density, camera azimuth, height, ground "
+                "distance or field of view with any training image. Every weather and background "
+                "occurs in both; object yaw, sun height, look-at offset and textures are drawn the "
+                "same way in both.")
+    return ("No held-out image shares a time of day, fog density, camera azimuth, elevation, field of "
+            "view or object size in the frame with any training image. Weather kinds, backgrounds "
+            f"({', '.join(TRAINING_BACKGROUNDS)}) and texture kinds occur in both; object yaw, sun "
+            "height, look-at offset and textures are drawn the same way in both.")
 
 
 def _model_config(folder: Path) -> dict[str, Any]:
@@ -79,9 +135,11 @@ def model_card(folder: str | Path, commands: list[str] | None = None, note: str 
     size = weights_bytes(folder)
     tr, te = rec["train_data"], rec["test_data"]
     config = _model_config(folder)  # the architecture as saved, not as the code says today
+    distribution = tr["config"].get("distribution", "v1")
+    suffix = "" if distribution == "v1" else f"-{distribution}"
     if task == "classification":
         r = config
-        title = "bundled:classifier — ResNet image classifier"
+        title = f"bundled:classifier{suffix} — ResNet image classifier"
         arch = (f"`transformers` `ResNetForImageClassification` ({r['layer_type']} "
                 f"blocks, depths {r['depths']}, widths {r['hidden_sizes']}, "
                 f"stem {r['embedding_size']}), trained from scratch.")
@@ -92,7 +150,7 @@ def model_card(folder: str | Path, commands: list[str] | None = None, note: str 
         title, arch, numbers = _yolo_card(config, test)
     else:
         d = config
-        title = "bundled:detector — DETR object detector"
+        title = f"bundled:detector{suffix} — DETR object detector"
         arch = ("`transformers` `DetrForObjectDetection`: the classifier's ResNet as backbone "
                 "(stage 4, stride 32; frozen batch norm, stem and first stage, as DETR does), "
                 f"d_model {d['d_model']}, {d['encoder_layers']} encoder and {d['decoder_layers']} "
@@ -122,26 +180,16 @@ def model_card(folder: str | Path, commands: list[str] | None = None, note: str 
         "undream's own renders (`undream victims make-dataset`, module "
         f"`undream.training.dataset`): {tr['config']['size']}×{tr['config']['size']} sRGB images, "
         f"{tr['config']['spp']} spp, path traced by the project's scene adapter (`volpath` in "
-        "fog), each with ONE built-in object at a random yaw, with a "
-        "random texture (solid, stripes, checker, smooth noise or a mix, random colours) so that "
-        "the model learns shape rather than a texture, on a random background (plain, park with "
-        "trees, street with buildings), under a random environment (weather "
-        + ", ".join(f"{k} {v:.0%}" for k, v in WEATHER_WEIGHTS.items())
-        + "; time of day; sun height; fog density), seen by a random camera (azimuth and "
-        "elevation about the object, field of view, object size in the frame, off-centre "
-        "look-at). Boxes are the tight box of the object's visible pixels (the `mask` view).", "",
+        "fog, rain and snow), " + _data_text(distribution), "",
         f"- training set: {tr['n']} images (seed {tr['config']['seed']}, split `train`)",
         f"- held-out set: {te['n']} images (seed {te['config']['seed']}, split `test`)",
         f"- rendered with Mitsuba variant `{tr.get('mitsuba_variant')}`", "",
         "Held-out split: train and test draw environments and camera poses from DISJOINT sets. "
         "Each parameter below is cut into equal bands that alternate between the splits, an "
         "odd number of them (azimuth is cyclic), so every held-out band lies between two "
-        "training bands: the held-out set interpolates, it never extrapolates. No held-out "
-        "image shares a time of day, fog density, camera azimuth, elevation, field of view or "
-        "object size in the frame with any training image. Weather kinds, backgrounds and "
-        "texture kinds occur in both; object yaw, sun height, look-at offset and textures are "
-        "drawn the same way in both.", "",
-        _split_table(), "",
+        "training bands: the held-out set interpolates, it never extrapolates. "
+        + _split_text(distribution), "",
+        _split_table(bands_of(distribution)), "",
         "## Model", "",
         arch, "",
         f"- parameters: {rec['parameters']:,}",
@@ -149,7 +197,7 @@ def model_card(folder: str | Path, commands: list[str] | None = None, note: str 
         f"- input: sRGB in [0, 1], resized to {px}×{px} (bilinear) and normalised with the "
         "ImageNet mean/std (`preprocessor_config.json`; undream redoes this differentiably).", "",
         "## Held-out results", "",
-        *numbers, "",
+        *numbers, *group_tables(test), "",
         "## Training", "",
         f"- seed {cfg['seed']}, {rec['defaults']['epochs'] if cfg['epochs'] is None else cfg['epochs']} "
         f"epochs, AdamW, cosine schedule, batch {rec['defaults']['batch_size']}; augmentation: "
