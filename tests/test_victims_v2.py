@@ -190,3 +190,48 @@ def test_per_group_report(tiny_v2, task, measure):
             assert band_index(v2.BANDS_V2, name, lo + 1e-6) % 2 == 1  # a test band
     lines = group_tables(result)
     assert "| camera height (m) | images | " + ("accuracy" if task == "classification" else "AP@0.5") + " |" in lines
+
+
+# --------------------------------------------------------------------------- the shipped v2 weights
+
+GOALS = {"classifier-v2": ("accuracy", 0.95), "detector-v2": ("ap50", 0.90)}  # issue 22's, overall and per group
+
+
+@pytest.fixture(scope="module")
+def held_out_v2(tmp_path_factory):
+    """12 fresh held-out v2 images (a seed not used for the shipped test set)."""
+    out = tmp_path_factory.mktemp("held_out_v2") / "ds"
+    make_dataset(out, DatasetConfig(n=12, seed=20240, split="test", distribution="v2"), progress=False)
+    return load_dataset(out)
+
+
+@pytest.mark.parametrize("name", list(GOALS))
+def test_bundled_v2_files(name):
+    from undream.training.model_card import MAX_WEIGHTS_BYTES, bundled_record, check_bundled
+    info = check_bundled(name)
+    assert 0 < info["weights_bytes"] <= MAX_WEIGHTS_BYTES
+    rec = bundled_record(name)
+    assert rec["train_data"]["config"]["distribution"] == rec["test_data"]["config"]["distribution"] == "v2"
+    assert rec["test"]["n_images"] >= 1000
+    key, goal = GOALS[name]
+    groups = rec["test"]["per_group"]
+    assert set(groups["weather"]) == set(WEATHERS) and set(groups["background"]) == set(BACKGROUNDS)
+    assert len(groups["height_m"]) == 5 and len(groups["distance_m"]) == 6  # every held-out band
+    card = (Path(info["folder"]) / "MODEL_CARD.md").read_text()
+    assert f"**{'accuracy' if key == 'accuracy' else 'AP@0.5'}: {rec['test'][key]:.3f}**" in card
+    assert "| camera ground distance (m) | images |" in card
+    assert rec["test"][key] >= goal
+    assert min(g[key] for by in groups.values() for g in by.values()) >= goal  # and per group
+
+
+def test_bundled_v2_offline(monkeypatch, held_out_v2):
+    from undream.metrics import is_detected
+    from undream.victims import load_victim
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    x = torch.from_numpy(held_out_v2.images).permute(0, 3, 1, 2).float() / 255.0
+    preds = load_victim("bundled:classifier-v2").predict(x)
+    assert sum(p.label == y for p, y in zip(preds, held_out_v2.labels.tolist())) >= 10
+    dets = load_victim("bundled:detector-v2").predict(x)
+    hits = sum(is_detected(p, {"boxes": [b.tolist()], "labels": [int(y)]}, int(y))
+               for p, b, y in zip(dets, held_out_v2.boxes, held_out_v2.labels))
+    assert hits >= 10
