@@ -133,7 +133,7 @@ def test_bundled_names_and_aliases():
     assert bundled_path("detector-v1") == bundled_path("detector")
     assert bundled_path("classifier-v2").name == "classifier-v2"
     assert bundled_path("detector-v2").name == "detector-v2"
-    assert bundled_names() == ["classifier", "detector", "classifier-v2", "detector-v2",
+    assert bundled_names() == ["classifier", "detector", "classifier-v2", "detector-v2", "yolo",
                                "classifier-v1", "detector-v1"]
 
 
@@ -141,7 +141,7 @@ def test_unknown_bundled_name_lists_the_valid_ones():
     from undream.victims import load_victim
     with pytest.raises(VictimError, match=r"bundled victim 'classifier-v3': unknown; valid names are "
                        r"bundled:classifier, bundled:detector, bundled:classifier-v2, bundled:detector-v2, "
-                       r"bundled:classifier-v1, bundled:detector-v1"):
+                       r"bundled:yolo, bundled:classifier-v1, bundled:detector-v1"):
         load_victim("bundled:classifier-v3")
 
 

@@ -8,6 +8,7 @@ from the plain-torch detector's candidates, and its package by a stand-in module
 from __future__ import annotations
 
 import json
+from dataclasses import asdict
 import re
 import sys
 import types
@@ -382,7 +383,7 @@ def _synthetic_dataset(folder, n: int, seed: int):
     """A dataset folder in make-dataset's layout, of synthetic squares (classes 0-2 of CLASSES)."""
     from PIL import Image
 
-    from undream.training.dataset import CLASSES
+    from undream.training.dataset import CLASSES, sample_params
 
     gen = torch.Generator().manual_seed(seed)
     images, boxes, labels = synthetic_squares(n, SIZE, gen, max_objects=1)
@@ -392,8 +393,10 @@ def _synthetic_dataset(folder, n: int, seed: int):
         Image.fromarray((images[i].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)).save(
             folder / "images" / f"{i:05d}.png")
         lab = int(labels[i, 0])
+        drawn = sample_params(np.random.default_rng([seed, i]), "train", lab)  # what a render would record
+        params = {**asdict(drawn), "environment": drawn.environment.to_json()}
         lines.append(json.dumps({"file": f"images/{i:05d}.png", "index": i, "label": lab, "name": CLASSES[lab],
-                                 "box": boxes[i, 0].tolist(), "params": {"environment": {"weather": "clear"}}}))
+                                 "box": boxes[i, 0].tolist(), "params": params}))
     (folder / "labels.jsonl").write_text("\n".join(lines) + "\n")
     (folder / "metadata.json").write_text(json.dumps({
         "classes": list(CLASSES), "command": "synthetic squares (tests/test_yolo.py)",
