@@ -25,13 +25,12 @@ import numpy as np
 
 from undream.errors import AssetError, SpecError, UndreamError
 from undream.scene.builtin import asset_mesh
+from undream.scene.layout import SEQUENCE_FILE
 from undream.scene.sources import sequence_from_file
 from undream.scene.trajectory import sequence_from_trajectory
 from undream.spec import Condition, Sequence, load_sequence
 from undream.spec.io import join_against, read_yaml
 from undream.spec.run import RunConfig
-
-SCENE_MARKER = "sequence.json"  # a scene directory's (scheduler.preflight's marker)
 
 
 def condition_sources(config: RunConfig, base_dir: Path) -> list[Path]:
@@ -109,8 +108,8 @@ def _slug(text: str) -> str:
 def _read(src: Path) -> Sequence:
     """A condition's sequence, every file it names absolute: a scene directory's own meshes and
     environment maps, a spec file's relative paths resolved against its folder."""
-    if (src / SCENE_MARKER).is_file():
-        seq = load_sequence(src / SCENE_MARKER)
+    if (src / SEQUENCE_FILE).is_file():
+        seq = load_sequence(src / SEQUENCE_FILE)
         if seq.conditions:
             raise SpecError(f"{src}: is itself a multi-condition scene; name its conditions' scenes instead")
         asset = replace(seq.asset, mesh=str(src / "meshes" / "object.ply"), scale=1.0)  # written scaled

@@ -9,11 +9,27 @@ set interpolates and never extrapolates.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
 SPLITS = ("train", "test")
 Bands = dict[str, tuple[float, float, float]]
+
+
+def record_values(params: dict[str, Any], camera: tuple[str, ...]) -> dict[str, float]:
+    """The banded values of one image's parameters (a label record's ``params``): the ``camera``
+    fields as they are, the fog density, and the time of day as ``day_time_h`` or, at night,
+    ``night_time_h`` (hours after midnight counted from 24)."""
+    env = params["environment"]
+    t = env["time_of_day"]
+    out = {k: float(params[k]) for k in camera}
+    out["fog_density"] = float(env["fog_density"])
+    if env["weather"] == "night":
+        out["night_time_h"] = t + 24.0 if t < 12.0 else t
+    else:
+        out["day_time_h"] = t
+    return out
 
 
 def band_index(bands: Bands, param: str, value: float) -> int:

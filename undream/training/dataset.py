@@ -171,15 +171,7 @@ def banded_values(params: dict[str, Any]) -> dict[str, float]:
     :data:`BANDS` or, for a ``v2`` record, :data:`~.distribution_v2.BANDS_V2`."""
     if distribution_of(params) == v2.NAME:
         return v2.banded_values(params)
-    env = params["environment"]
-    t = env["time_of_day"]
-    out = {k: float(params[k]) for k in ("azimuth_deg", "elevation_deg", "fov_deg", "coverage")}
-    out["fog_density"] = float(env["fog_density"])
-    if env["weather"] == "night":
-        out["night_time_h"] = t + 24.0 if t < 12.0 else t
-    else:
-        out["day_time_h"] = t
-    return out
+    return banding.record_values(params, ("azimuth_deg", "elevation_deg", "fov_deg", "coverage"))
 
 
 def splits_of(params: dict[str, Any]) -> set[str]:

@@ -33,7 +33,7 @@ from undream.errors import DatasetError
 from undream.scene.poses import look_at, object_pose, yaw_rotation
 from undream.spec import Asset, Camera, Environment, Frame, Sequence, TextureParam, Transform
 from undream.spec.model import BACKGROUNDS
-from undream.training.bands import Bands, draw_banded, split_of
+from undream.training.bands import Bands, draw_banded, record_values, split_of
 from undream.training.textures import texture_recipe
 
 NAME = "v2"
@@ -145,15 +145,7 @@ def sample_frame(p: SampleParamsV2, sphere: tuple[np.ndarray, float], size: int,
 
 def banded_values(params: dict[str, Any]) -> dict[str, float]:
     """The :data:`BANDS_V2` values of one image's parameters (a label record's ``params``)."""
-    env = params["environment"]
-    t = env["time_of_day"]
-    out = {k: float(params[k]) for k in ("azimuth_deg", "height_m", "distance_m", "fov_deg")}
-    out["fog_density"] = float(env["fog_density"])
-    if env["weather"] == "night":
-        out["night_time_h"] = t + 24.0 if t < 12.0 else t
-    else:
-        out["day_time_h"] = t
-    return out
+    return record_values(params, ("azimuth_deg", "height_m", "distance_m", "fov_deg"))
 
 
 def splits_of(params: dict[str, Any]) -> set[str]:

@@ -151,8 +151,7 @@ def match_weights(log_probs: torch.Tensor, boxes: torch.Tensor, labels: torch.Te
     queries and carry no gradient.
     """
     with torch.no_grad():
-        p_true = _query_log_prob(log_probs, labels).exp()
-        by_prob = p_true / p_true.sum(1, keepdim=True).clamp(min=1e-12)
+        by_prob = _by_true_class(log_probs, labels)
         if true_boxes is None:
             return by_prob
         iou, _ = box_iou_giou(boxes, true_boxes[:, None, :])
@@ -161,6 +160,13 @@ def match_weights(log_probs: torch.Tensor, boxes: torch.Tensor, labels: torch.Te
         total = iou.sum(1, keepdim=True)
         by_iou = iou / total.clamp(min=1e-12)
         return torch.where(total > 0, by_iou, by_prob)
+
+
+def _by_true_class(log_probs: torch.Tensor, labels: torch.Tensor | int) -> torch.Tensor:
+    """``B×Q`` weights ∝ each candidate's probability of the true class, summing to 1 per image:
+    "wherever the detector finds it", both weightings' fallback."""
+    p_true = _query_log_prob(log_probs, labels).exp()
+    return p_true / p_true.sum(1, keepdim=True).clamp(min=1e-12)
 
 
 def dense_weights(log_probs: torch.Tensor, boxes: torch.Tensor, labels: torch.Tensor | int,
@@ -179,8 +185,7 @@ def dense_weights(log_probs: torch.Tensor, boxes: torch.Tensor, labels: torch.Te
     of the true class, as :func:`match_weights` does. Detached.
     """
     with torch.no_grad():
-        p_true = _query_log_prob(log_probs, labels).exp()
-        by_prob = p_true / p_true.sum(1, keepdim=True).clamp(min=1e-12)
+        by_prob = _by_true_class(log_probs, labels)
         if true_boxes is None:
             return by_prob
         iou, _ = box_iou_giou(boxes, true_boxes[:, None, :])
