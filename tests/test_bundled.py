@@ -181,7 +181,7 @@ def offline(monkeypatch):
     monkeypatch.setenv("TRANSFORMERS_OFFLINE", "1")
 
 
-@pytest.mark.parametrize("name", ["classifier", "detector"])
+@pytest.mark.parametrize("name", ["classifier", "detector", "yolo"])
 def test_bundled_files(name):
     from undream.training.model_card import MAX_WEIGHTS_BYTES, bundled_record, check_bundled
     info = check_bundled(name)
@@ -192,6 +192,19 @@ def test_bundled_files(name):
     assert f"{rec['test'][key]:.3f}" in card
     assert rec["test"][key] >= (0.95 if name == "classifier" else 0.90)
     assert rec["test"]["n_images"] >= 600
+
+
+def test_bundled_yolo_card_has_every_group_over_the_goal():
+    """Issue 23: AP@0.5 ≥ 0.90 on the held-out split, shown per background and weather in the card."""
+    from undream.training.model_card import bundled_record, check_bundled
+    rec = bundled_record("yolo")
+    assert rec["config"]["arch"] == "yolo" and rec["train_data"]["config"]["split"] == "train"
+    groups = rec["test"]["per_group"]
+    assert set(groups["weather"]) == {"clear", "cloudy", "fog", "night"}
+    assert set(groups["background"]) == {"park", "plain", "street"}
+    assert min(g["ap50"] for by in groups.values() for g in by.values()) >= 0.90
+    card = (__import__("pathlib").Path(check_bundled("yolo")["folder"]) / "MODEL_CARD.md").read_text()
+    assert f"**AP@0.5: {rec['test']['ap50']:.3f}**" in card and "| background | images | AP@0.5 |" in card
 
 
 def test_bundled_classifier_offline(offline, held_out):
@@ -225,6 +238,20 @@ def test_bundled_detector_offline(offline, held_out):
     assert out.boxes.shape == (2, q, 4)
 
 
+def test_bundled_yolo_offline(offline, held_out):
+    from undream.metrics import is_detected
+    from undream.victims import load_victim
+    from undream.victims.dense import DenseDetector
+    v = load_victim("bundled:yolo")
+    assert isinstance(v, DenseDetector) and v.labels == list(CLASSES)
+    import torch
+    x = torch.from_numpy(held_out.images).permute(0, 3, 1, 2).float() / 255.0
+    preds = v.predict(x)
+    hits = sum(is_detected(p, {"boxes": [b.tolist()], "labels": [int(y)]}, int(y))
+               for p, b, y in zip(preds, held_out.boxes, held_out.labels))
+    assert hits >= 10
+
+
 def test_classes_are_the_bundled_victims_and_built_in_assets():
     """A new built-in asset (the pedestrian) once became a class and broke the bundled victims' labels."""
     import json
@@ -233,6 +260,6 @@ def test_classes_are_the_bundled_victims_and_built_in_assets():
     from undream.victims.registry import bundled_path
 
     assert set(CLASSES) <= set(BUILTINS)
-    for name in ("classifier", "detector", "classifier-v2", "detector-v2"):
+    for name in ("classifier", "detector", "classifier-v2", "detector-v2", "yolo"):
         config = json.loads((bundled_path(name) / "config.json").read_text())
         assert [config["id2label"][str(i)] for i in range(len(config["id2label"]))] == list(CLASSES)

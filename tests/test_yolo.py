@@ -501,3 +501,27 @@ def test_dense_detector_settings_checked():
 class _DictOut(torch.nn.Module):
     def forward(self, x):
         return {"one2one": x}
+
+
+# --------------------------------------------------------------------------- the shipped bundled:yolo, as a user runs it
+
+def test_undream_run_against_the_shipped_yolo_raises_its_vanish_loss(tmp_path):
+    """`undream run` with ``victim: bundled:yolo`` (the dense loss through the whole iteration): the
+    run records AP@0.5 on attacked and held-out frames, and PGD raises the loss it maximises."""
+    import subprocess
+    from pathlib import Path
+
+    from farm_support import make_scene, run_config, write_yaml
+
+    root = Path(__file__).resolve().parents[1]
+    scene = make_scene(tmp_path / "scene", n_frames=4, size=32)
+    cfg = run_config(scene, "bundled:yolo", name="yolo", steps=4, loss="vanish")  # ε 32
+    out = tmp_path / "out"
+    res = subprocess.run([sys.executable, "-m", "undream.cli", "run", str(write_yaml(tmp_path / "run.yaml", cfg)),
+                          "--out", str(out), "--no-progress"], capture_output=True, text=True, cwd=root,
+                         env={**__import__("os").environ, "HF_HUB_OFFLINE": "1"})
+    assert res.returncode == 0, res.stderr
+    results = json.loads((out / "results.json").read_text())
+    assert results["attacked"]["benign"]["metric"] == "ap50" and results["held_out"]["frames"] == [3]
+    losses = results["loss_per_iteration"]
+    assert len(losses) == 4 and losses[-1] > losses[0]

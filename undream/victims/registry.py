@@ -9,9 +9,9 @@ A spec is one of
   also named ``classifier-v1`` / ``detector-v1``) and ``classifier-v2`` /
   ``detector-v2`` (trained on the ``v2`` data: camera heights 0.2–3.5 m,
   distances 1.5–8 m, every background and weather);
-- ``bundled:yolo``: undream's YOLO-style detector, where its folder is
-  present (it is not shipped yet: train one with ``undream victims train
-  --task detection --arch yolo``);
+- ``bundled:yolo``: undream's YOLO-style one-stage detector
+  (:mod:`undream.victims.yolo`), trained from scratch on the ``v1`` data
+  (``undream victims train --task detection --arch yolo``; model card in its folder);
 - the path of an undream YOLO folder (``config.json`` with ``model_type``
   ``undream_yolo``: :mod:`undream.victims.yolo_load`);
 - the path of a YOLOv8/YOLO11 weights file (``*.pt``), loaded through
@@ -37,8 +37,8 @@ BUNDLED_DIR = Path(__file__).resolve().parent / "bundled"
 BUNDLED = {"classifier": "classification", "detector": "detection",
            "classifier-v2": "classification", "detector-v2": "detection", "yolo": "detection"}
 # How to get a bundled victim whose folder is absent.
-NOT_SHIPPED = {"yolo": "none is shipped yet: train one with `undream victims train --task detection "
-                       "--arch yolo` and pass its folder"}
+NOT_SHIPPED = {"yolo": "this installation lacks its folder: train one with `undream victims train --task "
+                       "detection --arch yolo` and pass its folder"}
 # Other names of bundled victims -> their folder name.
 BUNDLED_ALIASES = {"classifier-v1": "classifier", "detector-v1": "detector"}
 
