@@ -27,7 +27,7 @@ from undream.scene.mesh import Mesh, read_ply
 from undream.scene.mitsuba_scene import OBJECT_ID
 from undream.scenedir.init import InitOptions, init_scene
 from undream.settings import LocalSettings
-from undream.spec.run import RunConfig, split_conditions
+from undream.spec.run import TASK_LOSSES, RunConfig, split_conditions
 
 if TYPE_CHECKING:
     from undream.store import Store
@@ -157,9 +157,11 @@ def evaluate(textures: Mapping[str, Texture], scenes: Sequence[Path], victims: S
         try:
             for scene, scene_dir in zip(scenes, dirs):  # every scene checked before anything renders
                 for name, victim in loaded.items():
+                    # the loss names the victim's task, and a detector is judged against the object's
+                    # box in each frame (without it, AP had no ground truth and every cell was n/a)
                     config = RunConfig.from_json({"scene": str(scene_dir), "name": "evaluate", "victim": name,
                                                   "label": label, "eval_spp": spp, "holdout": holdout,
-                                                  "sim": sim, "seed": seed})
+                                                  "sim": sim, "seed": seed, "loss": TASK_LOSSES[victim.task][0]})
                     contexts.append((scene, name, build_context(config, scene_dir, victim=victim, local=local)))
                     wanted = contexts[-1][2].sequence.texture.shape
                     for texture_name, (texture, _) in textures.items():

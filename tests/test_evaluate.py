@@ -49,6 +49,19 @@ def test_a_texture_is_judged_on_every_split_and_written_as_json_and_csv(inputs, 
         [{**r, "texture": None} for r in rows]
 
 
+def test_a_detector_judges_by_ap_against_the_objects_box(inputs, tmp_path):
+    """A detector victim is judged by AP@0.5 against the object's box in each frame; ``undream evaluate``
+    once built its run without a detection loss, so no frame had a box and every cell read n/a."""
+    res = _evaluate(str(inputs["base"] / "texture.npy"), str(inputs["scene"]), "--victim", "bundled:yolo",
+                    "--victim", inputs["victim"], "--spp", "2", "--json", str(tmp_path / "rows.json"))
+    assert res.exit_code == 0, res.output
+    rows = json.loads((tmp_path / "rows.json").read_text())["rows"]
+    detector = [r for r in rows if r["victim"] == "bundled:yolo"]
+    assert [r["split"] for r in detector] == ["all", "attacked", "held_out"]
+    assert all(r["metric"] == "ap50" and 0 <= r["benign"] <= 1 and 0 <= r["adversarial"] <= 1 for r in detector)
+    assert "n/a" not in res.output
+
+
 @pytest.mark.parametrize("texture, extra, needle", [
     ("wrong", [], "TEXTURE wrong.npy: 8×4 texels, but scene"),
     ("texture.npy", ["--victim", "bundled:no-such-victim"], "no-such-victim"),
