@@ -65,7 +65,7 @@ def chart(path: Path, victims: list[str], sources: list[str], means: dict, title
     import numpy as np
 
     grid = np.array([[means.get((s, v), np.nan) for v in victims] for s in sources])
-    fig, ax = plt.subplots(figsize=(1.9 + 1.5 * len(victims), 1.2 + 0.6 * len(sources)))
+    fig, ax = plt.subplots(figsize=(3.2 + 0.9 * len(victims), 1.2 + 0.6 * len(sources)))
     im = ax.imshow(grid, vmin=0, vmax=1, cmap="RdYlGn")
     short = [v.replace("bundled:", "") for v in victims]
     ax.set_xticks(range(len(victims)), short)
