@@ -1,0 +1,32 @@
+"""Every run config and sweep under examples/ is one a user can run: it loads and checks as written
+(a typo in a field, a loss the victim's task lacks or a grid over a missing field fails here, not in a
+user's first command)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from scheduler.sweep import load_sweep
+from undream.spec.run import TASK_LOSSES, load_run_config
+from undream.victims.registry import BUNDLED, BUNDLED_ALIASES
+
+ROOT = Path(__file__).resolve().parents[1]
+RUNS = sorted((ROOT / "examples" / "runs").glob("*.yaml"))
+SWEEPS = sorted((ROOT / "examples" / "sweeps").glob("*.yaml"))
+
+
+@pytest.mark.parametrize("path", RUNS, ids=[p.name for p in RUNS])
+def test_every_example_run_config_loads(path):
+    config = load_run_config(path)
+    name = config.victim.removeprefix("bundled:")
+    if config.victim.startswith("bundled:"):  # the bundled victim exists and does the loss's task
+        folder = BUNDLED_ALIASES.get(name, name)
+        assert folder in BUNDLED and (ROOT / "undream" / "victims" / "bundled" / folder).is_dir()
+        assert config.loss in TASK_LOSSES[BUNDLED[folder]]
+
+
+@pytest.mark.parametrize("path", SWEEPS, ids=[p.name for p in SWEEPS])
+def test_every_example_sweep_expands(path):
+    sweep = load_sweep(path)
+    assert sweep.runs
