@@ -106,6 +106,11 @@ def _scene_dir(scene: Path, work: Path, local: LocalSettings) -> Path:
 Texture = tuple[np.ndarray, "Path | None"]  # the texture and the scene directory it was optimised on, if known
 
 
+def texture_name(run: Any) -> str:
+    """How :func:`farm_textures` names a farm run's final texture: ``name (id8)``."""
+    return f"{run.name} ({run.id[:8]})"
+
+
 def farm_textures(store: "Store", ref: str, cache_dir: Path | str) -> dict[str, Texture]:
     """The final textures of the farm's run ``ref`` (an id or its first characters), else of every
     run of sweep ``ref`` (an id or a name) that has one, by ``name (id8)``, each with its run's scene
@@ -125,7 +130,7 @@ def farm_textures(store: "Store", ref: str, cache_dir: Path | str) -> dict[str, 
         if final is None:
             continue
         scene = unpack_scene(store.blobs, run.scene_ref, cache_dir) if run.scene_ref else None
-        out[f"{run.name} ({run.id[:8]})"] = (final, scene)
+        out[texture_name(run)] = (final, scene)
     if not out:
         raise SpecError(f"TEXTURE {ref}: the {what} has no final texture yet (a run has one once its evaluation "
                         "picked it)")

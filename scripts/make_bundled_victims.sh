@@ -6,9 +6,10 @@
 #   DISTRIBUTION=v2 scripts/make_bundled_victims.sh [WORK_DIR] [OUT_DIR]
 #
 # DISTRIBUTION=v1 (default) makes bundled:classifier, bundled:detector and bundled:yolo (about
-# 50 minutes on 2 free cores; the YOLO-style detector alone: 4.2 min on 2 threads, from scratch); DISTRIBUTION=v2 makes bundled:classifier-v2 and bundled:detector-v2 (camera
-# height and ground distance, every background and weather; about 72 minutes on ONE core:
-# 31 min of renders, 18 min for the classifier, 23 min for the detector).
+# 50 minutes on 2 free cores; the YOLO-style detector alone: 4.2 min on 2 threads, from scratch);
+# DISTRIBUTION=v2 makes bundled:classifier-v2 and bundled:detector-v2 (camera height and ground
+# distance, every background and weather; about 72 minutes on ONE core: 31 min of renders, 18 min
+# for the classifier, 23 min for the detector).
 #
 # WORK_DIR (default build/bundled-victims, or build/bundled-victims-v2) receives the datasets;
 # OUT_DIR (default WORK_DIR/models) the two model folders. Pass OUT_DIR=undream/victims/bundled

@@ -31,23 +31,12 @@ SWEEPS = ["bin_orbit_budget", "bin_orbit_detector_budget", "bin_orbit_yolo_budge
 VICTIMS = ["bundled:classifier", "bundled:detector", "bundled:yolo"]
 
 
-def sweep_textures(store, name: str, cache_dir: Path) -> list[dict]:
-    """Every finished run of sweep ``name``: its victim, attack, ε, seed, final texture and scene."""
-    from scheduler.evaluate import unpack_scene
+def sweep_runs(store, name: str) -> dict:
+    """The runs of sweep ``name`` by the name :func:`scheduler.evaluate.farm_textures` gives their textures."""
+    from scheduler.evaluate import texture_name
 
     sweep = store.find_sweep(name)
-    out = []
-    for run in store.runs_page(sweep_id=sweep.id, limit=None, newest_first=False).runs:
-        final = store.final_texture(run.id)
-        if final is None:
-            continue
-        cfg = run.run_config
-        out.append({"run": run.name, "source": cfg.victim, "attack": cfg.attack.name, "eps": cfg.attack.eps,
-                    "seed": cfg.seed, "texture": final,
-                    "scene": unpack_scene(store.blobs, run.scene_ref, cache_dir) if run.scene_ref else None})
-    if not out:
-        raise SystemExit(f"sweep {name}: no run has a final texture yet")
-    return out
+    return {texture_name(run): run for run in store.runs_page(sweep_id=sweep.id, limit=None, newest_first=False).runs}
 
 
 def _cell(values: list[float]) -> str:
@@ -92,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--spp", type=int, default=32)
     args = parser.parse_args(argv)
 
-    from scheduler.evaluate import evaluate
+    from scheduler.evaluate import evaluate, farm_textures
     from undream.settings import load_local, load_settings
     from undream.store import open_farm_store
     from undream.variant import mitsuba
@@ -102,19 +91,22 @@ def main(argv: list[str] | None = None) -> int:
     settings = load_settings()
     store = open_farm_store(settings, create=False)
     args.out.mkdir(parents=True, exist_ok=True)
-    rows = []
+    textures, runs, sweep_of = {}, {}, {}
     for name in args.sweeps:
-        runs = sweep_textures(store, name, Path(settings.cache_dir))
-        textures = {r["run"]: (r["texture"], r["scene"]) for r in runs}
-        by_name = {r["run"]: r for r in runs}
-        print(f"{name}: {len(runs)} textures judged by {', '.join(args.victims)} ...", flush=True)
-        for row in evaluate(textures, [args.scene], args.victims, spp=args.spp, local=local):
-            if row["split"] != "held_out":
-                continue
-            run = by_name[row["texture"]]
-            rows.append({"sweep": name, "run": run["run"], "source": run["source"], "attack": run["attack"],
-                         "eps": run["eps"], "seed": run["seed"], "judge": row["victim"], "metric": row["metric"],
-                         "frames": row["frames"], "benign": row["benign"], "adversarial": row["adversarial"]})
+        found = farm_textures(store, name, settings.cache_dir)  # the runs with a final texture
+        textures.update(found)
+        runs.update(sweep_runs(store, name))
+        sweep_of.update(dict.fromkeys(found, name))
+    print(f"{len(textures)} textures of {', '.join(args.sweeps)} judged by {', '.join(args.victims)} ...", flush=True)
+    rows = []
+    for row in evaluate(textures, [args.scene], args.victims, spp=args.spp, local=local):  # benign renders once
+        if row["split"] != "held_out":
+            continue
+        cfg = runs[row["texture"]].run_config
+        rows.append({"sweep": sweep_of[row["texture"]], "run": runs[row["texture"]].name, "source": cfg.victim,
+                     "attack": cfg.attack.name, "eps": cfg.attack.eps, "seed": cfg.seed, "judge": row["victim"],
+                     "metric": row["metric"], "frames": row["frames"], "benign": row["benign"],
+                     "adversarial": row["adversarial"]})
     with open(args.out / "victim_transfer.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()

@@ -9,7 +9,7 @@ import pytest
 
 from scheduler.sweep import load_sweep
 from undream.spec.run import TASK_LOSSES, load_run_config
-from undream.victims.registry import BUNDLED, BUNDLED_ALIASES
+from undream.victims.registry import BUNDLED, bundled_folder_name, bundled_path
 
 ROOT = Path(__file__).resolve().parents[1]
 RUNS = sorted((ROOT / "examples" / "runs").glob("*.yaml"))
@@ -19,10 +19,9 @@ SWEEPS = sorted((ROOT / "examples" / "sweeps").glob("*.yaml"))
 @pytest.mark.parametrize("path", RUNS, ids=[p.name for p in RUNS])
 def test_every_example_run_config_loads(path):
     config = load_run_config(path)
-    name = config.victim.removeprefix("bundled:")
     if config.victim.startswith("bundled:"):  # the bundled victim exists and does the loss's task
-        folder = BUNDLED_ALIASES.get(name, name)
-        assert folder in BUNDLED and (ROOT / "undream" / "victims" / "bundled" / folder).is_dir()
+        folder = bundled_folder_name(config.victim.removeprefix("bundled:"))  # an unknown name raises
+        assert bundled_path(folder).is_dir()
         assert config.loss in TASK_LOSSES[BUNDLED[folder]]
 
 
