@@ -112,6 +112,14 @@ def write_outputs(out: Path, store: "Store", ctx: "RunContext", run: "RunSnapsho
     """Write the run's output folder (see the module docstring) from the store."""
     _check_own(out, run.id)
     out.mkdir(parents=True, exist_ok=True)
+    # The folder's owner first: a callback killed mid-write leaves a folder its redelivery takes as
+    # this run's own (written last, a partial folder read as "a user's files" to every retry).
+    meta = {"run_id": run.id, "config": redact(ctx.config.to_json()), "seed": ctx.config.seed,
+            "scene_dir": str(ctx.scene_dir), "scene_blob": run.scene_ref,
+            "texture_final": "8-bit quantised sRGB (texture_final.png); the same values as float in [0, 1] "
+                             "(texture_final.npy) — what the adversarial evaluation rendered",
+            "versions": {**versions(), "simulator": ctx.sim.name, **ctx.sim.versions()}}
+    atomic_write(out / "metadata.json", json.dumps(meta, indent=1) + "\n")
 
     T_q = store.final_texture(run.id)
     if T_q is None:
@@ -131,12 +139,6 @@ def write_outputs(out: Path, store: "Store", ctx: "RunContext", run: "RunSnapsho
     rows = [{"k": r.k, "loss_mean": r.loss_mean, "n_bad": r.n_bad} for r in store.iterations(run.id)]
     png = charts.loss_chart(rows, ctx.config.loss)  # the chart of the dashboard and the report
     atomic_write(out / "loss.png", png)
-    meta = {"run_id": run.id, "config": redact(ctx.config.to_json()), "seed": ctx.config.seed,
-            "scene_dir": str(ctx.scene_dir), "scene_blob": run.scene_ref,
-            "texture_final": "8-bit quantised sRGB (texture_final.png); the same values as float in [0, 1] "
-                             "(texture_final.npy) — what the adversarial evaluation rendered",
-            "versions": {**versions(), "simulator": ctx.sim.name, **ctx.sim.versions()}}
-    atomic_write(out / "metadata.json", json.dumps(meta, indent=1) + "\n")
 
 
 def _check_own(out: Path, run_id: str) -> None:

@@ -204,6 +204,45 @@ def test_resume_after_a_crash_gives_the_same_texture(tiny, tmp_path):
         assert np.array_equal(store.texture(run_id, k), ref_store.texture(ref_id, k))
 
 
+class _Killed(BaseException):
+    """A SIGKILL, as far as the callback in this process can tell."""
+
+
+def test_a_callback_killed_while_writing_outputs_is_finished_by_its_redelivery(tiny, tmp_path, monkeypatch):
+    """CI, 2026-11-26: the final callback of a sweep's run died after writing part of its output folder
+    (the texture, some frames) and before metadata.json, the file that says whose folder it is; every
+    retry then took the folder for a user's files and the run failed after 10 retries. The owner is now
+    written first, so the redelivered callback finishes the folder."""
+    from scheduler import outputs
+
+    store, run_id, ctx = _local_run(tiny, tmp_path, _config(tiny))
+    dispatch = LocalDispatch()
+    dispatch.start(run_id)
+    saves = {"n": 0}
+    save = outputs.Image.Image.save
+
+    def dies_on_the_second_frame(self, fp, *args, **kwargs):
+        if str(fp).endswith(".png") and "frames_" in str(fp):
+            saves["n"] += 1
+            if saves["n"] == 2:
+                raise _Killed()
+        return save(self, fp, *args, **kwargs)
+
+    monkeypatch.setattr(outputs.Image.Image, "save", dies_on_the_second_frame)
+    with pytest.raises(_Killed):
+        drain(store, lambda _: ctx, dispatch)
+    out = tmp_path / "out"
+    assert (out / "texture_final.png").is_file() and not (out / "results.json").exists()
+    assert store.get_run(run_id).status == "evaluating"
+    redelivered = LocalDispatch()
+    redelivered.queue.append(("frames", run_id, "adversarial", 3, []))  # the callback again, its jobs done
+    drain(store, lambda _: ctx, redelivered)
+    assert store.get_run(run_id).status == "done"
+    assert json.loads((out / "metadata.json").read_text())["run_id"] == run_id
+    assert json.loads((out / "results.json").read_text()) == store.get_run(run_id).results
+    assert len(list((out / "frames_adversarial").glob("*.png"))) == 3 == len(list((out / "frames_benign").glob("*.png")))
+
+
 def test_attack_state_keeps_scalars_in_json_and_arrays_once(tiny, tmp_path):
     store, run_id, ctx = _local_run(tiny, tmp_path, _config(tiny, attack={"name": "apgd"}))
     dispatch = LocalDispatch()
