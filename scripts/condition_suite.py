@@ -64,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
                     str((run_yaml.parent / s).resolve()) for s in base["conditions"].get("scenes", [])]}
             config = RunConfig.from_json(data)
             out = args.out / "runs" / f"{base['name']}_seed{seed}"
-            wall = _run(config, out, run_local)
+            wall = run_once(config, out, run_local)
             textures = {f"seed{seed}": (read_texture(out), run_scene(out))}
             judged = evaluate(textures, [out / "scene", *scenes.values()], [victim], spp=config.eval_spp)
             for row in judged:
@@ -79,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _run(config, out: Path, run_local) -> float:
+def run_once(config, out: Path, run_local) -> float:
     """Run ``config`` into ``out`` unless a finished run of the same config is there; its wall time (s)."""
     import json
 
@@ -89,7 +89,7 @@ def _run(config, out: Path, run_local) -> float:
     return run_local(config, out, base_dir=ROOT, progress=False, force=True)["wall_time_seconds"]["wall"]
 
 
-def _stats(values: list[float]) -> str:
+def mean_sd(values: list[float]) -> str:
     mean = statistics.fmean(values)
     return f"{mean:.2f} ± {statistics.stdev(values):.2f}" if len(values) > 1 else f"{mean:.2f}"
 
@@ -114,16 +114,16 @@ def _write(args: argparse.Namespace, rows: list[dict]) -> None:
         for run in runs:
             values = [r["adversarial"] for r in mine if r["run"] == run]
             summary[c][run] = statistics.fmean(values)
-            cells.append(_stats(values))
+            cells.append(mean_sd(values))
         frames = " / ".join(dict.fromkeys(str(r["frames"]) for r in mine))  # a run's own held-out views differ
-        print(f"| {c} | {frames} | {_stats([r['benign'] for r in mine if r['run'] == runs[0]])} | "
+        print(f"| {c} | {frames} | {mean_sd([r['benign'] for r in mine if r['run'] == runs[0]])} | "
               + " | ".join(cells) + " |")
     held = [c for c in conditions if not c.startswith("as attacked")]
     print("| mean of the held-out conditions | | " + f"{statistics.fmean(summary[c]['benign'] for c in held):.2f} | "
           + " | ".join(f"{statistics.fmean(summary[c][run] for c in held):.2f}" for run in runs) + " |")
     for run in runs:
         walls = [r["run_wall_s"] for r in rows if r["run"] == run and r["condition"] == conditions[0]]
-        print(f"{run}: run wall time {_stats(walls)} s")
+        print(f"{run}: run wall time {mean_sd(walls)} s")
     _chart(args, conditions, runs, summary)
 
 

@@ -1,0 +1,176 @@
+#!/usr/bin/env python
+"""The budget table on held-out conditions: one scene against 16 conditions, PGD and Auto-PGD, each
+ε, over seeds; every final texture judged on the eight conditions of examples/conditions/.
+
+    .venv/bin/python scripts/condition_budget.py --out build/condition_budget --victim bundled:yolo \\
+        [--seeds 0 1 2] [--eps 8 16 50] [--attacks pgd apgd] [--steps 100]
+
+The two run configs are the main job (examples/runs/bin_orbit_pgd.yaml, one scene) and
+examples/runs/bin_orbit_conditions.yaml (its scene over 16 conditions, none held out here), with
+``--victim`` and its task's first loss (``ce`` for a classifier, ``vanish`` for a detector), the
+attack, ε, steps and seed replaced. The 16-condition scene is initialised once and every
+multi-condition run attacks that scene directory (the frames, conditions and per-condition hold-out
+of a run of the conditions block). Each run's texture is judged by the victim on every frame of each
+held-out condition (accuracy, or AP@0.5 for a detector) at 32 spp (the run configs' ``eval_spp``;
+the runs' own evaluation, not used here, at 4 spp: the attack does not depend on it). Prints the table
+(mean over the eight conditions; mean ± standard deviation of that over seeds), writes
+``OUT/<victim>.csv`` (every run and condition, with each run's wall time) and ``OUT/<victim>.png``.
+Finished runs and judgements in ``OUT/runs`` are read, not redone: the script can be stopped and
+started again.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import yaml
+
+from condition_suite import mean_sd, run_once
+
+ROOT = Path(__file__).resolve().parents[1]
+RUNS = {"one scene": ROOT / "examples" / "runs" / "bin_orbit_pgd.yaml",
+        "16 conditions": ROOT / "examples" / "runs" / "bin_orbit_conditions.yaml"}
+JUDGE_SPP = 32  # the run configs' eval_spp: the held-out conditions are judged as the runs judge themselves
+RUN_EVAL_SPP = 4  # each run's own evaluation (384 frames twice for 16 conditions) is not used here
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, required=True, help="folder for scenes, runs and the results")
+    parser.add_argument("--victim", required=True, help="the victim of every run and judgement")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument("--eps", type=float, nargs="+", default=[8.0, 16.0, 50.0], help="ε in 0–255 sRGB units")
+    parser.add_argument("--attacks", nargs="+", default=["pgd", "apgd"])
+    parser.add_argument("--steps", type=int, default=100)
+    args = parser.parse_args(argv)
+    os.environ.setdefault("HF_HUB_OFFLINE", "1")
+    sys.path.insert(0, str(ROOT))
+    from scheduler.evaluate import evaluate, read_texture, run_scene
+    from scheduler.local import run_local
+    from undream.scenedir.conditions import conditions_sequence
+    from undream.scenedir.init import InitOptions, init_scene
+    from undream.spec.run import TASK_LOSSES, RunConfig
+    from undream.victims import load_victim
+
+    start = time.monotonic()
+    loss = TASK_LOSSES[load_victim(args.victim).task][0]
+    args.out.mkdir(parents=True, exist_ok=True)
+    specs = sorted((ROOT / "examples" / "conditions").glob("*.yaml"))
+    held_out = {p.stem: _init_once(p, args.out / "scenes" / p.stem, init_scene, InitOptions) for p in specs}
+    bases = {kind: yaml.safe_load(path.read_text()) for kind, path in RUNS.items()}
+    for kind, base in bases.items():
+        base["scene"] = str((RUNS[kind].parent / base["scene"]).resolve())
+    multi = bases["16 conditions"]
+    composed = conditions_sequence(RunConfig.from_json({**multi, "victim": args.victim, "loss": loss}), ROOT)
+    bases["16 conditions"] = {k: v for k, v in multi.items() if k != "conditions"}
+    bases["16 conditions"]["scene"] = str(_init_once(composed, args.out / "scenes" / "_16_conditions", init_scene,
+                                                     InitOptions))
+    slug = args.victim.replace(":", "_").replace("/", "_")
+    rows = []
+    for attack in args.attacks:
+        for eps in args.eps:
+            for seed in args.seeds:
+                for kind, base in bases.items():
+                    data = {**base, "name": f"{base['name']}_{attack}_eps{eps:g}_seed{seed}", "seed": seed,
+                            "victim": args.victim, "loss": loss, "eval_spp": RUN_EVAL_SPP,
+                            "attack": {**base["attack"], "name": attack, "eps": eps, "steps": args.steps}}
+                    config = RunConfig.from_json(data)
+                    out = args.out / "runs" / slug / data["name"]
+                    wall = run_once(config, out, run_local)
+                    judged_file = out / "held_out_conditions.json"
+                    if judged_file.is_file():
+                        judged = json.loads(judged_file.read_text())
+                    else:
+                        textures = {data["name"]: (read_texture(out), run_scene(out))}
+                        judged = [{"condition": Path(r["scene"]).name, "frames": r["frames"], "benign": r["benign"],
+                                   "adversarial": r["adversarial"]}
+                                  for r in evaluate(textures, list(held_out.values()), [args.victim],
+                                                    spp=JUDGE_SPP) if r["split"] == "all"]
+                        judged_file.write_text(json.dumps(judged, indent=1) + "\n")
+                    rows += [{"victim": args.victim, "run": kind, "attack": attack, "eps": eps, "seed": seed, **r,
+                              "run_wall_s": wall} for r in judged]
+                    print(f"{kind} {attack} ε={eps:g} seed {seed}: mean over conditions "
+                          f"{statistics.fmean(r['adversarial'] for r in judged):.3f} "
+                          f"({time.monotonic() - start:.0f} s)", flush=True)
+    _write(args, slug, rows)
+    print(f"done in {time.monotonic() - start:.0f} s")
+    return 0
+
+
+def _init_once(source, out: Path, init_scene, InitOptions) -> Path:
+    """``out`` initialised from ``source`` unless an earlier start of the script finished it."""
+    if (out / "sequence.json").is_file():
+        return out
+    return init_scene(source, out, InitOptions(force=True))
+
+
+def _write(args: argparse.Namespace, slug: str, rows: list[dict]) -> None:
+    with open(args.out / f"{slug}.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    metric = "AP@0.5" if load_metric(rows) == "ap50" else "accuracy"
+    benign = statistics.fmean(r["benign"] for r in rows if r["run"] == "one scene"
+                              and r["seed"] == args.seeds[0] and r["attack"] == args.attacks[0]
+                              and r["eps"] == args.eps[0])
+    print(f"\n{args.victim}: {metric} on the 8 held-out conditions (mean over conditions; mean ± standard "
+          f"deviation over seeds {args.seeds}), {args.steps} steps; the benign texture: {benign:.2f}")
+    print("| attack | ε | " + " | ".join(RUNS) + " |")
+    print("|---|---|" + "---|" * len(RUNS))
+    cells: dict = {}
+    for attack in args.attacks:
+        for eps in args.eps:
+            line = []
+            for kind in RUNS:
+                per_seed = [statistics.fmean(r["adversarial"] for r in rows if r["run"] == kind and r["attack"] == attack
+                                             and r["eps"] == eps and r["seed"] == seed) for seed in args.seeds]
+                cells[attack, eps, kind] = statistics.fmean(per_seed)
+                line.append(mean_sd(per_seed))
+            print(f"| {attack} | {eps:g} | " + " | ".join(line) + " |")
+    for kind in RUNS:
+        walls = [r["run_wall_s"] for r in rows if r["run"] == kind and r["condition"] == rows[0]["condition"]]
+        print(f"{kind}: run wall time {mean_sd(walls)} s")
+    _chart(args, slug, metric, benign, cells)
+
+
+def load_metric(rows: list[dict]) -> str:
+    """The metric the victim is judged by: ``ap50`` for a detector, ``accuracy`` otherwise."""
+    from undream.victims import load_victim
+
+    return "ap50" if load_victim(rows[0]["victim"]).task == "detection" else "accuracy"
+
+
+def _chart(args: argparse.Namespace, slug: str, metric: str, benign: float, cells: dict) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 3.4), dpi=110)
+    groups = [(attack, eps) for attack in args.attacks for eps in args.eps]
+    width = 0.8 / len(RUNS)
+    for i, (kind, colour) in enumerate(zip(RUNS, ["#c44", "#36a"])):
+        ax.bar([x - 0.4 + width * (i + 0.5) for x in range(len(groups))],
+               [cells[attack, eps, kind] for attack, eps in groups], width, label=kind, color=colour)
+    ax.axhline(benign, color="#888", linestyle="--", linewidth=1, label="benign texture")
+    ax.set_xticks(range(len(groups)), [f"{attack} ε={eps:g}" for attack, eps in groups], fontsize=7)
+    ax.set_ylim(0, 1)
+    ax.set_ylabel(f"{metric}, mean of 8 held-out conditions", fontsize=8)
+    ax.set_title(f"{args.victim}: textures on held-out conditions, {args.steps} steps, seeds {args.seeds}",
+                 fontsize=8)
+    ax.legend(fontsize=7)
+    fig.text(0.01, 0.01, f"made by: scripts/condition_budget.py --out {args.out} --victim {args.victim} --seeds "
+             f"{' '.join(map(str, args.seeds))} --eps {' '.join(f'{e:g}' for e in args.eps)} --attacks "
+             f"{' '.join(args.attacks)} --steps {args.steps}", fontsize=5)
+    fig.tight_layout(rect=(0, 0.04, 1, 1))
+    fig.savefig(args.out / f"{slug}.png")
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
