@@ -4,14 +4,16 @@
 #
 #   scripts/make_bundled_victims.sh [WORK_DIR] [OUT_DIR]
 #   DISTRIBUTION=v2 scripts/make_bundled_victims.sh [WORK_DIR] [OUT_DIR]
+#   DISTRIBUTION=v3 scripts/make_bundled_victims.sh [WORK_DIR] [OUT_DIR]
 #
 # DISTRIBUTION=v1 (default) makes bundled:classifier, bundled:detector and bundled:yolo (about
 # 50 minutes on 2 free cores; the YOLO-style detector alone: 4.2 min on 2 threads, from scratch);
 # DISTRIBUTION=v2 makes bundled:classifier-v2 and bundled:detector-v2 (camera height and ground
 # distance, every background and weather; about 72 minutes on ONE core: 31 min of renders, 18 min
-# for the classifier, 23 min for the detector).
+# for the classifier, 23 min for the detector); DISTRIBUTION=v3 makes bundled:classifier-v3 and
+# bundled:detector-v3 (v2 with plain, unsaturated objects too; the same sizes, on ONE core).
 #
-# WORK_DIR (default build/bundled-victims, or build/bundled-victims-v2) receives the datasets;
+# WORK_DIR (default build/bundled-victims, or build/bundled-victims-v2 / -v3) receives the datasets;
 # OUT_DIR (default WORK_DIR/models) the two model folders. Pass OUT_DIR=undream/victims/bundled
 # to replace the shipped models. Set UNDREAM to the command that runs undream.
 #
@@ -19,7 +21,7 @@
 # were made with; with the same library versions on the same kind of CPU they give the
 # same weights byte for byte (the thread count changes float summation order, hence the
 # weights). Torch slows down badly when given more threads than there are free cores.
-# The v2 models were made on one core (taskset -c 1, OMP_NUM_THREADS=1).
+# The v2 and v3 models were made on one core (taskset -c 1, OMP_NUM_THREADS=1).
 set -euo pipefail
 
 DISTRIBUTION=${DISTRIBUTION:-v1}
@@ -28,7 +30,9 @@ case "$DISTRIBUTION" in
         CLS_THREADS=${CLS_THREADS:-2} DET_THREADS=${DET_THREADS:-1} YOLO_THREADS=${YOLO_THREADS:-2} ;;
     v2) N_TRAIN=8000 N_TEST=1200 CLS_EPOCHS=40 DET_EPOCHS=50 SUFFIX=-v2
         CLS_THREADS=${CLS_THREADS:-1} DET_THREADS=${DET_THREADS:-1} ;;
-    *) echo "DISTRIBUTION must be v1 or v2, got '$DISTRIBUTION'" >&2; exit 2 ;;
+    v3) N_TRAIN=8000 N_TEST=1200 CLS_EPOCHS=40 DET_EPOCHS=50 SUFFIX=-v3
+        CLS_THREADS=${CLS_THREADS:-1} DET_THREADS=${DET_THREADS:-1} ;;
+    *) echo "DISTRIBUTION must be v1, v2 or v3, got '$DISTRIBUTION'" >&2; exit 2 ;;
 esac
 WORK=${1:-build/bundled-victims${SUFFIX}}
 OUT=${2:-$WORK/models}

@@ -39,9 +39,10 @@ def victims() -> None:
 @click.option("--size", default=64, show_default=True, type=click.IntRange(16, 1024),
               help="Image width and height in pixels.")
 @spp_option("--spp", 16, "Samples per pixel.")
-@click.option("--distribution", default="v1", show_default=True, type=click.Choice(["v1", "v2"]),
+@click.option("--distribution", default="v1", show_default=True, type=click.Choice(["v1", "v2", "v3"]),
               help="v1: the orbiting camera of bundled:classifier/detector; v2: camera height "
-                   "and ground distance, every background and weather (bundled:*-v2).")
+                   "and ground distance, every background and weather (bundled:*-v2); v3: v2 with "
+                   "plain, unsaturated objects too (bundled:*-v3).")
 @progress_option
 @one_line_errors
 def make_dataset_cmd(out: Path, n: int, seed: int, split: str, size: int, spp: int,

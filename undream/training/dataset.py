@@ -8,13 +8,15 @@ rendered by the project's own scene adapter
 ``volpath`` in fog) and its box comes from the ``mask`` view (the object's
 visible pixels behind every occluder).
 
-Two distributions (:attr:`DatasetConfig.distribution`): ``v1``, below, the
+Three distributions (:attr:`DatasetConfig.distribution`): ``v1``, below, the
 data of ``bundled:classifier`` / ``bundled:detector`` (a camera orbiting the
-object at a random elevation, three backgrounds, four weathers), and ``v2``
+object at a random elevation, three backgrounds, four weathers), ``v2``
 (:mod:`undream.training.distribution_v2`), the data of the ``-v2`` victims
-(camera height and ground distance, every background and weather). The rest
-of this docstring describes ``v1``; ``v2`` follows the same rules with its
-own parameters.
+(camera height and ground distance, every background and weather), and
+``v3`` (:mod:`undream.training.distribution_v3`), the data of the ``-v3``
+victims (``v2`` with plain, unsaturated objects too). The rest of this
+docstring describes ``v1``; ``v2`` and ``v3`` follow the same rules with
+their own parameters.
 
 Held-out split: ``train`` and ``test`` draw the environment and the camera
 from DISJOINT parameter sets. Every banded parameter (:data:`BANDS`) is cut
@@ -61,9 +63,11 @@ from undream.scenedir.verify import mask_box
 from undream.spec.io import check_new_folder, restored_on_failure
 from undream.spec import Asset, Camera, Environment, Frame, Sequence, TextureParam, Transform
 from undream.training import distribution_v2 as v2
+from undream.training import distribution_v3 as v3
 from undream.training import bands as banding
 from undream.training.bands import SPLITS
-from undream.training.textures import TEXTURE_KINDS, make_texture, texture_recipe
+from undream.training.textures import (PLAIN_SATURATION, PLAIN_SHARE, PLAIN_VALUE, TEXTURE_KINDS, make_texture,
+                                       texture_recipe)
 from undream.variant import mitsuba
 from undream.versions import versions
 
@@ -89,9 +93,9 @@ WEATHER_WEIGHTS = {"clear": 0.35, "cloudy": 0.25, "night": 0.2, "fog": 0.2}
 # The backgrounds the bundled victims were trained on (newer ones, e.g. city, stay unseen: held-out scenery,
 # and the data sets stay reproducible bit for bit).
 TRAINING_BACKGROUNDS = ("plain", "park", "street")
-DISTRIBUTIONS = ("v1", v2.NAME)
+DISTRIBUTIONS = ("v1", v2.NAME, v3.NAME)
 # The camera parameters whose test bands the evaluation reports one by one, per distribution.
-CAMERA_BANDS = {"v1": ("elevation_deg", "coverage"), v2.NAME: v2.REPORTED_BANDS}
+CAMERA_BANDS = {"v1": ("elevation_deg", "coverage"), v2.NAME: v2.REPORTED_BANDS, v3.NAME: v3.REPORTED_BANDS}
 MIN_VISIBLE_PIXELS = 60  # pixels at least half covered by the object
 BOX_COVERAGE = 0.1  # a pixel joins the box when the object covers more than this share of it
 MAX_TRIES = 20
@@ -104,9 +108,10 @@ class DatasetConfig:
 
     size: image width = height in pixels; spp: samples per pixel of the image
     (the mask uses the same count); distribution: ``v1`` (this module's
-    orbiting camera, the original bundled victims' data, kept bit for bit) or
+    orbiting camera, the original bundled victims' data, kept bit for bit),
     ``v2`` (:mod:`undream.training.distribution_v2`: camera height and ground
-    distance, every background and weather).
+    distance, every background and weather, kept bit for bit) or ``v3``
+    (:mod:`undream.training.distribution_v3`: ``v2`` with plain textures too).
     """
 
     n: int
@@ -157,13 +162,15 @@ def band_index(param: str, value: float) -> int:
 
 
 def distribution_of(params: dict[str, Any]) -> str:
-    """The distribution (``v1`` or ``v2``) that drew a label record's ``params``."""
+    """The camera model (``v1`` or ``v2``) that drew a label record's ``params``: a ``v3``
+    record, whose camera and bands are ``v2``'s, reads as ``v2``."""
     return v2.NAME if "height_m" in params else "v1"
 
 
 def bands_of(distribution: str) -> banding.Bands:
-    """The band table of a distribution (:data:`BANDS` or :data:`~.distribution_v2.BANDS_V2`)."""
-    return v2.BANDS_V2 if distribution == v2.NAME else BANDS
+    """The band table of a distribution (:data:`BANDS`, or :data:`~.distribution_v2.BANDS_V2`
+    for ``v2`` and ``v3``)."""
+    return v2.BANDS_V2 if distribution in (v2.NAME, v3.NAME) else BANDS
 
 
 def banded_values(params: dict[str, Any]) -> dict[str, float]:
@@ -279,17 +286,18 @@ def render_sample(mi: ModuleType, meshes: _Meshes, cfg: DatasetConfig, index: in
     camera's ``to_world`` and the environment. The class is drawn once; the
     rest is redrawn (up to :data:`MAX_TRIES` times) while the object shows
     fewer than :data:`MIN_VISIBLE_PIXELS` pixels (``v2``: the same share of the
-    frame, :func:`~.distribution_v2.min_visible_pixels`), so classes stay uniform.
+    frame, :func:`~.distribution_v2.min_visible_pixels`; ``v3`` likewise), so classes stay uniform.
     """
     rng = np.random.default_rng([cfg.seed, SPLITS.index(cfg.split), index])
     label = int(rng.integers(len(CLASSES)))
     sphere = meshes.spheres[CLASSES[label]]
-    min_visible = v2.min_visible_pixels(cfg.size) if cfg.distribution == v2.NAME else MIN_VISIBLE_PIXELS
+    street = {v2.NAME: v2, v3.NAME: v3}.get(cfg.distribution)  # the camera placed on the ground plan
+    min_visible = MIN_VISIBLE_PIXELS if street is None else v2.min_visible_pixels(cfg.size)
     for attempt in range(MAX_TRIES):
         p: SampleParams | v2.SampleParamsV2
-        if cfg.distribution == v2.NAME:
-            p = v2.sample_params(rng, cfg.split, label, CLASSES[label], sphere)
-            seq = v2.sample_frame(p, sphere, cfg.size, seed=int(rng.integers(2**31)))
+        if street is not None:
+            p = street.sample_params(rng, cfg.split, label, CLASSES[label], sphere)
+            seq = street.sample_frame(p, sphere, cfg.size, seed=int(rng.integers(2**31)))
         else:
             p = sample_params(rng, cfg.split, label)
             seq = sample_frame(p, sphere, cfg.size, seed=int(rng.integers(2**31)))
@@ -353,16 +361,23 @@ def make_dataset(out: str | Path, cfg: DatasetConfig, progress: bool = True,
                 Image.fromarray(image).save(out / rec["file"])
                 fh.write(json.dumps(rec) + "\n")
     partial.replace(out / LABELS_FILE)
-    v2_data = cfg.distribution == v2.NAME
+    v2_data = cfg.distribution in (v2.NAME, v3.NAME)
     meta = {"version": DATASET_VERSION, "config": asdict(cfg), "distribution": cfg.distribution,
             "classes": list(CLASSES), "bands": {k: list(v) for k, v in bands_of(cfg.distribution).items()},
             "band_rule": "band k = floor((value - low) / width); even k: train, odd k: test",
             "weather_weights": v2.WEATHER_WEIGHTS_V2 if v2_data else WEATHER_WEIGHTS,
             "backgrounds": list(v2.BACKGROUNDS if v2_data else TRAINING_BACKGROUNDS),
-            **({"coverage": list(v2.COVERAGE)} if v2_data else {}), "mitsuba_variant": variant,
+            **({"coverage": list(v2.COVERAGE)} if v2_data else {}),
+            **({"plain_textures": _plain_textures()} if cfg.distribution == v3.NAME else {}),
+            "mitsuba_variant": variant,
             "versions": versions(), "command": command}
     (out / METADATA_FILE).write_text(json.dumps(meta, indent=2) + "\n", encoding="utf-8")
     return out
+
+
+def _plain_textures() -> dict[str, Any]:
+    """The ``v3`` plain textures' share and ranges, for the metadata."""
+    return {"share": PLAIN_SHARE, "hsv_saturation": list(PLAIN_SATURATION), "hsv_value_srgb": list(PLAIN_VALUE)}
 
 
 @dataclass(frozen=True)

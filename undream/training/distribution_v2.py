@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -103,9 +103,11 @@ def coverage_of(centre: np.ndarray, radius: float, eye: np.ndarray, fov_deg: flo
 
 
 def sample_params(rng: np.random.Generator, split: str, label: int, name: str,
-                  sphere: tuple[np.ndarray, float]) -> SampleParamsV2:
+                  sphere: tuple[np.ndarray, float],
+                  texture: Callable[[np.random.Generator], dict[str, Any]] = texture_recipe) -> SampleParamsV2:
     """Draw one image's parameters for ``split``; ``sphere`` is the object's bounding
-    sphere (centre in the object frame, radius; metres)."""
+    sphere (centre in the object frame, radius; metres); ``texture`` draws the texture
+    recipe, last (``v3`` passes its own)."""
     yaw = float(rng.uniform(0.0, 360.0))
     env = _environment(rng, split)
     azimuth = draw_banded(rng, BANDS_V2, "azimuth_deg", split)
@@ -125,7 +127,7 @@ def sample_params(rng: np.random.Generator, split: str, label: int, name: str,
     return SampleParamsV2(
         label=label, name=name, yaw_deg=yaw, azimuth_deg=azimuth, height_m=height, distance_m=distance,
         fov_deg=fov, coverage=cov, shift=(float(rng.uniform(-room, room)), float(rng.uniform(-room, room))),
-        environment=env, texture=texture_recipe(rng))
+        environment=env, texture=texture(rng))
 
 
 def sample_frame(p: SampleParamsV2, sphere: tuple[np.ndarray, float], size: int, seed: int) -> Sequence:

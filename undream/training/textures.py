@@ -1,15 +1,23 @@
 """Random textures of the bundled victims' datasets: small JSON-able recipes and their images.
 
 The object in every image wears one, so that the victims learn shapes rather than textures.
+:func:`texture_recipe` draws the ``v1`` / ``v2`` textures; :func:`texture_recipe_v3` adds
+``plain`` ones (one unsaturated colour: grey, white, black or a muted tint), which the
+uniformly drawn colours of the others almost never give.
 """
 from __future__ import annotations
 
+import colorsys
 import math
 from typing import Any
 
 import numpy as np
 
 TEXTURE_KINDS = ("solid", "stripes", "checker", "noise", "mix")
+TEXTURE_KINDS_V3 = TEXTURE_KINDS + ("plain",)
+PLAIN_SHARE = 0.3  # of v3 textures: plain
+PLAIN_VALUE = (0.03, 0.97)  # sRGB value (HSV) of a plain colour
+PLAIN_SATURATION = (0.0, 0.25)  # HSV saturation of a plain colour: greys to muted tints
 
 
 def _colour(rng: np.random.Generator) -> list[float]:
@@ -29,11 +37,24 @@ def texture_recipe(rng: np.random.Generator) -> dict[str, Any]:
     return r
 
 
+def plain_recipe(rng: np.random.Generator) -> dict[str, Any]:
+    """A ``plain`` texture: one colour of random hue, HSV saturation in :data:`PLAIN_SATURATION`
+    and value in :data:`PLAIN_VALUE` (sRGB), as an untextured or painted object shows."""
+    h, s, v = rng.uniform(0.0, 1.0), rng.uniform(*PLAIN_SATURATION), rng.uniform(*PLAIN_VALUE)
+    return {"kind": "plain", "colours": [[float(x) for x in colorsys.hsv_to_rgb(h, s, v)]]}
+
+
+def texture_recipe_v3(rng: np.random.Generator) -> dict[str, Any]:
+    """A ``v3`` texture: :func:`plain_recipe` with probability :data:`PLAIN_SHARE`, else a
+    :func:`texture_recipe`."""
+    return plain_recipe(rng) if rng.uniform() < PLAIN_SHARE else texture_recipe(rng)
+
+
 def make_texture(recipe: dict[str, Any], size: int = 64) -> np.ndarray:
     """The ``size×size×3`` sRGB [0, 1] texture of a :func:`texture_recipe` (float32)."""
     c = np.asarray(recipe["colours"], dtype=np.float32)
     kind = recipe["kind"]
-    if kind == "solid":
+    if kind in ("solid", "plain"):
         return np.broadcast_to(c[0], (size, size, 3)).astype(np.float32)
     yy, xx = np.mgrid[0:size, 0:size].astype(np.float32)
     if kind in ("stripes", "checker", "mix"):
