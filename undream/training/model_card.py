@@ -17,8 +17,10 @@ from typing import Any
 
 from undream.errors import VictimError
 from undream.training import distribution_v2 as v2
+from undream.training import distribution_v3 as v3
 from undream.training.bands import Bands
 from undream.training.dataset import CLASSES, TRAINING_BACKGROUNDS, WEATHER_WEIGHTS, bands_of
+from undream.training.textures import PLAIN_SATURATION, PLAIN_SHARE, PLAIN_VALUE
 from undream.victims.registry import BUNDLED, bundled_folder_name, bundled_path
 from undream.victims.yolo import MODEL_TYPE as YOLO_MODEL_TYPE
 
@@ -89,11 +91,19 @@ def _data_text(distribution: str) -> str:
     common = ("each with ONE built-in object at a random yaw, with a random texture (solid, stripes, "
               "checker, smooth noise or a mix, random colours) so that the model learns shape rather "
               "than a texture, ")
-    if distribution == v2.NAME:
+    if distribution == v3.NAME:
+        common = (f"each with ONE built-in object at a random yaw, with a random texture: in {PLAIN_SHARE:.0%} "
+                  "of the images a plain one (one colour of any hue, HSV saturation "
+                  f"{PLAIN_SATURATION[0]:g}–{PLAIN_SATURATION[1]:g}, value {PLAIN_VALUE[0]:g}–{PLAIN_VALUE[1]:g} "
+                  "in sRGB: grey, white, black or a muted tint, as an untextured object shows), else "
+                  "solid, stripes, checker, smooth noise or a mix in random colours, so that the model "
+                  "learns shape rather than a texture, ")
+    if distribution in (v2.NAME, v3.NAME):
         return (common + "on a random background (" + ", ".join(v2.BACKGROUNDS) + "), under a random "
                 "environment (weather " + ", ".join(f"{k} {v:.0%}" for k, v in v2.WEATHER_WEIGHTS_V2.items())
                 + "; time of day across the day; sun height; fog density), seen by a camera placed like "
-                "one in a street (distribution `v2`, `undream.training.distribution_v2`): its height "
+                f"one in a street (distribution `{distribution}`, `undream.training.distribution_{distribution}`"
+                + ("" if distribution == v2.NAME else ", whose camera and environments are `v2`'s") + "): its height "
                 "above the ground (0.2–3.5 m), its horizontal distance from the object (1.5–8 m), its "
                 "azimuth about the object and its field of view (12–66°, redrawn with the distance until "
                 f"the object's bounding sphere spans {v2.COVERAGE[0]:g}–{v2.COVERAGE[1]:g} of the frame "
@@ -107,7 +117,7 @@ def _data_text(distribution: str) -> str:
 
 
 def _split_text(distribution: str) -> str:
-    if distribution == v2.NAME:
+    if distribution in (v2.NAME, v3.NAME):
         return ("No held-out image shares a time of day, fog density, camera azimuth, height, ground "
                 "distance or field of view with any training image. Every weather and background "
                 "occurs in both; object yaw, sun height, look-at offset and textures are drawn the "
