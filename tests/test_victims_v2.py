@@ -97,8 +97,8 @@ def test_v2_frames_the_object(drawn):
 
 
 def test_bad_distribution():
-    with pytest.raises(DatasetError, match=r"distribution: must be one of v1, v2, got 'v3'"):
-        DatasetConfig(n=1, seed=0, distribution="v3")
+    with pytest.raises(DatasetError, match=r"distribution: must be one of v1, v2, v3, got 'v4'"):
+        DatasetConfig(n=1, seed=0, distribution="v4")
 
 
 def test_tiny_v2_dataset(tiny_v2):
@@ -133,16 +133,18 @@ def test_bundled_names_and_aliases():
     assert bundled_path("detector-v1") == bundled_path("detector")
     assert bundled_path("classifier-v2").name == "classifier-v2"
     assert bundled_path("detector-v2").name == "detector-v2"
-    assert bundled_names() == ["classifier", "detector", "classifier-v2", "detector-v2", "yolo",
+    assert bundled_names() == ["classifier", "detector", "classifier-v2", "detector-v2", "classifier-v3",
+                               "detector-v3", "yolo",
                                "classifier-v1", "detector-v1"]
 
 
 def test_unknown_bundled_name_lists_the_valid_ones():
     from undream.victims import load_victim
-    with pytest.raises(VictimError, match=r"bundled victim 'classifier-v3': unknown; valid names are "
+    with pytest.raises(VictimError, match=r"bundled victim 'classifier-v9': unknown; valid names are "
                        r"bundled:classifier, bundled:detector, bundled:classifier-v2, bundled:detector-v2, "
-                       r"bundled:yolo, bundled:classifier-v1, bundled:detector-v1"):
-        load_victim("bundled:classifier-v3")
+                       r"bundled:classifier-v3, bundled:detector-v3, bundled:yolo, bundled:classifier-v1, "
+                       r"bundled:detector-v1"):
+        load_victim("bundled:classifier-v9")
 
 
 def test_alias_keeps_the_task_check():

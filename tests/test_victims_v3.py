@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 
+from undream.errors import VictimError
 from undream.spec.model import BACKGROUNDS, WEATHERS
 from undream.training import distribution_v2 as v2
 from undream.training import distribution_v3 as v3
@@ -129,3 +130,64 @@ def test_v2_sample_unchanged(tmp_path):
 def test_v2_draws_keep_their_textures():
     """v2's sampler still draws v2 textures: no plain ones."""
     assert all(p.texture["kind"] != "plain" for p in _draws(v2, "train", 300))
+
+
+# --------------------------------------------------------------------------- the shipped v3 weights
+
+GOALS = {"classifier-v3": ("accuracy", 0.95), "detector-v3": ("ap50", 0.90)}  # v2's: overall and per group
+
+
+@pytest.fixture(scope="module")
+def held_out_v3(tmp_path_factory):
+    """12 fresh held-out v3 images (a seed not used for the shipped test set)."""
+    out = tmp_path_factory.mktemp("held_out_v3") / "ds"
+    make_dataset(out, DatasetConfig(n=12, seed=20240, split="test", distribution="v3"), progress=False)
+    return load_dataset(out)
+
+
+def test_bundled_v3_names():
+    from undream.victims import bundled_path, load_victim
+    assert bundled_path("classifier-v3").name == "classifier-v3"
+    assert bundled_path("detector-v3").name == "detector-v3"
+    with pytest.raises(VictimError, match="bundled victim 'classifier-v3': does classification, cannot do detection"):
+        load_victim("bundled:classifier-v3", task="detection")
+    with pytest.raises(VictimError, match="bundled victim 'detector-v3': does detection, cannot do classification"):
+        load_victim("bundled:detector-v3", task="classification")
+
+
+@pytest.mark.parametrize("name", list(GOALS))
+def test_bundled_v3_files(name):
+    from undream.training.model_card import MAX_WEIGHTS_BYTES, bundled_record, check_bundled
+    info = check_bundled(name)
+    assert 0 < info["weights_bytes"] <= MAX_WEIGHTS_BYTES
+    rec = bundled_record(name)
+    assert rec["train_data"]["config"]["distribution"] == rec["test_data"]["config"]["distribution"] == "v3"
+    assert rec["train_data"]["n"] == 8000 and rec["test"]["n_images"] == 1200
+    key, goal = GOALS[name]
+    groups = rec["test"]["per_group"]
+    assert set(groups["weather"]) == set(WEATHERS) and set(groups["background"]) == set(BACKGROUNDS)
+    assert len(groups["height_m"]) == 5 and len(groups["distance_m"]) == 6  # every held-out band
+    card = (Path(info["folder"]) / "MODEL_CARD.md").read_text()
+    assert f"**{'accuracy' if key == 'accuracy' else 'AP@0.5'}: {rec['test'][key]:.3f}**" in card
+    assert "distribution `v3`" in card and "a plain one" in card
+    assert "build/v3/train --n 8000" in card  # the commands that made it
+    assert "| camera ground distance (m) | images |" in card
+    assert rec["test"][key] >= goal
+    assert min(g[key] for by in groups.values() for g in by.values()) >= goal  # and per group
+
+
+def test_bundled_v3_offline(monkeypatch, held_out_v3):
+    from undream.metrics import is_detected
+    from undream.victims import load_victim
+    from undream.victims.hf import HFClassifier
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    monkeypatch.setenv("TRANSFORMERS_OFFLINE", "1")
+    v = load_victim("bundled:classifier-v3")
+    assert isinstance(v, HFClassifier) and v.labels == list(CLASSES)
+    x = torch.from_numpy(held_out_v3.images).permute(0, 3, 1, 2).float() / 255.0
+    preds = v.predict(x)
+    assert sum(p.label == y for p, y in zip(preds, held_out_v3.labels.tolist())) >= 10
+    dets = load_victim("bundled:detector-v3").predict(x)
+    hits = sum(is_detected(p, {"boxes": [b.tolist()], "labels": [int(y)]}, int(y))
+               for p, b, y in zip(dets, held_out_v3.boxes, held_out_v3.labels))
+    assert hits >= 10
