@@ -73,8 +73,8 @@ def main(argv: list[str] | None = None) -> int:
                                                      InitOptions))
     slug = args.victim.replace(":", "_").replace("/", "_")
     rows = []
-    for attack in args.attacks:
-        for eps in args.eps:
+    for eps in args.eps:  # each ε's cells whole before the next ε's (a long study stopped early has whole rows)
+        for attack in args.attacks:
             for seed in args.seeds:
                 for kind, base in bases.items():
                     data = {**base, "name": f"{base['name']}_{attack}_eps{eps:g}_seed{seed}", "seed": seed,
