@@ -15,19 +15,18 @@ from undream.errors import DatasetError, VictimError
 from undream.spec.model import BACKGROUNDS, WEATHERS
 from undream.training import distribution_v2 as v2
 from undream.training.bands import band_count, band_index
-from undream.training.dataset import CLASSES, DatasetConfig, _object_sphere, load_dataset, make_dataset, splits_of
+from undream.training.dataset import CLASSES, DatasetConfig, _object_sphere, load_dataset, splits_of
 from undream.training.evaluation import evaluate
 from undream.training.model_card import group_tables
+
+from victims_support import check_offline, check_sample_unchanged, check_shipped, draws, fresh_held_out, tiny_dataset
 
 FIXTURES = Path(__file__).resolve().parent / "fixtures"
 SIZE = 32
 
 
 def _draws(split: str, n: int) -> list[v2.SampleParamsV2]:
-    rng = np.random.default_rng([5, len(split)])
-    spheres = [_object_sphere(c) for c in CLASSES]
-    return [v2.sample_params(rng, split, i % len(CLASSES), CLASSES[i % len(CLASSES)], spheres[i % len(CLASSES)])
-            for i in range(n)]
+    return draws(v2, split, n)
 
 
 @pytest.fixture(scope="module")
@@ -39,15 +38,7 @@ def drawn() -> dict[str, list[v2.SampleParamsV2]]:
 @pytest.fixture(scope="module")
 def tiny_v2(tmp_path_factory) -> Path:
     """3 held-out v2 images of 32 px at 2 spp, made through the command."""
-    from click.testing import CliRunner
-
-    from undream.cli.victims import victims
-    out = tmp_path_factory.mktemp("v2") / "ds"
-    res = CliRunner().invoke(victims, ["make-dataset", "--out", str(out), "--n", "3", "--seed", "1",
-                                       "--split", "test", "--size", str(SIZE), "--spp", "2",
-                                       "--distribution", "v2", "--no-progress"])
-    assert res.exit_code == 0, res.output
-    return out
+    return tiny_dataset(tmp_path_factory, "v2", SIZE)
 
 
 # --------------------------------------------------------------------------- the v2 sampler
@@ -114,15 +105,7 @@ def test_tiny_v2_dataset(tiny_v2):
 
 def test_v1_sample_unchanged(tmp_path):
     """Sample 0 of a v1 data set is what the code before v2 rendered (tests/fixtures/v1_sample.json)."""
-    ref = json.loads((FIXTURES / "v1_sample.json").read_text())
-    make_dataset(tmp_path / "ds", DatasetConfig(**ref["config"]), progress=False)
-    ds = load_dataset(tmp_path / "ds")
-    rec = ds.records[0]
-    assert rec["params"] == ref["record"]["params"]  # drawn by numpy alone: exact
-    assert {k: rec[k] for k in ("label", "box", "visible_pixels", "redraws")} == \
-        {k: ref["record"][k] for k in ("label", "box", "visible_pixels", "redraws")}
-    np.testing.assert_allclose(rec["camera_to_world"], ref["record"]["camera_to_world"], atol=1e-9)
-    np.testing.assert_allclose(ds.images[0].reshape(-1, 3).mean(0), ref["image_channel_means"], atol=0.5)
+    check_sample_unchanged(tmp_path, FIXTURES / "v1_sample.json")
 
 
 # --------------------------------------------------------------------------- names
@@ -201,39 +184,14 @@ GOALS = {"classifier-v2": ("accuracy", 0.95), "detector-v2": ("ap50", 0.90)}  # 
 
 @pytest.fixture(scope="module")
 def held_out_v2(tmp_path_factory):
-    """12 fresh held-out v2 images (a seed not used for the shipped test set)."""
-    out = tmp_path_factory.mktemp("held_out_v2") / "ds"
-    make_dataset(out, DatasetConfig(n=12, seed=20240, split="test", distribution="v2"), progress=False)
-    return load_dataset(out)
+    return fresh_held_out(tmp_path_factory, "v2")
 
 
 @pytest.mark.parametrize("name", list(GOALS))
 def test_bundled_v2_files(name):
-    from undream.training.model_card import MAX_WEIGHTS_BYTES, bundled_record, check_bundled
-    info = check_bundled(name)
-    assert 0 < info["weights_bytes"] <= MAX_WEIGHTS_BYTES
-    rec = bundled_record(name)
-    assert rec["train_data"]["config"]["distribution"] == rec["test_data"]["config"]["distribution"] == "v2"
-    assert rec["test"]["n_images"] >= 1000
-    key, goal = GOALS[name]
-    groups = rec["test"]["per_group"]
-    assert set(groups["weather"]) == set(WEATHERS) and set(groups["background"]) == set(BACKGROUNDS)
-    assert len(groups["height_m"]) == 5 and len(groups["distance_m"]) == 6  # every held-out band
-    card = (Path(info["folder"]) / "MODEL_CARD.md").read_text()
-    assert f"**{'accuracy' if key == 'accuracy' else 'AP@0.5'}: {rec['test'][key]:.3f}**" in card
-    assert "| camera ground distance (m) | images |" in card
-    assert rec["test"][key] >= goal
-    assert min(g[key] for by in groups.values() for g in by.values()) >= goal  # and per group
+    check_shipped(name, "v2", *GOALS[name])
 
 
 def test_bundled_v2_offline(monkeypatch, held_out_v2):
-    from undream.metrics import is_detected
-    from undream.victims import load_victim
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
-    x = torch.from_numpy(held_out_v2.images).permute(0, 3, 1, 2).float() / 255.0
-    preds = load_victim("bundled:classifier-v2").predict(x)
-    assert sum(p.label == y for p, y in zip(preds, held_out_v2.labels.tolist())) >= 10
-    dets = load_victim("bundled:detector-v2").predict(x)
-    hits = sum(is_detected(p, {"boxes": [b.tolist()], "labels": [int(y)]}, int(y))
-               for p, b, y in zip(dets, held_out_v2.boxes, held_out_v2.labels))
-    assert hits >= 10
+    check_offline("v2", held_out_v2)

@@ -9,47 +9,33 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
 from undream.errors import VictimError
 from undream.spec.model import BACKGROUNDS, WEATHERS
 from undream.training import distribution_v2 as v2
 from undream.training import distribution_v3 as v3
 from undream.training.bands import band_index
-from undream.training.dataset import CLASSES, DatasetConfig, _object_sphere, load_dataset, make_dataset, splits_of
+from undream.training.dataset import CLASSES, _object_sphere, load_dataset, splits_of
 from undream.training.textures import (PLAIN_SATURATION, PLAIN_SHARE, PLAIN_VALUE, TEXTURE_KINDS_V3, make_texture,
                                        plain_recipe)
+
+from victims_support import check_offline, check_sample_unchanged, check_shipped, draws, fresh_held_out, tiny_dataset
 
 FIXTURES = Path(__file__).resolve().parent / "fixtures"
 SIZE = 32
 N_DRAWS = 600
 
 
-def _draws(module, split: str, n: int) -> list[v2.SampleParamsV2]:
-    rng = np.random.default_rng([5, len(split)])
-    spheres = [_object_sphere(c) for c in CLASSES]
-    return [module.sample_params(rng, split, i % len(CLASSES), CLASSES[i % len(CLASSES)], spheres[i % len(CLASSES)])
-            for i in range(n)]
-
-
 @pytest.fixture(scope="module")
 def drawn() -> dict[str, list[v2.SampleParamsV2]]:
     """Parameters only (nothing rendered): 600 v3 draws per split."""
-    return {s: _draws(v3, s, N_DRAWS) for s in ("train", "test")}
+    return {s: draws(v3, s, N_DRAWS) for s in ("train", "test")}
 
 
 @pytest.fixture(scope="module")
 def tiny_v3(tmp_path_factory) -> Path:
     """3 held-out v3 images of 32 px at 2 spp, made through the command."""
-    from click.testing import CliRunner
-
-    from undream.cli.victims import victims
-    out = tmp_path_factory.mktemp("v3") / "ds"
-    res = CliRunner().invoke(victims, ["make-dataset", "--out", str(out), "--n", "3", "--seed", "1",
-                                       "--split", "test", "--size", str(SIZE), "--spp", "2",
-                                       "--distribution", "v3", "--no-progress"])
-    assert res.exit_code == 0, res.output
-    return out
+    return tiny_dataset(tmp_path_factory, "v3", SIZE)
 
 
 # --------------------------------------------------------------------------- the v3 sampler
@@ -116,20 +102,12 @@ def test_tiny_v3_dataset(tiny_v3):
 
 def test_v2_sample_unchanged(tmp_path):
     """Sample 0 of a v2 data set is what the code before v3 rendered (tests/fixtures/v2_sample.json)."""
-    ref = json.loads((FIXTURES / "v2_sample.json").read_text())
-    make_dataset(tmp_path / "ds", DatasetConfig(**ref["config"]), progress=False)
-    ds = load_dataset(tmp_path / "ds")
-    rec = ds.records[0]
-    assert rec["params"] == ref["record"]["params"]  # drawn by numpy alone: exact
-    assert {k: rec[k] for k in ("label", "box", "visible_pixels", "redraws")} == \
-        {k: ref["record"][k] for k in ("label", "box", "visible_pixels", "redraws")}
-    np.testing.assert_allclose(rec["camera_to_world"], ref["record"]["camera_to_world"], atol=1e-9)
-    np.testing.assert_allclose(ds.images[0].reshape(-1, 3).mean(0), ref["image_channel_means"], atol=0.5)
+    check_sample_unchanged(tmp_path, FIXTURES / "v2_sample.json")
 
 
 def test_v2_draws_keep_their_textures():
     """v2's sampler still draws v2 textures: no plain ones."""
-    assert all(p.texture["kind"] != "plain" for p in _draws(v2, "train", 300))
+    assert all(p.texture["kind"] != "plain" for p in draws(v2, "train", 300))
 
 
 # --------------------------------------------------------------------------- the shipped v3 weights
@@ -139,10 +117,7 @@ GOALS = {"classifier-v3": ("accuracy", 0.95), "detector-v3": ("ap50", 0.90)}  # 
 
 @pytest.fixture(scope="module")
 def held_out_v3(tmp_path_factory):
-    """12 fresh held-out v3 images (a seed not used for the shipped test set)."""
-    out = tmp_path_factory.mktemp("held_out_v3") / "ds"
-    make_dataset(out, DatasetConfig(n=12, seed=20240, split="test", distribution="v3"), progress=False)
-    return load_dataset(out)
+    return fresh_held_out(tmp_path_factory, "v3")
 
 
 def test_bundled_v3_names():
@@ -157,37 +132,17 @@ def test_bundled_v3_names():
 
 @pytest.mark.parametrize("name", list(GOALS))
 def test_bundled_v3_files(name):
-    from undream.training.model_card import MAX_WEIGHTS_BYTES, bundled_record, check_bundled
-    info = check_bundled(name)
-    assert 0 < info["weights_bytes"] <= MAX_WEIGHTS_BYTES
-    rec = bundled_record(name)
-    assert rec["train_data"]["config"]["distribution"] == rec["test_data"]["config"]["distribution"] == "v3"
+    rec, card = check_shipped(name, "v3", *GOALS[name])
     assert rec["train_data"]["n"] == 8000 and rec["test"]["n_images"] == 1200
-    key, goal = GOALS[name]
-    groups = rec["test"]["per_group"]
-    assert set(groups["weather"]) == set(WEATHERS) and set(groups["background"]) == set(BACKGROUNDS)
-    assert len(groups["height_m"]) == 5 and len(groups["distance_m"]) == 6  # every held-out band
-    card = (Path(info["folder"]) / "MODEL_CARD.md").read_text()
-    assert f"**{'accuracy' if key == 'accuracy' else 'AP@0.5'}: {rec['test'][key]:.3f}**" in card
     assert "distribution `v3`" in card and "a plain one" in card
     assert "build/v3/train --n 8000" in card  # the commands that made it
-    assert "| camera ground distance (m) | images |" in card
-    assert rec["test"][key] >= goal
-    assert min(g[key] for by in groups.values() for g in by.values()) >= goal  # and per group
 
 
 def test_bundled_v3_offline(monkeypatch, held_out_v3):
-    from undream.metrics import is_detected
     from undream.victims import load_victim
     from undream.victims.hf import HFClassifier
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
     monkeypatch.setenv("TRANSFORMERS_OFFLINE", "1")
     v = load_victim("bundled:classifier-v3")
     assert isinstance(v, HFClassifier) and v.labels == list(CLASSES)
-    x = torch.from_numpy(held_out_v3.images).permute(0, 3, 1, 2).float() / 255.0
-    preds = v.predict(x)
-    assert sum(p.label == y for p, y in zip(preds, held_out_v3.labels.tolist())) >= 10
-    dets = load_victim("bundled:detector-v3").predict(x)
-    hits = sum(is_detected(p, {"boxes": [b.tolist()], "labels": [int(y)]}, int(y))
-               for p, b, y in zip(dets, held_out_v3.boxes, held_out_v3.labels))
-    assert hits >= 10
+    check_offline("v3", held_out_v3)
