@@ -54,23 +54,22 @@ def main(argv: list[str] | None = None) -> int:
     from scheduler.evaluate import evaluate, read_texture, run_scene
     from scheduler.local import run_local
     from undream.scenedir.conditions import conditions_sequence
-    from undream.scenedir.init import InitOptions, init_scene
     from undream.spec.run import TASK_LOSSES, RunConfig
     from undream.victims import load_victim
 
     start = time.monotonic()
-    loss = TASK_LOSSES[load_victim(args.victim).task][0]
+    task = load_victim(args.victim).task
+    loss = TASK_LOSSES[task][0]
     args.out.mkdir(parents=True, exist_ok=True)
     specs = sorted((ROOT / "examples" / "conditions").glob("*.yaml"))
-    held_out = {p.stem: _init_once(p, args.out / "scenes" / p.stem, init_scene, InitOptions) for p in specs}
+    held_out = {p.stem: _init_once(p, args.out / "scenes" / p.stem) for p in specs}
     bases = {kind: yaml.safe_load(path.read_text()) for kind, path in RUNS.items()}
     for kind, base in bases.items():
         base["scene"] = str((RUNS[kind].parent / base["scene"]).resolve())
     multi = bases["16 conditions"]
     composed = conditions_sequence(RunConfig.from_json({**multi, "victim": args.victim, "loss": loss}), ROOT)
     bases["16 conditions"] = {k: v for k, v in multi.items() if k != "conditions"}
-    bases["16 conditions"]["scene"] = str(_init_once(composed, args.out / "scenes" / "_16_conditions", init_scene,
-                                                     InitOptions))
+    bases["16 conditions"]["scene"] = str(_init_once(composed, args.out / "scenes" / "_16_conditions"))
     slug = args.victim.replace(":", "_").replace("/", "_")
     rows = []
     for eps in args.eps:  # each ε's cells whole before the next ε's (a long study stopped early has whole rows)
@@ -98,24 +97,25 @@ def main(argv: list[str] | None = None) -> int:
                     print(f"{kind} {attack} ε={eps:g} seed {seed}: mean over conditions "
                           f"{statistics.fmean(r['adversarial'] for r in judged):.3f} "
                           f"({time.monotonic() - start:.0f} s)", flush=True)
-    _write(args, slug, rows)
+    _write(args, slug, rows, "AP@0.5" if task == "detection" else "accuracy")
     print(f"done in {time.monotonic() - start:.0f} s")
     return 0
 
 
-def _init_once(source, out: Path, init_scene, InitOptions) -> Path:
+def _init_once(source, out: Path) -> Path:
     """``out`` initialised from ``source`` unless an earlier start of the script finished it."""
+    from undream.scenedir.init import InitOptions, init_scene
+
     if (out / "sequence.json").is_file():
         return out
     return init_scene(source, out, InitOptions(force=True))
 
 
-def _write(args: argparse.Namespace, slug: str, rows: list[dict]) -> None:
+def _write(args: argparse.Namespace, slug: str, rows: list[dict], metric: str) -> None:
     with open(args.out / f"{slug}.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
-    metric = "AP@0.5" if load_metric(rows) == "ap50" else "accuracy"
     benign = statistics.fmean(r["benign"] for r in rows if r["run"] == "one scene"
                               and r["seed"] == args.seeds[0] and r["attack"] == args.attacks[0]
                               and r["eps"] == args.eps[0])
@@ -137,13 +137,6 @@ def _write(args: argparse.Namespace, slug: str, rows: list[dict]) -> None:
         walls = [r["run_wall_s"] for r in rows if r["run"] == kind and r["condition"] == rows[0]["condition"]]
         print(f"{kind}: run wall time {mean_sd(walls)} s")
     _chart(args, slug, metric, benign, cells)
-
-
-def load_metric(rows: list[dict]) -> str:
-    """The metric the victim is judged by: ``ap50`` for a detector, ``accuracy`` otherwise."""
-    from undream.victims import load_victim
-
-    return "ap50" if load_victim(rows[0]["victim"]).task == "detection" else "accuracy"
 
 
 def _chart(args: argparse.Namespace, slug: str, metric: str, benign: float, cells: dict) -> None:
