@@ -311,7 +311,8 @@ def resume(store: "Store", run_id: str, dispatch: Dispatch) -> str:
     """Dispatch a run again from what the store says (after a crash of any part, or a cancel).
 
     Failed and cancelled runs are queued again with a fresh failure budget;
-    the current phase's jobs without a result (and given-up ones) are
+    the current phase's jobs without a result (and given-up ones, and attack jobs whose
+    gradient blob was lost: :meth:`undream.store.Store.lost_gradients`) are
     dispatched again, then its callback. Jobs still in flight may run twice;
     every write is idempotent and the step is a compare-and-set. Returns the
     phase it dispatched (``start``, ``attack``, ``pre``, ``adversarial``) or
@@ -336,6 +337,8 @@ def resume(store: "Store", run_id: str, dispatch: Dispatch) -> str:
         phase = "adversarial" if store.final_texture(run_id) is not None else "pre"
     run = store.get_run(run_id)
     frames = expected(run, phase, run.iteration)
+    if phase == "attack":  # a gradient the machine's power cut took (written without fsync): computed again
+        store.reset_jobs(run_id, run.iteration, store.lost_gradients(run_id, run.iteration), phase, succeeded=True)
     jobs = {j.frame: j for j in store.jobs(run_id, run.iteration, phase)}
     store.reset_jobs(run_id, run.iteration, [f for f in frames if f in jobs], phase)
     plan(store, run, phase, run.iteration, dispatch,

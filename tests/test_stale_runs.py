@@ -236,6 +236,38 @@ def test_a_killed_run_is_failed_by_status_and_resumes_to_the_uninterrupted_textu
     np.testing.assert_array_equal(np.load(out / "texture_final.npy"), np.load(reference / "texture_final.npy"))
 
 
+# The gradients are written without fsync (they live one iteration): a machine that loses power
+# after the jobs' rows were committed can come back with a job "succeeded" and its gradient gone.
+_POWER_CUT = """
+import os, sys
+import scheduler.stages as stages
+step = stages._step
+def cut(store, run, k, dispatch):
+    if k == 2:  # iteration 2's jobs are recorded; one gradient did not reach the disk; the machine goes down
+        job = store.jobs(run.id, k)[0]
+        store.blobs.path(job.grad_ref).unlink()
+        os._exit(9)
+    return step(store, run, k, dispatch)
+stages._step = cut
+from undream.cli import main
+main(sys.argv[1:])
+"""
+
+
+def test_a_gradient_lost_with_the_machine_is_computed_again_on_resume(tiny, tmp_path):
+    reference, out = tmp_path / "reference", tmp_path / "cut"
+    assert _undream("run", str(tiny), "--out", str(reference), "--no-progress").returncode == 0
+    cut = subprocess.run([sys.executable, "-c", _POWER_CUT, "run", str(tiny), "--out", str(out), "--no-progress"],
+                         cwd=ROOT, capture_output=True, text=True)
+    assert cut.returncode == 9, cut.stderr
+    assert _iteration(out) == 2
+
+    resumed = _undream("run", str(tiny), "--out", str(out), "--resume", "--no-progress")
+    assert resumed.returncode == 0, resumed.stderr
+    assert "done" in _undream("status", "--out", str(out)).stdout
+    np.testing.assert_array_equal(np.load(out / "texture_final.npy"), np.load(reference / "texture_final.npy"))
+
+
 def test_resume_refuses_another_config_and_a_folder_without_a_run(tiny, tmp_path):
     import yaml
 

@@ -47,10 +47,12 @@ def average_frames(grads: Sequence[torch.Tensor], losses: Sequence[Any],
                           f"least one frame, got {len(grads)} gradients and {len(losses)} losses")
     values = [float(v) for v in losses]
     flags = [True] * len(grads) if finite is None else [bool(f) for f in finite]
-    kept = [i for i, (g, v, ok) in enumerate(zip(grads, values, flags))
-            if ok and math.isfinite(v) and bool(torch.isfinite(g).all())]
+    stacked = torch.stack(list(grads))
+    finite_grads = torch.isfinite(stacked).flatten(1).all(dim=1).tolist()  # one pass over every frame
+    kept = [i for i, (v, ok, g_ok) in enumerate(zip(values, flags, finite_grads))
+            if ok and math.isfinite(v) and g_ok]
     if not kept:
         raise AttackError(f"average_frames: all {len(grads)} frames have a non-finite "
                           "gradient or loss")
-    G = torch.stack([grads[i] for i in kept]).mean(dim=0)
+    G = (stacked if len(kept) == len(grads) else stacked[kept]).mean(dim=0)
     return G, sum(values[i] for i in kept) / len(kept), kept

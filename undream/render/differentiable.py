@@ -17,7 +17,7 @@ import numpy as np
 
 from undream.color import srgb_to_linear
 from undream.errors import RenderError
-from undream.render.scene_cache import ActiveFrame, SceneCache
+from undream.render.scene_cache import ActiveFrame, SceneCache, update_params
 
 
 def _check_texture(tex: np.ndarray, shape: Any) -> np.ndarray:
@@ -113,7 +113,7 @@ def texture_gradient(scenes: SceneCache, index: int, texture_srgb: np.ndarray, g
     # through scene parameters (seen here as "corrupted size vs. prev_size" at teardown).
     dr.enable_grad(tex)
     active.params[active.texture_key] = tex
-    active.params.update()
+    update_params(active.params)
     scene = active.scene
     scene.integrator().render_backward(scene, active.params, mi.TensorXf(g), seed=seed_grad, spp=spp)
     grad_lin = np.array(dr.grad(tex), dtype=np.float32)

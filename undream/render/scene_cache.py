@@ -167,7 +167,7 @@ class SceneCache:
             active.index = index
         elif extra:
             active.params[active.texture_key] = texture
-            active.params.update()
+            update_params(active.params)
         if conditions is not None:
             self._jitter(group, active, conditions)
         return active
@@ -178,7 +178,7 @@ class SceneCache:
         values = {k: v for k, v in jitter_values(self.mi, active.params, conditions).items() if k in group.base}
         for key, value in values.items():
             active.params[key] = value
-        active.params.update()
+        update_params(active.params)
         group.applied |= set(values)  # reset to the frame's own values by the next _apply
         active.index = -1  # not showing any frame as it is
 
@@ -264,8 +264,40 @@ class SceneCache:
             active.params[key] = state.values.get(key, group.base[key])
         for key, value in (extra or {}).items():
             active.params[key] = value
-        active.params.update()
+        update_params(active.params)
         group.applied = set(state.values)
+
+
+def update_params(params: Any) -> None:
+    """``params.update()`` (Mitsuba's ``SceneParameters``) without its walk over every parameter.
+
+    Mitsuba's update schedules the value of each of the scene's parameters (113 in the main job's
+    scene) before it notifies the objects that changed; the values this module writes are already
+    evaluated, so only the notification is needed: the written keys marked dirty (those
+    ``__setitem__`` did not mark itself), each changed object's ``parameters_changed`` from the
+    leaves up, one ``dr.eval()``. Half of a 64 px frame switch's 1.2 ms (measured, loaded machine).
+    A Mitsuba whose ``SceneParameters`` lacks the attributes read here gets its own ``update()``.
+    """
+    import drjit as dr
+
+    candidates = getattr(params, "update_candidates", None)
+    nodes = getattr(params, "nodes_to_update", None)
+    get = getattr(params, "_SceneParameters__get_value", None)
+    try:
+        from mitsuba.python.util import _jit_id_hash
+    except ImportError:
+        _jit_id_hash = None
+    if candidates is None or nodes is None or get is None or _jit_id_hash is None:
+        params.update()
+        return
+    for key in list(candidates):
+        if _jit_id_hash(get(key)) != candidates[key]:  # changed in place since it was read
+            params.set_dirty(key)
+    for _, node, keys in sorted(((d, n, k) for (d, n), k in nodes.items()), key=lambda x: x[0], reverse=True):
+        node.parameters_changed(list(keys))
+    nodes.clear()
+    candidates.clear()
+    dr.eval()
 
 
 def _is_jit(value: Any) -> bool:

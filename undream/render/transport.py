@@ -44,7 +44,7 @@ import scipy.sparse as sp
 
 from undream.errors import RenderError
 from undream.render.differentiable import render_frozen, srgb_decode_grad
-from undream.render.scene_cache import ActiveFrame, SceneCache
+from undream.render.scene_cache import ActiveFrame, SceneCache, update_params
 from undream.scene.layout import frame_xml
 from undream.scene.mitsuba_scene import OBJECT_ID
 
@@ -220,11 +220,11 @@ def capture_transport(scenes: SceneCache, index: int, spp: int, seed_grad: int) 
     try:
         with dr.suspend_grad():
             params[key] = mi.TensorXf(np.ones((th, tw, 3), np.float32))
-            params.update()
+            update_params(params)
             arrays = _replay(scenes, scene, spp, seed_grad)
     finally:
         params[key] = saved
-        params.update()
+        update_params(params)
     film = scene.sensors()[0].film()
     w, h = (int(v) for v in film.crop_size())
     jt = _assemble(arrays, (h, w), (th, tw), _to_uv(params, key))
@@ -399,11 +399,11 @@ def render_grad_scene(scenes: SceneCache, index: int, texture_linear: np.ndarray
     saved = type(params[key])(params[key])
     try:
         params[key] = mi.TensorXf(np.asarray(texture_linear, np.float32))
-        params.update()
+        update_params(params)
         return render_frozen(scenes, "grad", active, spp, seed)
     finally:
         params[key] = saved
-        params.update()
+        update_params(params)
 
 
 def forward_error(scenes: SceneCache, transport: Transport, texture_linear: np.ndarray) -> float:

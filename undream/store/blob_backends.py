@@ -47,8 +47,11 @@ class Backend(Protocol):
 
     where: str  # where the blobs are, for messages (never a secret)
 
-    def write(self, key: str, data: bytes) -> None:
-        """Store ``data`` under ``key``, replacing any blob there; a reader sees old or new, whole."""
+    def write(self, key: str, data: bytes, durable: bool = True) -> None:
+        """Store ``data`` under ``key``, replacing any blob there; a reader sees old or new, whole.
+        ``durable=False``: a blob that can be made again (a gradient) need not reach the disk
+        before this returns (the folder skips its fsync); a process killed after it still leaves
+        it whole, a machine that loses power may not."""
 
     def write_file(self, key: str, src: Path) -> int:
         """Store the file ``src`` under ``key`` like :meth:`write`; returns its size in bytes."""
@@ -96,18 +99,18 @@ class FolderBackend:
     def path(self, key: str) -> Path:
         return self.root.joinpath(*key.split("/"))
 
-    def write(self, key: str, data: bytes) -> None:
-        self._write(key, lambda f: f.write(data))
+    def write(self, key: str, data: bytes, durable: bool = True) -> None:
+        self._write(key, lambda f: f.write(data), durable)
 
     def write_file(self, key: str, src: Path) -> int:
         with open(src, "rb") as f_in:
             return self._write(key, lambda f: shutil.copyfileobj(f_in, f, 1 << 20))
 
-    def _write(self, key: str, write: object) -> int:
+    def _write(self, key: str, write: object, durable: bool = True) -> int:
         final = self.path(key)
         try:
             final.parent.mkdir(parents=True, exist_ok=True)
-            return atomic_write(final, write, fsync=True, mode=0o600)  # type: ignore[arg-type]
+            return atomic_write(final, write, fsync=durable, mode=0o600)  # type: ignore[arg-type]
         except OSError as exc:
             raise StoreError(f"blob {key!r}: cannot write under {self.root}: {exc}") from exc
 

@@ -70,7 +70,7 @@ class DatabaseBackend:
     def _under(prefix: str) -> Any:
         return or_(Blob.key == prefix, Blob.key.startswith(prefix + "/", autoescape=True))
 
-    def write(self, key: str, data: bytes) -> None:
+    def write(self, key: str, data: bytes, durable: bool = True) -> None:  # the database commits it
         now = utcnow()
         stmt = self._dialect.insert(Blob).values(key=key, data=data, size=len(data), created=now, used=now)
         stmt = stmt.on_conflict_do_update(index_elements=["key"], set_={

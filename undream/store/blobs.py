@@ -286,15 +286,16 @@ class BlobStore:
         """Mark ``key`` used now (the transport cache evicts the least recently used)."""
         self.backend.touch(check_key(key))
 
-    def put_array(self, key: str, array: np.ndarray) -> str:
-        """Store ``array`` (any shape and numeric dtype) as ``.npy``; returns the key."""
+    def put_array(self, key: str, array: np.ndarray, durable: bool = True) -> str:
+        """Store ``array`` (any shape and numeric dtype) as ``.npy``; returns the key.
+        ``durable=False``: an array that can be computed again (see :meth:`Backend.write`)."""
         check_key(key, ".npy")
         arr = np.asarray(array)
         if arr.dtype.hasobject:
             raise StoreError(f"blob {key!r}: cannot store an object array; give a numeric array")
         buf = io.BytesIO()
         np.save(buf, arr, allow_pickle=False)
-        self._write(key, buf.getvalue())
+        self._write(key, buf.getvalue(), durable)
         return key
 
     def get_array(self, key: str) -> np.ndarray:
@@ -386,6 +387,6 @@ class BlobStore:
     def _missing(self, key: str) -> StoreError:
         return StoreError(f"blob {key!r}: not found in the {self.where}")
 
-    def _write(self, key: str, data: bytes) -> None:
-        self.backend.write(key, data)
+    def _write(self, key: str, data: bytes, durable: bool = True) -> None:
+        self.backend.write(key, data, durable)
         self.bytes_written += len(data)

@@ -213,6 +213,9 @@ class JobTables:
     def jobs_succeeded(self, run_id: str, k: int, results: Iterable[JobResult]) -> None:
         """Store attack jobs' outcomes (:class:`JobResult`): each gradient dL/dT as a blob, then
         every job's row (status succeeded, loss, finiteness, timings, result) in one transaction.
+        The gradients are written without waiting for the disk (``durable=False``): they live
+        for one iteration, and a job whose gradient a power cut lost is run again
+        (:meth:`lost_gradients`, :func:`scheduler.stages.resume`).
 
         Every item is checked first: a bad frame, dtype or value is a StoreError naming the
         field, and nothing (blob or row) is written.
@@ -220,8 +223,8 @@ class JobTables:
         k, items, now = integer("k", k, 0), list(results), utcnow()
         rows = [_attack_values(item, now) for item in items]
         frames = self._batch_frames("jobs_succeeded", run_id, [item.frame for item in items])
-        for row, frame, item in zip(rows, frames, items):
-            row["grad_ref"] = self.blobs.put_array(grad_key(run_id, k, frame), np.asarray(item.grad))
+        for row, frame, item in zip(rows, frames, items):  # not fsynced: a gradient lost is computed again
+            row["grad_ref"] = self.blobs.put_array(grad_key(run_id, k, frame), np.asarray(item.grad), durable=False)
         self._write_results("jobs_succeeded", run_id, k, "attack", frames, rows)
 
     def job_succeeded(self, run_id: str, k: int, frame: int, grad: np.ndarray, loss: float,
@@ -351,17 +354,34 @@ class JobTables:
                       .execution_options(synchronize_session=False))
             return n, s.scalar(select(Run.failures).where(Run.id == run_id))
 
-    def reset_jobs(self, run_id: str, k: int, frames: Sequence[int], phase: str = "attack") -> int:
-        """Queue jobs ``frames`` again with no attempts, unless they succeeded (resume); returns how many."""
+    def reset_jobs(self, run_id: str, k: int, frames: Sequence[int], phase: str = "attack",
+                   succeeded: bool = False) -> int:
+        """Queue jobs ``frames`` again with no attempts, unless they succeeded (resume; ``succeeded``:
+        those too, their result forgotten); returns how many."""
         frames = [integer("frame", f, 0) for f in frames]
         with self._tx("reset_jobs", write=True) as s:
             self._run(s, run_id)
-            return s.execute(
-                update(FrameJob).where(FrameJob.run_id == run_id, FrameJob.phase == _phase(phase),
-                                       FrameJob.k == k, FrameJob.frame.in_(frames),
-                                       FrameJob.status != "succeeded")
-                .values(status="queued", attempts=0).execution_options(synchronize_session=False)
-            ).rowcount
+            which = [FrameJob.run_id == run_id, FrameJob.phase == _phase(phase), FrameJob.k == k,
+                     FrameJob.frame.in_(frames)]
+            if not succeeded:
+                which.append(FrameJob.status != "succeeded")
+            values: dict[str, Any] = {"status": "queued", "attempts": 0}
+            if succeeded:
+                values["grad_ref"] = None
+            return s.execute(update(FrameJob).where(*which).values(**values)
+                             .execution_options(synchronize_session=False)).rowcount
+
+    def lost_gradients(self, run_id: str, k: int) -> list[int]:
+        """The frames of iteration ``k`` whose job succeeded but whose gradient blob is gone or
+        unreadable (written without fsync, :meth:`jobs_succeeded`, and lost with the machine's power)."""
+        lost = []
+        for job in self.jobs(run_id, k):
+            if job.status == "succeeded" and job.grad_ref is not None:
+                try:
+                    self.blobs.get_array(job.grad_ref)
+                except StoreError:
+                    lost.append(job.frame)
+        return lost
 
     def reset_failures(self, run_id: str) -> None:
         """Give the run a fresh failure budget (resume)."""
