@@ -52,7 +52,8 @@ def resolve_scene(config: RunConfig, out: Path, base_dir: Path, reuse: bool = Fa
         return out / "scene"
     if config.conditions is not None:  # every condition's frames in one scene directory
         src = conditions_sequence(config, base_dir)
-    return init_scene(src, out / "scene", InitOptions(force=True, memory_limit=local.memory_limit))
+    return init_scene(src, out / "scene",
+                      InitOptions(force=True, memory_limit=local.memory_limit, frozen=local.frozen))
 
 
 class LocalDispatch:

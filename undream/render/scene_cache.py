@@ -31,7 +31,7 @@ from undream.render.loading import load_scene, texture_param_key
 from undream.scene.layout import frame_xml
 from undream.variant import mitsuba
 
-KINDS = ("sim", "grad")
+KINDS = ("sim", "grad", "mask")  # mask: the init's visibility scenes (frames/mask_NNNN.xml while it verifies)
 
 # Numbers in these elements become traversable parameters once loaded (transforms,
 # emitter and medium values, sphere placement); everything else is structure.
@@ -56,7 +56,7 @@ class ActiveFrame:
 
     scene: Any
     params: Any
-    texture_key: str
+    texture_key: str | None  # None in a mask scene (no texture)
     index: int
 
 
@@ -238,7 +238,8 @@ class SceneCache:
             self._make_room()
             scene = load_scene(self.mi, frame_xml(self.dir, kind, group.representative), spp=1, merge=False)
             params = self.mi.traverse(scene)
-            group.loaded = ActiveFrame(scene, params, texture_param_key(params), group.representative)
+            texture_key = None if kind == "mask" else texture_param_key(params)  # the mask's object emits
+            group.loaded = ActiveFrame(scene, params, texture_key, group.representative)
             group.base = {k: _copy(params[k]) for k in params.keys()
                           if _is_jit(params[k]) and k != group.loaded.texture_key}
             group.applied = set()

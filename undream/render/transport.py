@@ -326,7 +326,7 @@ def _assemble(a: dict[str, np.ndarray], image_hw: tuple[int, int], tex_hw: tuple
 
     The channels share ``F`` and ``B``'s pattern: their ``Bᵀ · diag(value_c)`` are stacked
     (rows ``c·texels + texel``), multiplied once (float64), then split into the channels'
-    float32 CSR matrices (texels × pixels, sorted indices).
+    float32 CSR matrices (texels × pixels; a row's columns in the product's order, not sorted).
     """
     h, w = image_hw
     n_tex = tex_hw[0] * tex_hw[1]
@@ -337,14 +337,13 @@ def _assemble(a: dict[str, np.ndarray], image_hw: tuple[int, int], tex_hw: tuple
     rows = (texels[:, None, :] + n_tex * np.arange(3)[:, None]).reshape(-1)
     bt = sp.csc_matrix((data, rows, np.arange(0, 12 * s + 1, 12)), shape=(3 * n_tex, s)).tocsr()
     jt = bt @ _filter_t(a, image_hw)  # (3 texels) × pixels
-    jt.eliminate_zeros()
-    jt.sort_indices()
+    jt.eliminate_zeros()  # the columns of a row stay in the product's order: a matvec needs no sorting
+    data, indices = jt.data.astype(np.float32), jt.indices.astype(np.int32)  # pixels < 2**31
     out = []
-    for c in range(3):  # each channel's rows, copied out as float32 / int32
+    for c in range(3):  # each channel's rows, views of the float32 / int32 arrays
         lo, hi = int(jt.indptr[c * n_tex]), int(jt.indptr[(c + 1) * n_tex])
         ptr = (jt.indptr[c * n_tex:(c + 1) * n_tex + 1] - lo).astype(np.int32 if hi - lo < 2**31 else np.int64)
-        out.append(sp.csr_matrix((jt.data[lo:hi].astype(np.float32), jt.indices[lo:hi].astype(np.int32), ptr),
-                                 shape=(n_tex, h * w)))
+        out.append(sp.csr_matrix((data[lo:hi], indices[lo:hi], ptr), shape=(n_tex, h * w), copy=False))
     return tuple(out)  # type: ignore[return-value]
 
 

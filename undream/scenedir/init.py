@@ -40,7 +40,7 @@ from undream.scene.mitsuba_scene import OBJECT_ID, ScenePaths, scene_dict
 from undream.scene.sources import sequence_from_file
 from undream.scene.xml import to_xml
 from undream.scenedir.envmaps import Envmap, envmap_sources, load_envmaps, write_envmaps
-from undream.scenedir.verify import check_visible, contact_sheet, render_mask, render_white, save_mask, save_rgb
+from undream.scenedir.verify import check_visible, contact_sheet, render_frames, save_mask, save_rgb
 from undream.spec import Sequence, TextureParam, save_sequence
 from undream.spec.io import check_writable_target, join_against, resolve_against
 from undream.variant import mitsuba
@@ -58,6 +58,7 @@ class InitOptions:
     scene_spp: int = 64  # the default ``$spp`` written into the XML files
     progress: bool = False  # show a progress bar
     memory_limit: int | None = None  # bytes the renders may use (None: MemAvailable; the edge reads $UNDREAM_MEMORY_LIMIT)
+    frozen: bool = True  # the verification renders as Dr.Jit frozen functions (the edge reads $UNDREAM_FROZEN)
 
 
 @dataclass(frozen=True)
@@ -221,15 +222,18 @@ def _write(checked: CheckedSource, root: Path, opt: InitOptions) -> None:
     write_envmaps(list(checked.envmaps), root)
     rel = ScenePaths("..")
     defaults = {"spp": opt.scene_spp}
-    tiles = []
-    for frame in progress(seq.frames, "init frames", "frame", opt.progress):
-        for kind in ("sim", "grad"):
+    for frame in seq.frames:  # the mask scenes only while the frames are verified
+        for kind in ("sim", "grad", "mask"):
             frame_xml(root, kind, frame.index).write_text(to_xml(scene_dict(seq, frame, rel, kind), defaults))
-        white = render_white(mi, frame_xml(root, "sim", frame.index), opt.verify_spp)
-        mask = render_mask(mi, seq, frame, root, opt.verify_spp)
-        save_rgb(white, root / "verify" / f"{frame_name('white', frame.index)}.png")
-        save_mask(mask, mask_png(root, frame.index))
-        tiles.append((f"frame {frame.index}", to_uint8(linear_to_srgb(white)), mask))
+    tiles = []
+    indices = [frame.index for frame in seq.frames]
+    renders = render_frames(mi, root, indices, opt.verify_spp, opt.frozen)
+    for index, white, mask in progress(renders, "init frames", "frame", opt.progress, total=len(indices)):
+        save_rgb(white, root / "verify" / f"{frame_name('white', index)}.png")
+        save_mask(mask, mask_png(root, index))
+        tiles.append((f"frame {index}", to_uint8(linear_to_srgb(white)), mask))
+    for index in indices:
+        frame_xml(root, "mask", index).unlink()
     contact_sheet(tiles, root / "verify" / "contact_sheet.png")
     _write_metadata(checked, root, opt, mi)
 

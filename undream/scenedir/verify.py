@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 from types import ModuleType
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 from PIL import Image, ImageDraw
@@ -30,6 +30,34 @@ def render_white(mi: ModuleType, xml: Path, spp: int, seed: int = 0) -> np.ndarr
     params[key] = mi.TensorXf(np.ones(params[key].shape, dtype=np.float32))
     params.update()
     return np.array(mi.render(scene, seed=seed), dtype=np.float32)
+
+
+def render_frames(mi: ModuleType, scene_dir: Path, indices: list[int], spp: int,
+                  frozen: bool = True) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+    """Each frame's white render (H×W×3 linear, as :func:`render_white`) and mask (H×W bool, as
+    :func:`render_mask`), from the scene directory's ``frames/sim_NNNN.xml`` and
+    ``frames/mask_NNNN.xml`` (the init writes the latter for this and removes them after).
+
+    One loaded scene per group of equal frames (:class:`~undream.render.scene_cache.SceneCache`),
+    each render a Dr.Jit frozen function replayed with the frame's values (``frozen``), instead of
+    loading, tracing and compiling two scenes per frame: what makes the init of a multi-condition
+    run's hundreds of frames take minutes less.
+    """
+    from undream.render.differentiable import render_frozen
+    from undream.render.scene_cache import SceneCache
+
+    scenes = SceneCache(scene_dir, mi, frozen=frozen)
+    white: dict[tuple[int, ...], Any] = {}
+    try:
+        for index in indices:
+            shape = tuple(scenes.loaded("sim", index).params[scenes.loaded("sim", index).texture_key].shape)
+            if shape not in white:
+                white[shape] = mi.TensorXf(np.ones(shape, dtype=np.float32))
+            img = render_frozen(scenes, "sim", scenes.frame("sim", index, texture=white[shape]), spp, 0)
+            cover = render_frozen(scenes, "mask", scenes.frame("mask", index), spp, 0)
+            yield index, img, cover.mean(axis=2) > 0.5
+    finally:
+        scenes.close()
 
 
 def render_mask(mi: ModuleType, seq: Sequence, frame: Frame, scene_dir: Path, spp: int) -> np.ndarray:
