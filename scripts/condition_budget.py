@@ -3,10 +3,11 @@
 ε, over seeds; every final texture judged on the eight conditions of examples/conditions/.
 
     .venv/bin/python scripts/condition_budget.py --out build/condition_budget --victim bundled:yolo \\
-        [--seeds 0 1 2] [--eps 8 16 50] [--attacks pgd apgd] [--steps 100]
+        [--seeds 0 1 2] [--eps 8 16 50] [--attacks pgd apgd] [--steps 100] [--multi RUN_CONFIG]
 
 The two run configs are the main job (examples/runs/bin_orbit_pgd.yaml, one scene) and
-examples/runs/bin_orbit_conditions.yaml (its scene over 16 conditions, none held out here), with
+examples/runs/bin_orbit_conditions.yaml (its scene over 16 conditions, none held out here; ``--multi``:
+another multi-condition run config, such as examples/runs/bin_orbit_conditions_wide.yaml), with
 ``--victim`` and its task's first loss (``ce`` for a classifier, ``vanish`` for a detector), the
 attack, ε, steps and seed replaced. The 16-condition scene is initialised once and every
 multi-condition run attacks that scene directory (the frames, conditions and per-condition hold-out
@@ -14,7 +15,8 @@ of a run of the conditions block). Each run's texture is judged by the victim on
 held-out condition (accuracy, or AP@0.5 for a detector) at 32 spp (the run configs' ``eval_spp``;
 the runs' own evaluation, not used here, at 4 spp: the attack does not depend on it). Prints the table
 (mean over the eight conditions; mean ± standard deviation of that over seeds), writes
-``OUT/<victim>.csv`` (every run and condition, with each run's wall time) and ``OUT/<victim>.png``.
+``OUT/<victim>.csv`` (every run and condition, with each run's wall time) and ``OUT/<victim>.png``
+(``OUT/<victim>_<multi config>.csv`` / ``.png`` with ``--multi``).
 Finished runs and judgements in ``OUT/runs`` are read, not redone: the script can be stopped and
 started again.
 """
@@ -34,8 +36,8 @@ import yaml
 from condition_suite import mean_sd, run_once
 
 ROOT = Path(__file__).resolve().parents[1]
-RUNS = {"one scene": ROOT / "examples" / "runs" / "bin_orbit_pgd.yaml",
-        "16 conditions": ROOT / "examples" / "runs" / "bin_orbit_conditions.yaml"}
+ONE_SCENE = ROOT / "examples" / "runs" / "bin_orbit_pgd.yaml"
+MULTI = ROOT / "examples" / "runs" / "bin_orbit_conditions.yaml"
 JUDGE_SPP = 32  # the run configs' eval_spp: the held-out conditions are judged as the runs judge themselves
 RUN_EVAL_SPP = 4  # each run's own evaluation (384 frames twice for 16 conditions) is not used here
 
@@ -48,6 +50,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--eps", type=float, nargs="+", default=[8.0, 16.0, 50.0], help="ε in 0–255 sRGB units")
     parser.add_argument("--attacks", nargs="+", default=["pgd", "apgd"])
     parser.add_argument("--steps", type=int, default=100)
+    parser.add_argument("--multi", type=Path, default=MULTI, help="the multi-condition run config")
     args = parser.parse_args(argv)
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     sys.path.insert(0, str(ROOT))
@@ -63,14 +66,18 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     specs = sorted((ROOT / "examples" / "conditions").glob("*.yaml"))
     held_out = {p.stem: _init_once(p, args.out / "scenes" / p.stem) for p in specs}
-    bases = {kind: yaml.safe_load(path.read_text()) for kind, path in RUNS.items()}
-    for kind, base in bases.items():
-        base["scene"] = str((RUNS[kind].parent / base["scene"]).resolve())
-    multi = bases["16 conditions"]
+    multi = yaml.safe_load(args.multi.read_text())
+    multi["scene"] = str((args.multi.parent / multi["scene"]).resolve())
     composed = conditions_sequence(RunConfig.from_json({**multi, "victim": args.victim, "loss": loss}), ROOT)
-    bases["16 conditions"] = {k: v for k, v in multi.items() if k != "conditions"}
-    bases["16 conditions"]["scene"] = str(_init_once(composed, args.out / "scenes" / "_16_conditions"))
+    kinds = {"one scene": ONE_SCENE, f"{len(composed.conditions)} conditions": args.multi}
+    bases = {"one scene": yaml.safe_load(ONE_SCENE.read_text())}
+    bases["one scene"]["scene"] = str((ONE_SCENE.parent / bases["one scene"]["scene"]).resolve())
+    scene_name = "_16_conditions" if args.multi.resolve() == MULTI else f"_{multi['name']}"
+    bases[list(kinds)[1]] = {**{k: v for k, v in multi.items() if k != "conditions"},
+                             "scene": str(_init_once(composed, args.out / "scenes" / scene_name))}
     slug = args.victim.replace(":", "_").replace("/", "_")
+    if args.multi.resolve() != MULTI:
+        slug += f"_{multi['name']}"
     rows = []
     for eps in args.eps:  # each ε's cells whole before the next ε's (a long study stopped early has whole rows)
         for attack in args.attacks:
@@ -80,7 +87,7 @@ def main(argv: list[str] | None = None) -> int:
                             "victim": args.victim, "loss": loss, "eval_spp": RUN_EVAL_SPP,
                             "attack": {**base["attack"], "name": attack, "eps": eps, "steps": args.steps}}
                     config = RunConfig.from_json(data)
-                    out = args.out / "runs" / slug / data["name"]
+                    out = args.out / "runs" / args.victim.replace(":", "_").replace("/", "_") / data["name"]
                     wall = run_once(config, out, run_local)
                     judged_file = out / "held_out_conditions.json"
                     if judged_file.is_file():
@@ -97,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
                     print(f"{kind} {attack} ε={eps:g} seed {seed}: mean over conditions "
                           f"{statistics.fmean(r['adversarial'] for r in judged):.3f} "
                           f"({time.monotonic() - start:.0f} s)", flush=True)
-    _write(args, slug, rows, "AP@0.5" if task == "detection" else "accuracy")
+    _write(args, slug, list(kinds), rows, "AP@0.5" if task == "detection" else "accuracy")
     print(f"done in {time.monotonic() - start:.0f} s")
     return 0
 
@@ -111,7 +118,7 @@ def _init_once(source, out: Path) -> Path:
     return init_scene(source, out, InitOptions(force=True))
 
 
-def _write(args: argparse.Namespace, slug: str, rows: list[dict], metric: str) -> None:
+def _write(args: argparse.Namespace, slug: str, kinds: list[str], rows: list[dict], metric: str) -> None:
     with open(args.out / f"{slug}.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
@@ -121,33 +128,33 @@ def _write(args: argparse.Namespace, slug: str, rows: list[dict], metric: str) -
                               and r["eps"] == args.eps[0])
     print(f"\n{args.victim}: {metric} on the 8 held-out conditions (mean over conditions; mean ± standard "
           f"deviation over seeds {args.seeds}), {args.steps} steps; the benign texture: {benign:.2f}")
-    print("| attack | ε | " + " | ".join(RUNS) + " |")
-    print("|---|---|" + "---|" * len(RUNS))
+    print("| attack | ε | " + " | ".join(kinds) + " |")
+    print("|---|---|" + "---|" * len(kinds))
     cells: dict = {}
     for attack in args.attacks:
         for eps in args.eps:
             line = []
-            for kind in RUNS:
+            for kind in kinds:
                 per_seed = [statistics.fmean(r["adversarial"] for r in rows if r["run"] == kind and r["attack"] == attack
                                              and r["eps"] == eps and r["seed"] == seed) for seed in args.seeds]
                 cells[attack, eps, kind] = statistics.fmean(per_seed)
                 line.append(mean_sd(per_seed))
             print(f"| {attack} | {eps:g} | " + " | ".join(line) + " |")
-    for kind in RUNS:
+    for kind in kinds:
         walls = [r["run_wall_s"] for r in rows if r["run"] == kind and r["condition"] == rows[0]["condition"]]
         print(f"{kind}: run wall time {mean_sd(walls)} s")
-    _chart(args, slug, metric, benign, cells)
+    _chart(args, slug, kinds, metric, benign, cells)
 
 
-def _chart(args: argparse.Namespace, slug: str, metric: str, benign: float, cells: dict) -> None:
+def _chart(args: argparse.Namespace, slug: str, kinds: list[str], metric: str, benign: float, cells: dict) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6.5, 3.4), dpi=110)
     groups = [(attack, eps) for attack in args.attacks for eps in args.eps]
-    width = 0.8 / len(RUNS)
-    for i, (kind, colour) in enumerate(zip(RUNS, ["#c44", "#36a"])):
+    width = 0.8 / len(kinds)
+    for i, (kind, colour) in enumerate(zip(kinds, ["#c44", "#36a"])):
         ax.bar([x - 0.4 + width * (i + 0.5) for x in range(len(groups))],
                [cells[attack, eps, kind] for attack, eps in groups], width, label=kind, color=colour)
     ax.axhline(benign, color="#888", linestyle="--", linewidth=1, label="benign texture")
@@ -159,10 +166,17 @@ def _chart(args: argparse.Namespace, slug: str, metric: str, benign: float, cell
     ax.legend(fontsize=7)
     fig.text(0.01, 0.01, f"made by: scripts/condition_budget.py --out {args.out} --victim {args.victim} --seeds "
              f"{' '.join(map(str, args.seeds))} --eps {' '.join(f'{e:g}' for e in args.eps)} --attacks "
-             f"{' '.join(args.attacks)} --steps {args.steps}", fontsize=5)
+             f"{' '.join(args.attacks)} --steps {args.steps}"
+             + ("" if args.multi.resolve() == MULTI else f" --multi {_shown(args.multi)}"), fontsize=5)
     fig.tight_layout(rect=(0, 0.04, 1, 1))
     fig.savefig(args.out / f"{slug}.png")
     plt.close(fig)
+
+
+def _shown(path: Path) -> str:
+    """``path`` relative to the repository where it is inside it."""
+    path = path.resolve()
+    return str(path.relative_to(ROOT)) if path.is_relative_to(ROOT) else str(path)
 
 
 if __name__ == "__main__":

@@ -184,3 +184,25 @@ def test_cycles_renders_the_city_and_agrees_with_mitsuba(cycles, city_scene):
             assert abs(b / a - 1) < 0.05, f"frame {i}: Cycles / Mitsuba = {b / a:.3f}"
     finally:
         sim.close()
+
+
+def test_props_are_placed_once_per_sequence_and_background(monkeypatch):
+    """Every frame's scene files ask for the props; each placement checks every frame's sight line,
+    so placing them per frame made a multi-condition init quadratic in its frames."""
+    from undream.scene import background
+    from undream.scene.mitsuba_scene import ScenePaths, scene_dict
+    from undream.scene.sources import sequence_from_file
+
+    placed, place = [], background._place
+    monkeypatch.setattr(background, "_place", lambda seq, bg: placed.append(bg) or place(seq, bg))
+    seq = sequence_from_file(ROOT / "examples" / "bin_orbit.yaml")
+    for s in (seq, _city(seq)):
+        first = None
+        for f in s.frames:
+            for kind in ("sim", "mask"):
+                d = scene_dict(s, f, ScenePaths(".."), kind)
+                shown = [(v["type"], v["to_world"].m) for k, v in d.items()
+                         if k.startswith("prop_")]
+                first = shown if first is None else first
+                assert shown == first and shown, "every frame shows the same props"
+    assert placed == [seq.frames[0].environment.background, "city"]

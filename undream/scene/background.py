@@ -76,8 +76,28 @@ def _at(x: float, y: float, z: float) -> np.ndarray:
     return m
 
 
+_PLACED: dict[tuple[int, str], tuple[Sequence, list[Prop]]] = {}  # (id of a sequence, background) → its props
+_PLACED_MAX = 8
+
+
 def props(seq: Sequence, background: str) -> list[Prop]:
-    """Seeded props for ``background`` that keep every line of sight to the object clear."""
+    """Seeded props for ``background`` that keep every line of sight to the object clear.
+
+    Placed once per sequence and background (the last few are kept): every frame's scene file asks
+    again, and each placement checks every frame's line of sight, so a multi-condition run's init
+    of 1,728 frames spent most of its time here placing the same props again (quadratic in frames).
+    """
+    held = _PLACED.get((id(seq), background))
+    if held is not None and held[0] is seq:  # a Sequence is immutable: the same object, the same props
+        return list(held[1])
+    placed = _place(seq, background)
+    if len(_PLACED) >= _PLACED_MAX:
+        _PLACED.pop(next(iter(_PLACED)))
+    _PLACED[(id(seq), background)] = (seq, placed)
+    return list(placed)
+
+
+def _place(seq: Sequence, background: str) -> list[Prop]:
     if background == "plain":
         return []
     if background == "city":
