@@ -15,7 +15,9 @@ from PIL import Image, ImageDraw
 
 from undream.color import linear_to_srgb, to_uint8
 from undream.errors import SpecError
+from undream.render.differentiable import render_frozen
 from undream.render.loading import load_scene, texture_param_key
+from undream.render.scene_cache import SceneCache
 from undream.scene.layout import mask_png
 from undream.scene.mitsuba_scene import ScenePaths, scene_dict
 from undream.scene.xml import to_mitsuba
@@ -43,9 +45,6 @@ def render_frames(mi: ModuleType, scene_dir: Path, indices: list[int], spp: int,
     loading, tracing and compiling two scenes per frame: what makes the init of a multi-condition
     run's hundreds of frames take minutes less.
     """
-    from undream.render.differentiable import render_frozen
-    from undream.render.scene_cache import SceneCache
-
     scenes = SceneCache(scene_dir, mi, frozen=frozen)
     white: dict[tuple[int, ...], Any] = {}
     try:
