@@ -72,12 +72,12 @@ def main(argv: list[str] | None = None) -> int:
     kinds = {"one scene": ONE_SCENE, f"{len(composed.conditions)} conditions": args.multi}
     bases = {"one scene": yaml.safe_load(ONE_SCENE.read_text())}
     bases["one scene"]["scene"] = str((ONE_SCENE.parent / bases["one scene"]["scene"]).resolve())
-    scene_name = "_16_conditions" if args.multi.resolve() == MULTI else f"_{multi['name']}"
+    default_multi = args.multi.resolve() == MULTI
+    scene_name = "_16_conditions" if default_multi else f"_{multi['name']}"
     bases[list(kinds)[1]] = {**{k: v for k, v in multi.items() if k != "conditions"},
                              "scene": str(_init_once(composed, args.out / "scenes" / scene_name))}
-    slug = args.victim.replace(":", "_").replace("/", "_")
-    if args.multi.resolve() != MULTI:
-        slug += f"_{multi['name']}"
+    victim_slug = args.victim.replace(":", "_").replace("/", "_")
+    slug = victim_slug if default_multi else f"{victim_slug}_{multi['name']}"
     rows = []
     for eps in args.eps:  # each ε's cells whole before the next ε's (a long study stopped early has whole rows)
         for attack in args.attacks:
@@ -87,7 +87,7 @@ def main(argv: list[str] | None = None) -> int:
                             "victim": args.victim, "loss": loss, "eval_spp": RUN_EVAL_SPP,
                             "attack": {**base["attack"], "name": attack, "eps": eps, "steps": args.steps}}
                     config = RunConfig.from_json(data)
-                    out = args.out / "runs" / args.victim.replace(":", "_").replace("/", "_") / data["name"]
+                    out = args.out / "runs" / victim_slug / data["name"]
                     wall = run_once(config, out, run_local)
                     judged_file = out / "held_out_conditions.json"
                     if judged_file.is_file():

@@ -2,7 +2,8 @@
 
 One class for the process caches that must drop what was used longest ago:
 loaded Mitsuba scene groups (``undream.render.scene_cache``), run contexts,
-scene caches and victims (``scheduler.contexts``), texture versions
+scene caches and victims (``scheduler.contexts``), placed background props
+(``undream.scene.background``), texture versions
 (``scheduler.stages.run_batch``) and the dashboard's values
 (``undream.dashboard.state``); :class:`LastArray` the one-slot case keyed by an array's value.
 ``functools.lru_cache`` serves the cases whose

@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from undream.lru import LRU
 from undream.scene.xml import Mat4, UVScale
 from undream.spec import Sequence
 
@@ -76,8 +77,7 @@ def _at(x: float, y: float, z: float) -> np.ndarray:
     return m
 
 
-_PLACED: dict[tuple[int, str], tuple[Sequence, list[Prop]]] = {}  # (id of a sequence, background) → its props
-_PLACED_MAX = 8
+_PLACED: LRU[tuple[int, str], tuple[Sequence, list[Prop]]] = LRU(8)  # (id of a sequence, background) → its props
 
 
 def props(seq: Sequence, background: str) -> list[Prop]:
@@ -87,14 +87,11 @@ def props(seq: Sequence, background: str) -> list[Prop]:
     again, and each placement checks every frame's line of sight, so a multi-condition run's init
     of 1,728 frames spent most of its time here placing the same props again (quadratic in frames).
     """
-    held = _PLACED.get((id(seq), background))
-    if held is not None and held[0] is seq:  # a Sequence is immutable: the same object, the same props
-        return list(held[1])
-    placed = _place(seq, background)
-    if len(_PLACED) >= _PLACED_MAX:
-        _PLACED.pop(next(iter(_PLACED)))
-    _PLACED[(id(seq), background)] = (seq, placed)
-    return list(placed)
+    key = (id(seq), background)
+    held = _PLACED.touch(key) if key in _PLACED else None
+    if held is None or held[0] is not seq:  # a Sequence is immutable: the same object, the same props
+        held = _PLACED.put(key, (seq, _place(seq, background)))
+    return list(held[1])
 
 
 def _place(seq: Sequence, background: str) -> list[Prop]:

@@ -49,7 +49,8 @@ def render_frames(mi: ModuleType, scene_dir: Path, indices: list[int], spp: int,
     white: dict[tuple[int, ...], Any] = {}
     try:
         for index in indices:
-            shape = tuple(scenes.loaded("sim", index).params[scenes.loaded("sim", index).texture_key].shape)
+            loaded = scenes.loaded("sim", index)
+            shape = tuple(loaded.params[loaded.texture_key].shape)
             if shape not in white:
                 white[shape] = mi.TensorXf(np.ones(shape, dtype=np.float32))
             img = render_frozen(scenes, "sim", scenes.frame("sim", index, texture=white[shape]), spp, 0)
