@@ -58,8 +58,19 @@ def _steady(store: Any, run_id: str, steps: int, n_frames: int) -> dict[str, flo
     wall = (end - start).total_seconds()
     gaps = [(min(j.started for j in by_k[k + 1]) - max(j.finished for j in by_k[k])).total_seconds()
             for k in range(1, steps - 1)]
+    jobs = [j for k in range(1, steps) for j in by_k[k]]
+    # per frame job, summed over the steady jobs and divided by their count: where a frame's time goes
+    parts = {part: sum(j.timings.get(part, 0.0) for j in jobs) / len(jobs)
+             for part in ("sim_render", "victim", "grad_render")}
+    # a task's own wall per frame (its frames' first start to last finish, by worker and iteration):
+    # what the parts leave out is the task's store writes and reads
+    tasks: dict[tuple[Any, int], list[Any]] = {}
+    for j in jobs:
+        tasks.setdefault((j.worker, j.k), []).append(j)
+    task_wall = sum((max(j.finished for j in t) - min(j.started for j in t)).total_seconds()
+                    for t in tasks.values()) / len(jobs)
     return {"wall": wall, "fps": (steps - 1) * n_frames / wall, "gap_median": statistics.median(gaps),
-            "gap_max": max(gaps)}
+            "gap_max": max(gaps), "task_wall": task_wall, **parts}
 
 
 def _blob_bytes(store: Any, run_id: str, fpt: int) -> float:
@@ -188,15 +199,19 @@ def _table(args: argparse.Namespace, prepared: Any, tmp: Path, redis: Any) -> No
           f"gradient {prepared.config.gradient}, "
           f"sim_spp {args.sim_spp}, grad_spp {args.grad_spp}, eval_spp {args.eval_spp}; "
           f"{os.cpu_count()} cores; load average before {load0[0]:.2f}, after {load1[0]:.2f}")
-    print("steady = iterations 1…N−1 (after compilation and context builds)\n")
+    print("steady = iterations 1…N−1 (after compilation and context builds); per frame: the steady jobs' own "
+          "timings, and each task's wall (first start to last finish) per frame\n")
     head = ("setup", "frames/task", "steady s", "frames/s", "time vs 1 process", "throughput vs 1-core worker",
-            "gap median ms", "gap max ms", "blob B/job", "broker B/job", "total s")
+            "gap median ms", "gap max ms", "blob B/job", "broker B/job", "total s",
+            "per frame: sim ms", "victim ms", "grad ms", "task wall ms")
     print("| " + " | ".join(head) + " |")
     print("|" + "---|" * len(head))
     for label, r in rows:
         print(f"| {label} | {r['fpt']} | {r['wall']:.2f} | {r['fps']:.1f} | {r['wall'] / local['wall']:.2f} | "
               f"{r['fps'] / one_core:.2f} | {1000 * r['gap_median']:.1f} | {1000 * r['gap_max']:.1f} | "
-              f"{r['blob_bytes']:.0f} | {r['broker_bytes']:.0f} | {r['total']:.1f} |")
+              f"{r['blob_bytes']:.0f} | {r['broker_bytes']:.0f} | {r['total']:.1f} | "
+              f"{1000 * r['sim_render']:.1f} | {1000 * r['victim']:.1f} | {1000 * r['grad_render']:.1f} | "
+              f"{1000 * r['task_wall']:.1f} |")
 
 
 if __name__ == "__main__":

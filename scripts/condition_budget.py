@@ -3,7 +3,7 @@
 ε, over seeds; every final texture judged on the eight conditions of examples/conditions/.
 
     .venv/bin/python scripts/condition_budget.py --out build/condition_budget --victim bundled:yolo \\
-        [--seeds 0 1 2] [--eps 8 16 50] [--attacks pgd apgd] [--steps 100] [--multi RUN_CONFIG]
+        [--seeds 0 1 2] [--eps 8 16 50] [--attacks pgd apgd] [--steps 100] [--multi RUN_CONFIG] [--multi-only]
 
 The two run configs are the main job (examples/runs/bin_orbit_pgd.yaml, one scene) and
 examples/runs/bin_orbit_conditions.yaml (its scene over 16 conditions, none held out here; ``--multi``:
@@ -51,6 +51,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--attacks", nargs="+", default=["pgd", "apgd"])
     parser.add_argument("--steps", type=int, default=100)
     parser.add_argument("--multi", type=Path, default=MULTI, help="the multi-condition run config")
+    parser.add_argument("--multi-only", action="store_true",
+                        help="run the multi-condition config only (the one-scene column is --multi's default's)")
     args = parser.parse_args(argv)
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     sys.path.insert(0, str(ROOT))
@@ -76,6 +78,8 @@ def main(argv: list[str] | None = None) -> int:
     scene_name = "_16_conditions" if default_multi else f"_{multi['name']}"
     bases[list(kinds)[1]] = {**{k: v for k, v in multi.items() if k != "conditions"},
                              "scene": str(_init_once(composed, args.out / "scenes" / scene_name))}
+    if args.multi_only:
+        del kinds["one scene"], bases["one scene"]
     victim_slug = args.victim.replace(":", "_").replace("/", "_")
     slug = victim_slug if default_multi else f"{victim_slug}_{multi['name']}"
     rows = []
@@ -123,7 +127,7 @@ def _write(args: argparse.Namespace, slug: str, kinds: list[str], rows: list[dic
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
-    benign = statistics.fmean(r["benign"] for r in rows if r["run"] == "one scene"
+    benign = statistics.fmean(r["benign"] for r in rows if r["run"] == kinds[0]
                               and r["seed"] == args.seeds[0] and r["attack"] == args.attacks[0]
                               and r["eps"] == args.eps[0])
     print(f"\n{args.victim}: {metric} on the 8 held-out conditions (mean over conditions; mean ± standard "

@@ -302,3 +302,38 @@ def test_eot_light_scale_scales_the_envmap_and_turns_are_per_frame(spot_scene, m
     finally:
         scenes.close()
         fresh.close()
+
+
+# --- the night lamp ----------------------------------------------------------------------------------
+
+def test_night_lamp_fields_round_trip_and_refuse_a_lamp_by_day():
+    moved = Environment("night", lamp_offset=(-2.0, 4.0, 1.0), lamp_intensity=(40, 20, 5))
+    assert Environment.from_json(json.loads(json.dumps(moved.to_json()))) == moved
+    assert "lamp_offset" not in Environment("night").to_json()  # the default lamp's scenes keep their files
+    with pytest.raises(SpecError, match=r"lamp_offset: .*lights the night only; weather is 'clear'"):
+        Environment("clear", lamp_offset=(1, 2, 3))
+    with pytest.raises(SpecError, match=r"lamp_intensity: .*>= 0, not all 0"):
+        Environment("night", lamp_intensity=(1, -1, 0))
+    with pytest.raises(SpecError, match=r"lamp_offset\[2\]"):
+        Environment("night", lamp_offset=(1, 2, float("nan")))
+
+
+def test_a_moved_and_coloured_night_lamp_lights_its_own_side(tmp_path, mi):
+    """`undream init` of a night spec whose lamp moves to the other side and turns blue: the render
+    is lit from the lamp's side (projected independently) and takes the lamp's colour."""
+    from undream.scenedir.init import InitOptions, init_scene
+    from undream.scenedir.verify import read_mask
+    from undream.sim import make_backend
+
+    lamps = [((2.5, 6.0, 2.5), (30.0, 25.0, 18.0)), ((-2.5, 3.0, 0.5), (2.0, 4.0, 40.0))]
+    envs = [{"weather": "night", "lamp_offset": list(o), "lamp_intensity": list(c)} for o, c in lamps]
+    scene = init_scene(_spec(tmp_path, envs, frames=2), tmp_path / "scene", InitOptions(verify_spp=4))
+    sim = make_backend("mitsuba", scene)
+    tex = np.full((8, 16, 3), 0.7, np.float32)
+    centre = np.zeros(3)  # the sphere stands at the origin: the lamp's offset is its direction
+    for i, (offset, colour) in enumerate(lamps):
+        img, mask = sim.render(i, tex, 64, 1), read_mask(scene, i)
+        got, expect = _lit_offset(img, mask), _expected_offset(scene, i, np.asarray(offset) - centre)
+        assert _cos(got, expect) > 0.8, f"lamp {offset}: lit side {got} px, lamp towards {expect}"
+        rgb = img[mask].mean(axis=0)
+        assert np.argmax(rgb) == np.argmax(colour), f"lamp {colour}: the sphere's mean colour {rgb}"

@@ -66,6 +66,17 @@ class _Group:
     loaded: ActiveFrame | None = None
     base: dict[str, Any] = field(default_factory=dict)  # representative's values of the JIT parameters
     applied: set[str] = field(default_factory=set)  # keys currently holding another frame's values
+    # the representative's values as numpy (None where they have none), read once per group for the
+    # comparisons of every other frame (each conversion waits on Dr.Jit: 4 a key per frame made
+    # half of a frame's first use)
+    as_numpy: dict[str, np.ndarray | None] = field(default_factory=dict)
+
+    def theirs(self, key: str) -> tuple[Any, np.ndarray | None]:
+        """The representative's value of ``key`` and its numpy form (cached)."""
+        value = self.base.get(key, self.loaded.params[key]) if self.loaded is not None else self.base[key]
+        if key not in self.as_numpy:
+            self.as_numpy[key] = _numpy_or_none(value)
+        return value, self.as_numpy[key]
 
 
 @dataclass
@@ -219,13 +230,19 @@ class SceneCache:
             for key in params.keys():
                 if key == group.loaded.texture_key:
                     continue
-                mine, theirs = params[key], group.base.get(key, group.loaded.params[key])
+                mine = params[key]
+                theirs, theirs_np = group.theirs(key)
+                mine_np = _numpy_or_none(mine)
+                if mine_np is None or theirs_np is None:  # not an array: compared as Python values
+                    same_size, equal = True, bool(mine == theirs)
+                else:
+                    same_size, equal = mine_np.shape == theirs_np.shape, np.array_equal(mine_np, theirs_np)
                 if key not in group.base:  # host-side value: must be equal
-                    if not _equal(mine, theirs):
+                    if not equal:
                         return None
-                elif not _same_size(mine, theirs):  # another mesh: a buffer cannot change its size
+                elif not same_size:  # another mesh: a buffer cannot change its size
                     return None
-                elif not _equal(mine, theirs):
+                elif not equal:
                     out[key] = _copy(mine)
             return out
         finally:
@@ -243,6 +260,7 @@ class SceneCache:
             group.base = {k: _copy(params[k]) for k in params.keys()
                           if _is_jit(params[k]) and k != group.loaded.texture_key}
             group.applied = set()
+            group.as_numpy = {}
         self._lru.put(gkey, group)
         return group.loaded
 
@@ -321,15 +339,9 @@ def _as_numpy(value: Any) -> np.ndarray:
     return np.asarray(np.array(value), dtype=np.float64)
 
 
-def _same_size(a: Any, b: Any) -> bool:
+def _numpy_or_none(value: Any) -> np.ndarray | None:
+    """``value`` as a float64 array, or None where it has no array form (a string, a plugin)."""
     try:
-        return _as_numpy(a).shape == _as_numpy(b).shape
+        return _as_numpy(value)
     except (TypeError, ValueError):
-        return True
-
-
-def _equal(a: Any, b: Any) -> bool:
-    try:
-        return np.array_equal(_as_numpy(a), _as_numpy(b))
-    except (TypeError, ValueError):
-        return a == b
+        return None

@@ -8,7 +8,8 @@ backend translates the same Mitsuba dictionaries):
 
 - ``clear``: full sun, blue sky; ``cloudy``: sun at 12 %, bright grey sky;
 - ``fog``: sun at 45 %, grey sky, a homogeneous medium of ``fog_density``;
-- ``night``: a dark blue sky and one warm point lamp above the object;
+- ``night``: a dark blue sky and one point lamp above the object (warm white,
+  up and to one side unless ``lamp_offset`` / ``lamp_intensity`` say otherwise);
 - ``rain``: sun at 4 %, a dim grey sky, a light haze (:data:`HAZE`) and a
   wet ground (darker: :func:`ground_tint`);
 - ``snow``: sun at 15 %, a bright sky, a light haze and a snow-covered
@@ -70,8 +71,8 @@ def emitters(env: Environment, anchor: np.ndarray, envmap_file: str | None = Non
                       "to_world": Mat4.of(envmap_rotation(env.envmap_rotation_deg))}
     if env.weather == "night":
         out.setdefault("sky", {"type": "constant", "radiance": _rgb(0.010, 0.013, 0.028)})
-        lamp = np.asarray(anchor, float) + np.array([2.5, 6.0, 2.5])
-        out["lamp"] = {"type": "point", "position": lamp.tolist(), "intensity": _rgb(30.0, 25.0, 18.0)}
+        lamp = np.asarray(anchor, float) + np.asarray(env.lamp_offset, float)
+        out["lamp"] = {"type": "point", "position": lamp.tolist(), "intensity": _rgb(*env.lamp_intensity)}
         return out
     if env.envmap is not None:
         return out

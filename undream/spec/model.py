@@ -21,6 +21,8 @@ Row = tuple[float, float, float, float]
 Matrix = tuple[Row, Row, Row, Row]
 
 WEATHERS = ("clear", "cloudy", "night", "fog", "rain", "snow")
+NIGHT_LAMP_OFFSET = (2.5, 6.0, 2.5)  # metres from the object: up and to one side
+NIGHT_LAMP_INTENSITY = (30.0, 25.0, 18.0)  # warm white
 BACKGROUNDS = ("plain", "park", "street", "city")
 ENVMAP_SUFFIXES = (".exr", ".hdr")
 BUILTIN_PREFIX = "builtin:"
@@ -215,6 +217,11 @@ class Environment:
     ``envmap_scale`` multiplies the map's radiance; ``envmap_rotation_deg``
     turns it about +Y (right-handed: +X towards −Z). In a scene directory
     the path is relative to the directory (``textures/envmap.exr``).
+
+    ``lamp_offset`` (metres from the object's origin) and ``lamp_intensity``
+    (linear RGB, W/sr in undream's units) place and colour the night's point
+    lamp; the defaults are the one lamp every night had before these fields.
+    Other weathers have no lamp and refuse them.
     """
 
     weather: str = "clear"
@@ -225,9 +232,20 @@ class Environment:
     envmap: str | None = None
     envmap_scale: float = 1.0
     envmap_rotation_deg: float = 0.0
+    lamp_offset: tuple[float, float, float] = NIGHT_LAMP_OFFSET
+    lamp_intensity: tuple[float, float, float] = NIGHT_LAMP_INTENSITY
 
     def __post_init__(self) -> None:
         c.choice("weather", self.weather, WEATHERS)
+        object.__setattr__(self, "lamp_offset", c.point("lamp_offset", self.lamp_offset))
+        rgb = c.vector("lamp_intensity", self.lamp_intensity, 3)
+        if any(x < 0 for x in rgb) or not any(rgb):
+            raise c.fail("lamp_intensity", self.lamp_intensity, "must be three numbers >= 0, not all 0")
+        object.__setattr__(self, "lamp_intensity", rgb)
+        if self.weather != "night" and not self.default_lamp:
+            raise c.fail("lamp_offset" if self.lamp_offset != NIGHT_LAMP_OFFSET else "lamp_intensity",
+                         list(self.lamp_offset if self.lamp_offset != NIGHT_LAMP_OFFSET else rgb),
+                         f"a lamp lights the night only; weather is {self.weather!r}")
         c.choice("background", self.background, BACKGROUNDS)
         if self.envmap is not None and (not isinstance(self.envmap, str)
                                         or not self.envmap.lower().endswith(ENVMAP_SUFFIXES)):
@@ -252,7 +270,14 @@ class Environment:
         if self.envmap is not None:  # absent otherwise: sequences without a map keep their files
             d.update(envmap=self.envmap, envmap_scale=self.envmap_scale,
                      envmap_rotation_deg=self.envmap_rotation_deg)
+        if not self.default_lamp:  # likewise: the default lamp's scenes keep their files
+            d.update(lamp_offset=list(self.lamp_offset), lamp_intensity=list(self.lamp_intensity))
         return d
+
+    @property
+    def default_lamp(self) -> bool:
+        """Whether the night lamp is the one every night had before it could be moved."""
+        return self.lamp_offset == NIGHT_LAMP_OFFSET and self.lamp_intensity == NIGHT_LAMP_INTENSITY
 
     @classmethod
     def from_json(cls, d: Any) -> "Environment":
