@@ -6,7 +6,8 @@ under ``transports/<scene digest>/`` and the others read it instead of
 capturing again (measured: a capture costs about 2 frame jobs at 64 px, a
 read of its ``.npz`` a few milliseconds). The linearity verdict of each frame
 is shared the same way. Everything under ``transports/`` is a cache: deleting
-it costs captures, never results.
+it costs captures, never results, and it is written without waiting for the disk
+(a blob a power cut tore is a miss: captured again).
 
 The cache is capped (the setting ``transport_cache_mb``, default
 :data:`DEFAULT_CACHE_MB`): after each capture it writes, a process lists
@@ -18,8 +19,7 @@ deleted while another process reads it is a miss there: it captures again.
 """
 from __future__ import annotations
 
-import os
-import tempfile
+import io
 import time
 import zipfile
 from typing import TYPE_CHECKING
@@ -85,13 +85,10 @@ class BlobTransportShelf:
         return t
 
     def put(self, key: str, transport: "Transport") -> None:
-        fd, tmp = tempfile.mkstemp(suffix=".npz")
-        os.close(fd)
-        try:
-            transport.save(tmp)
-            self.blobs.put_file(f"{self.prefix}/{key}.npz", tmp)
-        finally:
-            os.unlink(tmp)
+        buf = io.BytesIO()
+        transport.save(buf)
+        # a cache: written without waiting for the disk; one a power cut tore is a miss (captured again)
+        self.blobs.put_bytes(f"{self.prefix}/{key}.npz", buf.getbuffer(), durable=False)
         self._touched[f"{self.prefix}/{key}.npz"] = time.monotonic()
         self.evicted += prune_transports(self.blobs, self.cap_bytes)
 

@@ -3,11 +3,13 @@
 user's first command)."""
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import pytest
 
 from scheduler.sweep import load_sweep
+from undream.scenedir.conditions import conditions_sequence
 from undream.spec.run import TASK_LOSSES, load_run_config
 from undream.victims.registry import BUNDLED, bundled_folder_name, bundled_path
 
@@ -23,6 +25,10 @@ def test_every_example_run_config_loads(path):
         folder = bundled_folder_name(config.victim.removeprefix("bundled:"))  # an unknown name raises
         assert bundled_path(folder).is_dir()
         assert config.loss in TASK_LOSSES[BUNDLED[folder]]
+    if config.conditions is not None:  # every condition composes: its files are found from the config's folder
+        grid = config.conditions.grid
+        expected = (math.prod(map(len, grid.values())) if grid else 1) + len(config.conditions.scenes)
+        assert len(conditions_sequence(config, path.parent).conditions) == expected
 
 
 @pytest.mark.parametrize("path", SWEEPS, ids=[p.name for p in SWEEPS])

@@ -149,6 +149,29 @@ def test_a_shared_shelf_saves_the_second_process_its_captures(scene_dir, tmp_pat
     scenes_b.close()
 
 
+def test_a_transport_blob_torn_by_a_power_cut_is_captured_again(scene_dir, tmp_path):
+    """Transports are written without an fsync: one cut short (what a power cut may leave) is a
+    miss for the next process, which captures it again, to the same gradient (to float rounding)."""
+    from scheduler.transports import BlobTransportShelf
+    from undream.store.blobs import BlobStore
+
+    blobs = BlobStore(tmp_path / "blobs")
+    tex, g = _inputs(4)
+    scenes_a, scenes_b = SceneCache(scene_dir), SceneCache(scene_dir)
+    ga = GradientPath(scenes_a, "auto", refresh=5, run_seed=2, shelf=BlobTransportShelf(blobs, "scenes/x.tar")) \
+        .texture_gradient(1, tex, g, SPP, iteration=6, seed=3)
+    (key,) = [i.key for i in blobs.listing("transports") if i.key.endswith(".npz")]
+    path = blobs.backend.local_path(key)
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    shelf_b = BlobTransportShelf(BlobStore(tmp_path / "blobs"), "scenes/x.tar")
+    gb = GradientPath(scenes_b, "auto", refresh=5, run_seed=2, shelf=shelf_b) \
+        .texture_gradient(1, tex, g, SPP, iteration=7, seed=4)
+    assert shelf_b.misses == 1 and shelf_b.hits == 0
+    np.testing.assert_allclose(gb, ga, rtol=1e-5, atol=1e-6)  # a capture's film weights are atomic sums
+    scenes_a.close()
+    scenes_b.close()
+
+
 def test_transport_save_load_round_trip(scene_dir, tmp_path):
     from undream.render.transport import Transport, capture_transport
 

@@ -91,11 +91,15 @@ class Transport:
         return out.reshape(*self.texture_shape, 3)
 
     def save(self, path) -> None:
-        """Write the transport as an uncompressed ``.npz`` (what :meth:`load` reads back exactly)."""
+        """Write the transport as an uncompressed ``.npz`` (what :meth:`load` reads back exactly) to
+        the file ``path`` or into a binary file object."""
         arrays = {"meta": np.array([*self.image_shape, *self.texture_shape, self.seed_grad, self.spp, self.index],
                                    np.int64)}
         for c, m in enumerate(self.jt):
             arrays.update({f"data{c}": m.data, f"indices{c}": m.indices, f"indptr{c}": m.indptr})
+        if hasattr(path, "write"):
+            np.savez(path, **arrays)
+            return
         with open(path, "wb") as f:
             np.savez(f, **arrays)
 

@@ -346,6 +346,13 @@ class BlobStore:
             self.bytes_read += os.fstat(f.fileno()).st_size
             yield f
 
+    def put_bytes(self, key: str, data: bytes, durable: bool = True) -> str:
+        """Store ``data`` under ``key`` (atomically); returns the key. ``durable=False``: bytes that
+        can be made again (a cache's) need not reach the disk first (see :meth:`Backend.write`)."""
+        check_key(key)
+        self._write(key, bytes(data), durable)
+        return key
+
     def put_file(self, key: str, src: Path | str) -> str:
         """Copy the file ``src`` to ``key`` (atomically, like every write); returns the key."""
         check_key(key)
