@@ -425,6 +425,24 @@ def test_a_process_reads_each_texture_version_once(tiny, tmp_path):
     assert first["bytes_written"] > 0 and first["done"] == [0, 1] and second["done"] == [2]
 
 
+def test_the_planner_sends_the_frames_it_computed_last_last(tiny, tmp_path):
+    """The process that closes an iteration plans the next, and the waiting workers take its first
+    batches: the batch holding the planner's own last frames goes out last, so that it comes back
+    to the process whose scenes and transports hold them."""
+    store, run_id, ctx = _local_run(tiny, tmp_path, _config(tiny))
+    dispatch = LocalDispatch()
+    stages.start(store, lambda _: ctx, run_id, dispatch)
+    _, _, _, k, planned = [w for w in dispatch.queue if w[0] == "frames"][-1]
+    assert planned == [[0, 1], [2]] and k == 0  # nothing computed here yet: the batches in order
+    stages.run_batch(store, lambda _: ctx, run_id, "attack", 0, [2])
+    stages.run_batch(store, lambda _: ctx, run_id, "attack", 0, [0, 1])  # this process computed 0 and 1 last
+    dispatch.queue.clear()
+    assert stages.collect(store, lambda _: ctx, run_id, "attack", 0, dispatch) == "stepped"
+    (_, _, phase, k, planned), = [w for w in dispatch.queue if w[0] == "frames"]
+    assert (phase, k, planned) == ("attack", 1, [[2], [0, 1]])
+    assert stages.served_last("another run", [[0, 1], [2]]) == [[0, 1], [2]]
+
+
 def test_each_attack_job_keeps_the_victims_prediction_small(tiny, tmp_path):
     """The row of every attack job holds the classifier's verdict on the frame it rendered."""
     store, run_id, ctx = _local_run(tiny, tmp_path, _config(tiny))
