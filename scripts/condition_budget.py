@@ -18,7 +18,7 @@ the runs' own evaluation, not used here, at 4 spp: the attack does not depend on
 ``OUT/<victim>.csv`` (every run and condition, with each run's wall time) and ``OUT/<victim>.png``
 (``OUT/<victim>_<multi config>.csv`` / ``.png`` with ``--multi``).
 Finished runs and judgements in ``OUT/runs`` are read, not redone: the script can be stopped and
-started again.
+started again (runs of other than 100 steps are named with their steps, so they never stand in for them).
 """
 from __future__ import annotations
 
@@ -89,7 +89,8 @@ def main(argv: list[str] | None = None) -> int:
         for attack in args.attacks:
             for seed in args.seeds:
                 for kind, base in bases.items():
-                    data = {**base, "name": f"{base['name']}_{attack}_eps{eps:g}_seed{seed}", "seed": seed,
+                    steps = "" if args.steps == 100 else f"_steps{args.steps}"  # 100: the names runs always had
+                    data = {**base, "name": f"{base['name']}_{attack}_eps{eps:g}{steps}_seed{seed}", "seed": seed,
                             "victim": args.victim, "loss": loss, "eval_spp": RUN_EVAL_SPP,
                             "attack": {**base["attack"], "name": attack, "eps": eps, "steps": args.steps}}
                     config = RunConfig.from_json(data)
