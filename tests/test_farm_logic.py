@@ -7,6 +7,7 @@ the same through Redis and real worker processes.
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import threading
@@ -25,6 +26,8 @@ from undream.errors import SpecError, StoreError
 from undream.settings import SettingsError, load_settings
 from undream.spec.run import RunConfig
 from undream.store import open_store
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
@@ -532,6 +535,29 @@ def test_a_worker_process_loads_the_victims_code_before_its_first_task(monkeypat
     with caplog.at_level(logging.WARNING, logger="workers.runtime"):
         runtime.warm_up()  # logged, not raised
     assert any("warm-up skipped: no weights here" in r.message for r in caplog.records)
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="pinning to one core needs two")
+def test_a_one_core_worker_pins_every_thread_it_has(tmp_path):
+    """`undream worker --threads 1` claims a core for its process: the threads that were running
+    before the claim (imports start some) are pinned with it, not only the claiming thread."""
+    code = ("import os, threading, sys\n"
+            "from pathlib import Path\n"
+            "from workers.runtime import claim_cores\n"
+            "stop = threading.Event()\n"
+            "early = threading.Thread(target=stop.wait); early.start()\n"
+            "cores = claim_cores(1, Path(sys.argv[1]))\n"
+            "late = threading.Thread(target=stop.wait); late.start()\n"
+            "allowed = {t: os.sched_getaffinity(int(t)) for t in os.listdir('/proc/self/task')}\n"
+            "stop.set()\n"
+            "import json; print(json.dumps({'cores': cores, 'threads': len(allowed),\n"
+            "                               'sets': sorted({tuple(sorted(a)) for a in allowed.values()})}))\n")
+    res = subprocess.run([sys.executable, "-c", code, str(tmp_path / "cores")], capture_output=True, text=True,
+                         cwd=ROOT, timeout=120)
+    assert res.returncode == 0, res.stderr
+    got = json.loads(res.stdout)
+    assert len(got["cores"]) == 1 and got["threads"] >= 3, got
+    assert got["sets"] == [got["cores"]], got  # every thread, the early one too, on the claimed core
 
 
 def test_a_worker_child_has_time_to_start():

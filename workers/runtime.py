@@ -100,8 +100,21 @@ def claim_cores(n: int, lock_dir: Path) -> list[int]:
         log.warning("no %d free core(s) to pin this worker process to; it runs on all %d", n, len(cores))
         return cores
     _HELD.extend(f for _, f in got)
-    os.sched_setaffinity(0, [c for c, _ in got])
+    pin_threads([c for c, _ in got])
     return [c for c, _ in got]
+
+
+def pin_threads(cores: list[int]) -> None:
+    """Pin every thread of this process to ``cores``: those started before (imports start some)
+    as well as this one and those it starts later. ``sched_setaffinity(0, ...)`` alone pins the
+    calling thread only: the earlier ones went on running on every core, so a "one-core" worker
+    used the second core too, and two of them on two cores ran on each other's."""
+    os.sched_setaffinity(0, cores)
+    for tid in os.listdir("/proc/self/task"):
+        try:
+            os.sched_setaffinity(int(tid), cores)
+        except OSError:  # a thread that ended meanwhile
+            pass
 
 
 def init_process(settings: "Settings", local: "LocalSettings | None" = None) -> "LocalSettings":
