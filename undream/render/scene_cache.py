@@ -72,8 +72,9 @@ class _Group:
     as_numpy: dict[str, np.ndarray | None] = field(default_factory=dict)
 
     def theirs(self, key: str) -> tuple[Any, np.ndarray | None]:
-        """The representative's value of ``key`` and its numpy form (cached)."""
-        value = self.base.get(key, self.loaded.params[key]) if self.loaded is not None else self.base[key]
+        """The representative's value of ``key`` and its numpy form (cached); the group is loaded."""
+        assert self.loaded is not None
+        value = self.base.get(key, self.loaded.params[key])
         if key not in self.as_numpy:
             self.as_numpy[key] = _numpy_or_none(value)
         return value, self.as_numpy[key]

@@ -242,10 +242,10 @@ class Environment:
         if any(x < 0 for x in rgb) or not any(rgb):
             raise c.fail("lamp_intensity", self.lamp_intensity, "must be three numbers >= 0, not all 0")
         object.__setattr__(self, "lamp_intensity", rgb)
-        if self.weather != "night" and not self.default_lamp:
-            raise c.fail("lamp_offset" if self.lamp_offset != NIGHT_LAMP_OFFSET else "lamp_intensity",
-                         list(self.lamp_offset if self.lamp_offset != NIGHT_LAMP_OFFSET else rgb),
-                         f"a lamp lights the night only; weather is {self.weather!r}")
+        for name, value, default in (("lamp_offset", self.lamp_offset, NIGHT_LAMP_OFFSET),
+                                     ("lamp_intensity", rgb, NIGHT_LAMP_INTENSITY)):
+            if self.weather != "night" and value != default:
+                raise c.fail(name, list(value), f"a lamp lights the night only; weather is {self.weather!r}")
         c.choice("background", self.background, BACKGROUNDS)
         if self.envmap is not None and (not isinstance(self.envmap, str)
                                         or not self.envmap.lower().endswith(ENVMAP_SUFFIXES)):
