@@ -199,8 +199,8 @@ class _FakeTransport:
     def __init__(self, size: int) -> None:
         self.size = size
 
-    def save(self, path) -> None:
-        Path(path).write_bytes(b"t" * self.size)
+    def save(self, f) -> None:  # the shelf writes into memory (Transport.save takes a file object)
+        f.write(b"t" * self.size)
 
 
 def test_the_transport_cache_keeps_the_most_recently_used_under_its_cap(store, monkeypatch):
