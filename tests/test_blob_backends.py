@@ -9,7 +9,6 @@ import datetime as dt
 import re
 import time
 import uuid
-from pathlib import Path
 
 import numpy as np
 import pytest
