@@ -65,14 +65,16 @@ def main(argv: list[str] | None = None) -> int:
     start = time.monotonic()
     task = load_victim(args.victim).task
     loss = TASK_LOSSES[task][0]
-    args.out.mkdir(parents=True, exist_ok=True)
-    specs = sorted((ROOT / "examples" / "conditions").glob("*.yaml"))
-    held_out = {p.stem: _init_once(p, args.out / "scenes" / p.stem) for p in specs}
-    multi = yaml.safe_load(args.multi.read_text())
+    multi = yaml.safe_load(args.multi.read_text())  # read and composed before anything is written
+    if not isinstance(multi, dict) or not isinstance(multi.get("conditions"), dict):
+        raise SystemExit(f"{args.multi}: --multi needs a run config with a conditions block")
     multi["scene"] = str((args.multi.parent / multi["scene"]).resolve())
     scenes = multi["conditions"].get("scenes") or []  # named from the config's folder, like its scene
     multi["conditions"]["scenes"] = [str((args.multi.parent / s).resolve()) for s in scenes]
     composed = conditions_sequence(RunConfig.from_json({**multi, "victim": args.victim, "loss": loss}), ROOT)
+    args.out.mkdir(parents=True, exist_ok=True)
+    specs = sorted((ROOT / "examples" / "conditions").glob("*.yaml"))
+    held_out = {p.stem: _init_once(p, args.out / "scenes" / p.stem) for p in specs}
     kinds = {"one scene": ONE_SCENE, f"{len(composed.conditions)} conditions": args.multi}
     bases = {"one scene": yaml.safe_load(ONE_SCENE.read_text())}
     bases["one scene"]["scene"] = str((ONE_SCENE.parent / bases["one scene"]["scene"]).resolve())
@@ -84,12 +86,12 @@ def main(argv: list[str] | None = None) -> int:
         del kinds["one scene"], bases["one scene"]
     victim_slug = args.victim.replace(":", "_").replace("/", "_")
     slug = victim_slug if default_multi else f"{victim_slug}_{multi['name']}"
+    steps = "" if args.steps == 100 else f"_steps{args.steps}"  # 100: the names runs always had
     rows = []
     for eps in args.eps:  # each ε's cells whole before the next ε's (a long study stopped early has whole rows)
         for attack in args.attacks:
             for seed in args.seeds:
                 for kind, base in bases.items():
-                    steps = "" if args.steps == 100 else f"_steps{args.steps}"  # 100: the names runs always had
                     data = {**base, "name": f"{base['name']}_{attack}_eps{eps:g}{steps}_seed{seed}", "seed": seed,
                             "victim": args.victim, "loss": loss, "eval_spp": RUN_EVAL_SPP,
                             "attack": {**base["attack"], "name": attack, "eps": eps, "steps": args.steps}}
