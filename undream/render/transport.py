@@ -196,6 +196,10 @@ def _xml_problem(scenes: SceneCache, index: int) -> str | None:
         return f"the texture's filter_type is {opts['filter_type']}, not bilinear"
     if opts.get("wrap_mode", "repeat") != "repeat":
         return f"the texture's wrap_mode is {opts['wrap_mode']}, not repeat"
+    accel = {e.get("name"): e.get("value") for e in tex if e.tag == "boolean"}.get("accel", "true")
+    if scenes.mi.variant().startswith("cuda") and accel != "false":
+        return ("the texture is filtered by CUDA's texture units (bilinear weights of 8 bits), as in "
+                "scenes initialised before undream wrote accel=false: initialise the scene again")
     return None
 
 
