@@ -73,9 +73,7 @@ def sensor(frame: Frame, rfilter: str = "gaussian") -> dict[str, Any]:
 
 def texture_node(seq: Sequence, paths: ScenePaths) -> dict[str, Any]:
     tex = seq.texture
-    # accel off: on CUDA, Mitsuba would filter with the texture units, whose bilinear weights have
-    # 8 fractional bits; the texture gradients' transport assumes exact weights (as on the CPU).
-    return {"type": "bitmap", "filename": paths.texture(tex.name), "raw": True, "accel": False,
+    return {"type": "bitmap", "filename": paths.texture(tex.name), "raw": True,
             "filter_type": "bilinear", "wrap_mode": "repeat", "to_uv": UVScale(*tex.uv_scale)}
 
 
