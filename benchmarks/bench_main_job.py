@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """The main job before and after, measured in one run: a table per component and the ratios.
 
-    .venv/bin/python benchmarks/bench_main_job.py --before c9c2dfa [--seeds 0 1 2] [--config FILE]
+    .venv/bin/python benchmarks/bench_main_job.py --before c9c2dfa [--seeds 0 1 2] [--config FILE] [--device cuda]
 
 Runs ``undream run`` on the main job (``examples/runs/bin_orbit_pgd.yaml``: 24
 frames at 64 px, 18 attacked, 100 PGD iterations) as a user would (a
@@ -41,18 +41,19 @@ def _parse(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--before", default="c9c2dfa", help="commit of the engine before ('' skips it)")
     p.add_argument("--config", default="examples/runs/bin_orbit_pgd.yaml")
     p.add_argument("--seeds", type=int, nargs="+", default=[0])
+    p.add_argument("--device", help="the victim's torch device (the config's `device`), e.g. cuda")
     return p.parse_args(argv)
 
 
-def seeded(config: str, seed: int) -> Path:
-    """A copy of the run config ``config`` (a path in the repository) with ``seed``, next to it so
-    its relative scene path still resolves; removed by the caller."""
+def seeded(config: str, seed: int, device: str | None = None) -> Path:
+    """A copy of the run config ``config`` (a path in the repository) with ``seed`` (and the victim's
+    ``device`` when given), next to it so its relative scene path still resolves; removed by the caller."""
     import yaml
 
     src = ROOT / config
-    data = yaml.safe_load(src.read_text())
+    data = {**yaml.safe_load(src.read_text()), "seed": seed, **({"device": device} if device else {})}
     out = src.parent / f".bench-seed{seed}-{os.getpid()}.yaml"
-    out.write_text(yaml.safe_dump({**data, "seed": seed}))
+    out.write_text(yaml.safe_dump(data))
     return out
 
 
@@ -93,7 +94,7 @@ def main(argv: list[str] | None = None) -> None:
         try:
             runs: dict[str, list[dict]] = {name: [] for name in trees}
             for seed in args.seeds:
-                config = seeded(args.config, seed)
+                config = seeded(args.config, seed, args.device)
                 try:
                     for name, tree in trees.items():
                         runs[name].append(run_once(tree, config, Path(tmp) / f"{name}{seed}"))

@@ -120,8 +120,8 @@ def test_a_nan_image_gradient_marks_the_frame_non_finite(scene_dir, monkeypatch,
     monkeypatch.setattr(job, "victim_pass", lambda ctx, positions, images: ([0.5], [bad], [None]))
     res = job.render_and_grad(ctx, 0, np.full((8, 16, 3), 0.5, np.float32), 0)
     assert not res.finite
-    if mode == "prb":
-        assert np.isfinite(res.grad).all()  # what the old check looked at, and let through
+    if mode == "prb" and scenes.mi.variant().startswith("llvm"):
+        assert np.isfinite(res.grad).all()  # what the old check looked at, and let through (on the CPU)
     scenes.close()
 
 
