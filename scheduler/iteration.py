@@ -119,7 +119,7 @@ def reduce_and_step(store: "Store", attack: "Attack", run_id: str, k: int) -> bo
         raise MissingResults(run_id, k, missing)
     try:
         G, loss, kept = reduce([rows[f].grad for f in expected], [rows[f].loss for f in expected],
-                               [rows[f].finite for f in expected])
+                               [rows[f].finite for f in expected], attack.config.frame_weights)
     except AttackError:
         msg = f"iteration {k}: all {len(expected)} frames gave a non-finite gradient or loss; run stopped"
         store.set_status(run_id, "failed", error=msg)

@@ -34,9 +34,14 @@ def frame_batch(n_frames: int, batch_size: int | None, iteration: int, seed: int
 
 
 def average_frames(grads: Sequence[torch.Tensor], losses: Sequence[Any],
-                   finite: Sequence[bool] | None = None) -> tuple[torch.Tensor, float, list[int]]:
+                   finite: Sequence[bool] | None = None, *,
+                   weights: str = "mean") -> tuple[torch.Tensor, float, list[int]]:
     """Mean gradient and mean loss over the frames whose gradient and loss are
     finite, and the positions of those frames. No finite frame: AttackError.
+
+    ``weights`` (``attack.frame_weights``): ``mean``, the plain mean; ``unit``, each kept frame's
+    gradient first scaled to the kept frames' mean L2 norm (a zero gradient stays zero), so every
+    frame that sees the texture steers the step's direction alike while its size stays the mean's.
 
     ``finite``: one flag per frame, False for a frame known to be bad although
     its gradient looks finite (a NaN in the victim's image gradient that the
@@ -54,5 +59,12 @@ def average_frames(grads: Sequence[torch.Tensor], losses: Sequence[Any],
     if not kept:
         raise AttackError(f"average_frames: all {len(grads)} frames have a non-finite "
                           "gradient or loss")
-    G = (stacked if len(kept) == len(grads) else stacked[kept]).mean(dim=0)
+    chosen = stacked if len(kept) == len(grads) else stacked[kept]
+    if weights == "unit":
+        norms = chosen.flatten(1).norm(dim=1)
+        scale = torch.where(norms > 0, norms.mean() / norms.clamp_min(torch.finfo(norms.dtype).tiny), 0.0)
+        chosen = chosen * scale.view(-1, *([1] * (chosen.dim() - 1)))
+    elif weights != "mean":
+        raise AttackError(f"average_frames: weights must be 'mean' or 'unit', got {weights!r}")
+    G = chosen.mean(dim=0)
     return G, sum(values[i] for i in kept) / len(kept), kept

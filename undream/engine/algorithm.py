@@ -11,7 +11,8 @@ only reads and writes run state.
 2. **plan**: :func:`plan` (the frames of iteration k: all attacked ones or a seeded minibatch);
 3. **per-frame job**: :func:`frame_jobs` (simulator render → victim loss → texture gradient, the
    victim once per batch of frames; :func:`frame_job` for one frame);
-4. **reduce**: :func:`reduce` (mean gradient and loss over the finite frames);
+4. **reduce**: :func:`reduce` (mean gradient and loss over the finite frames, the gradients
+   weighted by ``attack.frame_weights``);
 5. **step**: :func:`step` (the attack's projected step);
 6. **evaluate**: :func:`quantise` (the 8-bit texture), :func:`eval_render` per frame,
    :func:`eval_predictions` and :func:`eval_losses` (the victim once per batch of frames;
@@ -89,12 +90,13 @@ def frame_job(ctx: RunContext, position: int, texture: np.ndarray, k: int) -> Fr
 
 # --------------------------------------------------------------------------- 4. reduce
 
-def reduce(grads: Sequence[np.ndarray], losses: Sequence[float | None],
-           finite: Sequence[bool]) -> tuple[torch.Tensor, float, list[int]]:
-    """Mean texture gradient and mean loss over the frames whose gradient and loss are finite (and not
-    recorded otherwise), and the indices of the frames kept; none kept: :class:`AttackError`."""
+def reduce(grads: Sequence[np.ndarray], losses: Sequence[float | None], finite: Sequence[bool],
+           weights: str = "mean") -> tuple[torch.Tensor, float, list[int]]:
+    """Mean texture gradient (each frame's scaled to a common norm first with ``weights`` ``unit``:
+    ``attack.frame_weights``) and mean loss over the frames whose gradient and loss are finite (and
+    not recorded otherwise), and the indices of the frames kept; none kept: :class:`AttackError`."""
     values = [float("nan") if v is None else v for v in losses]
-    return average_frames([torch.from_numpy(g) for g in grads], values, list(finite))
+    return average_frames([torch.from_numpy(g) for g in grads], values, list(finite), weights=weights)
 
 
 # --------------------------------------------------------------------------- 5. step

@@ -19,6 +19,9 @@ from undream.errors import SpecError
 from undream.spec.limits import bounded
 
 
+FRAME_WEIGHTS = ("mean", "unit")  # AttackConfig.frame_weights
+
+
 def _fail(field: str, value: Any, expected: str) -> SpecError:
     return SpecError(f"attack.{field}: {expected}, got {value!r}")
 
@@ -43,6 +46,10 @@ class AttackConfig:
     - ``rho``: APGD's oscillation threshold ρ (Croce & Hein use 0.75).
     - ``seed``: seeds the random start and the frame minibatches.
     - ``frames_per_step``: frames averaged per iteration; None: all frames.
+    - ``frame_weights``: how an iteration's frames' texture gradients are combined. ``mean``: their
+      mean (the gradient of the mean loss). ``unit``: each scaled to the frames' mean L2 norm
+      first, so that a frame where the texture moves few pixels (a back-lit view at night, a far
+      camera) steers the step as much as a sunlit one (docs/runs.md, "Lamps at night").
     """
 
     name: str = "pgd"
@@ -55,6 +62,7 @@ class AttackConfig:
     rho: float = 0.75
     seed: int = 0
     frames_per_step: int | None = None
+    frame_weights: str = "mean"
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name.strip():
@@ -65,6 +73,8 @@ class AttackConfig:
                    for key in ("eps", "steps", "step_size", "momentum", "lr", "rho", "seed", "frames_per_step")}
         if not isinstance(self.random_start, bool):
             raise _fail("random_start", self.random_start, "must be true or false")
+        if self.frame_weights not in FRAME_WEIGHTS:
+            raise _fail("frame_weights", self.frame_weights, f"must be one of {', '.join(FRAME_WEIGHTS)}")
         for key, value in checked.items():
             object.__setattr__(self, key, value)
 
