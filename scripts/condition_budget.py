@@ -3,7 +3,8 @@
 ε, over seeds; every final texture judged on the eight conditions of examples/conditions/.
 
     .venv/bin/python scripts/condition_budget.py --out build/condition_budget --victim bundled:yolo \\
-        [--seeds 0 1 2] [--eps 8 16 50] [--attacks pgd apgd] [--steps 100] [--multi RUN_CONFIG] [--multi-only]
+        [--seeds 0 1 2] [--eps 8 16 50] [--attacks pgd apgd] [--steps 100] [--multi RUN_CONFIG] [--multi-only] \\
+        [--frame-weights unit]
 
 The two run configs are the main job (examples/runs/bin_orbit_pgd.yaml, one scene) and
 examples/runs/bin_orbit_conditions.yaml (its scene over 16 conditions, none held out here; ``--multi``:
@@ -18,7 +19,8 @@ the runs' own evaluation, not used here, at 4 spp: the attack does not depend on
 ``OUT/<victim>.csv`` (every run and condition, with each run's wall time) and ``OUT/<victim>.png``
 (``OUT/<victim>_<multi config>.csv`` / ``.png`` with ``--multi``).
 Finished runs and judgements in ``OUT/runs`` are read, not redone: the script can be stopped and
-started again (runs of other than 100 steps are named with their steps, so they never stand in for them).
+started again (runs of other than 100 steps are named with their steps, so they never stand in for them;
+``--frame-weights unit`` sets every run's ``attack.frame_weights`` and names its runs and files ``_unit``).
 """
 from __future__ import annotations
 
@@ -53,6 +55,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--multi", type=Path, default=MULTI, help="the multi-condition run config")
     parser.add_argument("--multi-only", action="store_true",
                         help="run the multi-condition config only (the one-scene column is --multi's default's)")
+    parser.add_argument("--frame-weights", choices=("mean", "unit"), default="mean",
+                        help="every run's attack.frame_weights (unit: runs and files named _unit)")
     args = parser.parse_args(argv)
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     sys.path.insert(0, str(ROOT))
@@ -87,6 +91,8 @@ def main(argv: list[str] | None = None) -> int:
     victim_slug = args.victim.replace(":", "_").replace("/", "_")
     slug = victim_slug if default_multi else f"{victim_slug}_{multi['name']}"
     steps = "" if args.steps == 100 else f"_steps{args.steps}"  # 100: the names runs always had
+    steps += "" if args.frame_weights == "mean" else f"_{args.frame_weights}"
+    slug += "" if args.frame_weights == "mean" else f"_{args.frame_weights}"
     rows = []
     for eps in args.eps:  # each ε's cells whole before the next ε's (a long study stopped early has whole rows)
         for attack in args.attacks:
@@ -94,7 +100,8 @@ def main(argv: list[str] | None = None) -> int:
                 for kind, base in bases.items():
                     data = {**base, "name": f"{base['name']}_{attack}_eps{eps:g}{steps}_seed{seed}", "seed": seed,
                             "victim": args.victim, "loss": loss, "eval_spp": RUN_EVAL_SPP,
-                            "attack": {**base["attack"], "name": attack, "eps": eps, "steps": args.steps}}
+                            "attack": {**base["attack"], "name": attack, "eps": eps, "steps": args.steps,
+                                       "frame_weights": args.frame_weights}}
                     config = RunConfig.from_json(data)
                     out = args.out / "runs" / victim_slug / data["name"]
                     wall = run_once(config, out, run_local)
@@ -176,7 +183,8 @@ def _chart(args: argparse.Namespace, slug: str, kinds: list[str], metric: str, b
     fig.text(0.01, 0.01, f"made by: scripts/condition_budget.py --out {args.out} --victim {args.victim} --seeds "
              f"{' '.join(map(str, args.seeds))} --eps {' '.join(f'{e:g}' for e in args.eps)} --attacks "
              f"{' '.join(args.attacks)} --steps {args.steps}"
-             + ("" if args.multi.resolve() == MULTI else f" --multi {_shown(args.multi)}"), fontsize=5)
+             + ("" if args.multi.resolve() == MULTI else f" --multi {_shown(args.multi)}")
+             + ("" if args.frame_weights == "mean" else f" --frame-weights {args.frame_weights}"), fontsize=5)
     fig.tight_layout(rect=(0, 0.04, 1, 1))
     fig.savefig(args.out / f"{slug}.png")
     plt.close(fig)
