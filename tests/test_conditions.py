@@ -133,6 +133,23 @@ def test_scenes_of_one_object_make_a_run_and_a_scene_directory_is_one(inputs):
     assert results["held_out_conditions"]["frames"] == [8, 9, 10, 11]
 
 
+def test_a_grid_over_a_vector_field_moves_it_per_condition(inputs):
+    """A grid value may be a list of numbers: each condition's frames carry that vector (here the
+    night lamp), the name spells it, and the run config's JSON round trip keeps it."""
+    from undream.scenedir.conditions import conditions_sequence
+    from undream.spec.run import RunConfig
+
+    lamps = [[1.0, 5.0, 2.0], [-2.5, 6.0, 1.5]]
+    cfg = RunConfig.from_json(_config(inputs, "lamps", conditions={
+        "grid": {"environment.weather": ["night"], "environment.lamp_offset": lamps}}))
+    assert RunConfig.from_json(json.loads(json.dumps(cfg.to_json()))) == cfg
+    seq = conditions_sequence(cfg, ROOT)
+    assert [c.name for c in seq.conditions] == ["weather_night-lamp_offset_1p0_5p0_2p0",
+                                                "weather_night-lamp_offset_-2p5_6p0_1p5"]
+    per_frame = [tuple(f.environment.lamp_offset) for f in seq.frames]
+    assert per_frame == [tuple(lamps[0])] * 4 + [tuple(lamps[1])] * 4
+
+
 @pytest.mark.parametrize("conditions, expected", [
     ({"scenes": ["cone.yaml"]}, "condition 'cone': its object (builtin:traffic_cone"),
     ({"scenes": ["big.yaml"]}, "condition 'big': its texture (adv_texture, 32×8"),
@@ -141,6 +158,8 @@ def test_scenes_of_one_object_make_a_run_and_a_scene_directory_is_one(inputs):
     ({"grid": {"camera.path.height": []}}, "conditions.grid.camera.path.height: must be a non-empty list"),
     ({"grid": GRID, "holdout": NAMES}, "conditions.holdout"),
     ({"scenes": ["missing.yaml"]}, "conditions.scenes[0]"),
+    ({"grid": {"environment.lamp_offset": [[1, "x", 2]]}},
+     "conditions.grid.environment.lamp_offset: values must be strings, numbers or lists of numbers, got [1, 'x', 2]"),
 ])
 def test_bad_conditions_are_refused_in_one_line_before_anything_is_written(inputs, conditions, expected):
     root = inputs["root"]

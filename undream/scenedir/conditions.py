@@ -76,10 +76,10 @@ def grid_sequences(spec_file: Path, grid: dict[str, tuple[Any, ...]]) -> list[tu
     out = []
     for values in itertools.product(*grid.values()):
         point = dict(zip(grid, values))
-        name = "-".join(f"{key.rsplit('.', 1)[-1]}_{_slug(str(v))}" for key, v in point.items())
+        name = "-".join(f"{key.rsplit('.', 1)[-1]}_{_value_slug(v)}" for key, v in point.items())
         data = copy.deepcopy(spec)
         for key, value in point.items():
-            _set(data, key, value)
+            _set(data, key, list(value) if isinstance(value, tuple) else value)
         try:
             out.append((name, sequence_from_trajectory(data, base_dir=spec_file.parent)))
         except UndreamError as err:
@@ -98,6 +98,11 @@ def _set(spec: dict[str, Any], dotted: str, value: Any) -> None:
                             "(a per-frame list cannot take one value)")
         node = node[key]
     node[keys[-1]] = value
+
+
+def _value_slug(value: Any) -> str:
+    """A grid value in a condition's name: ``2.5`` → ``2p5``, ``(2.5, 6, -1)`` → ``2p5_6_-1``."""
+    return "_".join(_slug(str(x)) for x in value) if isinstance(value, tuple) else _slug(str(value))
 
 
 def _slug(text: str) -> str:

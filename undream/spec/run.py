@@ -173,11 +173,9 @@ class ConditionsConfig:
                 raise c.fail("conditions.grid", key, "keys must be dotted spec fields such as environment.weather")
             if isinstance(values, (str, bytes)) or not isinstance(values, (list, tuple)) or not values:
                 raise c.fail(f"conditions.grid.{key}", values, "must be a non-empty list of values")
-            for v in values:
-                if isinstance(v, bool) or not isinstance(v, (str, int, float)):
-                    raise c.fail(f"conditions.grid.{key}", v, "values must be strings or numbers")
+            values = [_grid_value(key, v) for v in values]
             if len(set(map(str, values))) != len(values):
-                raise c.fail(f"conditions.grid.{key}", values, "must not repeat a value")
+                raise c.fail(f"conditions.grid.{key}", [_plain(v) for v in values], "must not repeat a value")
             checked[key] = tuple(values)
         object.__setattr__(self, "grid", checked)
         for name in ("scenes", "holdout"):
@@ -194,7 +192,7 @@ class ConditionsConfig:
             raise c.fail("conditions.holdout", list(self.holdout), "must name each condition once")
 
     def to_json(self) -> dict[str, Any]:
-        return {"grid": {k: list(v) for k, v in self.grid.items()}, "scenes": list(self.scenes),
+        return {"grid": {k: [_plain(x) for x in v] for k, v in self.grid.items()}, "scenes": list(self.scenes),
                 "holdout": list(self.holdout)}
 
     @classmethod
@@ -203,6 +201,24 @@ class ConditionsConfig:
         with c.at("conditions"):
             c.no_extra(d, {"grid", "scenes", "holdout"})
         return cls(**d)
+
+
+def _grid_value(key: str, v: Any) -> Any:
+    """One value of ``conditions.grid.<key>``: a string, a number, or a list of numbers (a vector
+    field such as ``environment.lamp_offset``), kept as a tuple."""
+    def number(x: Any) -> bool:
+        return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+    if isinstance(v, str) or number(v):
+        return v
+    if isinstance(v, (list, tuple)) and v and all(number(x) for x in v):
+        return tuple(v)
+    raise c.fail(f"conditions.grid.{key}", v, "values must be strings, numbers or lists of numbers")
+
+
+def _plain(v: Any) -> Any:
+    """A grid value as JSON and YAML write it (a tuple as a list)."""
+    return list(v) if isinstance(v, tuple) else v
 
 
 # eot: field → (largest value, unit and meaning). Each iteration draws, per frame, a camera shift
