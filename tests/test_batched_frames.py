@@ -76,49 +76,6 @@ def test_a_batch_is_one_victim_pass_and_each_frame_keeps_its_gradient(scene_dir,
     assert victim_calls == [3, 1]  # victim_batch bounds a pass; the frames in order
 
 
-@pytest.fixture(scope="module")
-def two_groups(tmp_path_factory, mi):
-    """Four frames alternating between a clear and a foggy scene: two groups of sim scenes."""
-    from undream.scene.poses import look_at
-    from undream.scenedir.init import InitOptions, init_scene
-    from undream.spec import Asset, Camera, Environment, Frame, Sequence, TextureParam, Transform
-
-    frames = tuple(Frame(i, Camera(Transform.from_rows(look_at([1.6 * np.sin(a), 1.2, 2.4 * np.cos(a)],
-                                                               [0, 0.5, 0])), 40.0, (16, 16)),
-                         Transform.identity(), Environment("fog" if i % 2 else "clear", 12.0))
-                   for i, a in enumerate(np.linspace(0.0, 1.5, N_FRAMES)))
-    seq = Sequence("groups", Asset("ball", "builtin:sphere", texture=TextureParam(resolution=(16, 8))), frames)
-    return init_scene(seq, tmp_path_factory.mktemp("groups") / "scene", InitOptions(verify_spp=1))
-
-
-def test_a_job_renders_its_frames_group_by_group_and_keeps_each_result_in_place(two_groups, victim_dir,
-                                                                               victim_calls):
-    """A minibatch draws frames across conditions; going back and forth between their loaded scenes
-    cost more than the renders (docs/performance.md), so a job renders one group's frames after the
-    other's, and every record stays the one of its own frame, as computed alone."""
-    ctx = build_context(_config(two_groups, victim_dir), two_groups)
-    assert ctx.scenes.group_of("sim", 0) != ctx.scenes.group_of("sim", 1)
-    assert ctx.scenes.group_of("sim", 0) == ctx.scenes.group_of("sim", 2)
-    T = start_texture(ctx)
-    positions = [1, 0, 3, 2]
-    alone = {p: frame_job(ctx, p, T, 0) for p in positions}
-    rendered: list[int] = []
-    render = ctx.sim.render
-
-    def spy(index, *args, **kwargs):
-        rendered.append(index)
-        return render(index, *args, **kwargs)
-
-    ctx.sim.render = spy
-    victim_calls.clear()
-    together = frame_jobs(ctx, positions, T, 0)
-    assert rendered == [1, 3, 0, 2] and victim_calls == [4]
-    scale = max(float(np.abs(r.grad).max()) for r in alone.values())
-    for p, b in zip(positions, together):
-        assert np.abs(alone[p].grad - b.grad).max() <= 1e-5 * scale
-        assert b.loss == pytest.approx(alone[p].loss, rel=1e-5) and b.prediction == alone[p].prediction
-
-
 def test_a_run_batched_by_one_ends_where_a_batched_run_does(scene_dir, victim_dir, victim_calls, tmp_path):
     from scheduler.local import run_local
     from undream.store import open_store

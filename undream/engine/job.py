@@ -137,17 +137,13 @@ def render_and_grad_many(ctx: RunContext, positions: Sequence[int], texture: np.
     indices = [ctx.frame_indices[p] for p in positions]
     seeds = [frame_seed(cfg.seed, iteration, index) for index in indices]
     conditions = [draw_conditions(cfg.eot, cfg.seed, iteration, index) for index in indices]  # None without eot
-    linear: list[np.ndarray] = [np.empty(0)] * n
-    srgb: list[np.ndarray] = [np.empty(0)] * n
-    t_sim = [0.0] * n
-    # The simulator renders the frames grouped by loaded scene where it can (its render_order);
-    # each frame's image depends on its own seed alone, so the order changes no result.
-    order = ctx.sim.render_order(indices) if hasattr(ctx.sim, "render_order") else range(n)
-    for i in order:
+    linear, srgb, t_sim = [], [], []
+    for index, seed, cond in zip(indices, seeds, conditions):
         t0 = time.perf_counter()
-        linear[i] = ctx.sim.render(indices[i], texture, cfg.sim_spp, seeds[i], conditions=conditions[i])
-        t_sim[i] = time.perf_counter() - t0
-        srgb[i] = linear_to_srgb(linear[i])
+        img = ctx.sim.render(index, texture, cfg.sim_spp, seed, conditions=cond)
+        t_sim.append(time.perf_counter() - t0)
+        linear.append(img)
+        srgb.append(linear_to_srgb(img))
     losses: list[float] = [math.nan] * n
     g_images: list[np.ndarray] = [np.empty(0)] * n
     preds: list[dict[str, Any]] = [{}] * n

@@ -152,12 +152,6 @@ class SceneCache:
         """How many groups of ``kind`` the frames seen so far fall into."""
         return sum(k == kind for k, _ in self._groups)
 
-    def group_of(self, kind: str, index: int) -> tuple[str, int]:
-        """The key of frame ``index``'s group of ``kind``: frames of one group share one loaded scene."""
-        if kind not in KINDS:
-            raise RenderError(f"scene kind must be one of {KINDS}, got {kind!r}")
-        return self._state(kind, index).group
-
     def loaded(self, kind: str, index: int) -> ActiveFrame:
         """The loaded scene of frame ``index``'s group, as it is (showing whichever frame it shows)."""
         if kind not in KINDS:

@@ -21,12 +21,7 @@ from undream.settings import LocalSettings
 
 @runtime_checkable
 class SimulatorBackend(Protocol):
-    """Renders the frames of one scene directory (one instance per process and scene).
-
-    A backend may also define ``render_order(indices) -> list[int]``: positions into ``indices`` in
-    the order it renders those frames fastest (``mitsuba``: grouped by loaded scene); a job renders
-    its frames in that order and keeps every result in its own place.
-    """
+    """Renders the frames of one scene directory (one instance per process and scene)."""
 
     name: str
 

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -23,17 +23,6 @@ class MitsubaSimulator:
     def render(self, index: int, texture_srgb: np.ndarray, spp: int, seed: int,
                conditions: Any = None) -> np.ndarray:
         return render_linear(self.scenes, index, texture_srgb, spp, seed, conditions=conditions)
-
-    def render_order(self, indices: Sequence[int]) -> list[int]:
-        """Positions into ``indices`` in the order to render those frames: one group's frames after
-        another (groups in the order they first appear, frames in theirs). Going back and forth between
-        the loaded scenes of groups costs more than the renders' kernels: 36.6 against 21.9 ms a
-        64-px frame of the main job's 16 conditions in a minibatch's random order (kernels 20 ms)."""
-        groups = [self.scenes.group_of("sim", i) for i in indices]
-        first: dict[Any, int] = {}
-        for g in groups:
-            first.setdefault(g, len(first))
-        return sorted(range(len(indices)), key=lambda j: first[groups[j]])
 
     def versions(self) -> dict[str, str]:
         import drjit
