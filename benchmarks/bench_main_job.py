@@ -53,7 +53,7 @@ def seeded(config: str, seed: int, device: str | None = None) -> Path:
     src = ROOT / config
     data = {**yaml.safe_load(src.read_text()), "seed": seed, **({"device": device} if device else {})}
     out = src.parent / f".bench-seed{seed}-{os.getpid()}.yaml"
-    out.write_text(yaml.safe_dump(data))
+    out.write_text(yaml.safe_dump(data, sort_keys=False))  # a grid's key order orders its conditions
     return out
 
 

@@ -174,7 +174,8 @@ def _table(args: argparse.Namespace, prepared: Any, tmp: Path, redis: Any) -> No
     load0 = os.getloadavg()
     tmp.mkdir(parents=True)
     run_yaml = tmp / "run.yaml"  # the local run in a fresh process, like the workers
-    run_yaml.write_text(yaml.safe_dump({**prepared.config.to_json(), "scene": str(prepared.scene_dir)}))
+    run_yaml.write_text(yaml.safe_dump({**prepared.config.to_json(), "scene": str(prepared.scene_dir)},
+                                       sort_keys=False))  # a grid's key order orders its conditions
     t0 = time.perf_counter()
     subprocess.run([sys.executable, "-m", "undream.cli", "run", str(run_yaml), "--out", str(tmp / "local"),
                     "--no-progress"], check=True, cwd=ROOT, capture_output=True)
