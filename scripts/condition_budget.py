@@ -55,8 +55,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--multi", type=Path, default=MULTI, help="the multi-condition run config")
     parser.add_argument("--multi-only", action="store_true",
                         help="run the multi-condition config only (the one-scene column is --multi's default's)")
-    parser.add_argument("--frame-weights", choices=("mean", "unit"), default="mean",
-                        help="every run's attack.frame_weights (unit: runs and files named _unit)")
+    parser.add_argument("--frame-weights", choices=("mean", "unit"),
+                        help="every run's attack.frame_weights (default: each config's own; unit: runs and "
+                             "files named _unit)")
     args = parser.parse_args(argv)
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     sys.path.insert(0, str(ROOT))
@@ -90,18 +91,18 @@ def main(argv: list[str] | None = None) -> int:
         del kinds["one scene"], bases["one scene"]
     victim_slug = args.victim.replace(":", "_").replace("/", "_")
     slug = victim_slug if default_multi else f"{victim_slug}_{multi['name']}"
-    steps = "" if args.steps == 100 else f"_steps{args.steps}"  # 100: the names runs always had
-    steps += "" if args.frame_weights == "mean" else f"_{args.frame_weights}"
-    slug += "" if args.frame_weights == "mean" else f"_{args.frame_weights}"
+    weights = "" if args.frame_weights in (None, "mean") else f"_{args.frame_weights}"
+    suffix = ("" if args.steps == 100 else f"_steps{args.steps}") + weights  # 100 steps: the names runs always had
+    slug += weights
     rows = []
     for eps in args.eps:  # each ε's cells whole before the next ε's (a long study stopped early has whole rows)
         for attack in args.attacks:
             for seed in args.seeds:
                 for kind, base in bases.items():
-                    data = {**base, "name": f"{base['name']}_{attack}_eps{eps:g}{steps}_seed{seed}", "seed": seed,
+                    data = {**base, "name": f"{base['name']}_{attack}_eps{eps:g}{suffix}_seed{seed}", "seed": seed,
                             "victim": args.victim, "loss": loss, "eval_spp": RUN_EVAL_SPP,
                             "attack": {**base["attack"], "name": attack, "eps": eps, "steps": args.steps,
-                                       "frame_weights": args.frame_weights}}
+                                       **({"frame_weights": args.frame_weights} if args.frame_weights else {})}}
                     config = RunConfig.from_json(data)
                     out = args.out / "runs" / victim_slug / data["name"]
                     wall = run_once(config, out, run_local)
@@ -184,7 +185,7 @@ def _chart(args: argparse.Namespace, slug: str, kinds: list[str], metric: str, b
              f"{' '.join(map(str, args.seeds))} --eps {' '.join(f'{e:g}' for e in args.eps)} --attacks "
              f"{' '.join(args.attacks)} --steps {args.steps}"
              + ("" if args.multi.resolve() == MULTI else f" --multi {_shown(args.multi)}")
-             + ("" if args.frame_weights == "mean" else f" --frame-weights {args.frame_weights}"), fontsize=5)
+             + (f" --frame-weights {args.frame_weights}" if args.frame_weights else ""), fontsize=5)
     fig.tight_layout(rect=(0, 0.04, 1, 1))
     fig.savefig(args.out / f"{slug}.png")
     plt.close(fig)

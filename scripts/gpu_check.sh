@@ -8,8 +8,8 @@
 # 2. the one-scene run (examples/runs/bin_orbit_pgd.yaml) with the victim on cuda (where torch sees a
 #    GPU), then on the CPU:
 #    benchmarks/bench_main_job.py's table of seconds per part;
-# 3. the main job (examples/runs/bin_orbit_conditions.yaml, victim on cuda where it can): undream run, its
-#    results.json's seconds per part and the whole command's time;
+# 3. the main job (examples/runs/bin_orbit_conditions.yaml, victim on cuda where it can): the same
+#    table, whose "process" row is the whole command's time;
 # 4. the tests of the gradient's path on that variant (transport against prb, batched frames).
 #
 # Everything it prints also goes to OUT_DIR (default build/gpu_check). No GPU: step 1 says why
@@ -28,13 +28,7 @@ if [ "$DEVICE" = cuda ]; then
     "$PY" benchmarks/bench_main_job.py --before '' --seeds 0 --device cuda 2>&1 | tee "$OUT/one_scene_victim_cuda.txt"
 fi
 "$PY" benchmarks/bench_main_job.py --before '' --seeds 0 2>&1 | tee "$OUT/one_scene_victim_cpu.txt"
-cfg="$OUT/main_job.yaml"
-sed "s|^scene: ../bin_orbit.yaml|scene: $PWD/examples/bin_orbit.yaml|; s|^seed: 0$|seed: 0\ndevice: $DEVICE|" \
-    examples/runs/bin_orbit_conditions.yaml > "$cfg"
-start=$(date +%s%N)
-"$PY" -m undream.cli run "$cfg" --out "$OUT/main_job" --force --no-progress 2>&1 | tail -4 | tee "$OUT/main_job.txt"
-echo "the whole command: $(( ($(date +%s%N) - start) / 1000000 )) ms (victim on $DEVICE)" | tee -a "$OUT/main_job.txt"
-"$PY" -c "import json, sys; print(json.load(open(sys.argv[1]))['wall_time_seconds'])" "$OUT/main_job/results.json" \
-    | tee -a "$OUT/main_job.txt"
+"$PY" benchmarks/bench_main_job.py --before '' --seeds 0 --config examples/runs/bin_orbit_conditions.yaml \
+    --device "$DEVICE" 2>&1 | tee "$OUT/main_job.txt"
 "$PY" -m pytest -q -p no:cacheprovider tests/test_gradient_path.py tests/test_batched_frames.py tests/test_transport.py \
     2>&1 | tail -30 | tee "$OUT/tests.txt"

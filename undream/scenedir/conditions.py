@@ -30,7 +30,7 @@ from undream.scene.sources import sequence_from_file
 from undream.scene.trajectory import sequence_from_trajectory
 from undream.spec import Condition, Sequence, load_sequence
 from undream.spec.io import join_against, read_yaml
-from undream.spec.run import RunConfig
+from undream.spec.run import RunConfig, plain_grid_value
 
 
 def condition_sources(config: RunConfig, base_dir: Path) -> list[Path]:
@@ -79,7 +79,7 @@ def grid_sequences(spec_file: Path, grid: dict[str, tuple[Any, ...]]) -> list[tu
         name = "-".join(f"{key.rsplit('.', 1)[-1]}_{_value_slug(v)}" for key, v in point.items())
         data = copy.deepcopy(spec)
         for key, value in point.items():
-            _set(data, key, list(value) if isinstance(value, tuple) else value)
+            _set(data, key, plain_grid_value(value))
         try:
             out.append((name, sequence_from_trajectory(data, base_dir=spec_file.parent)))
         except UndreamError as err:

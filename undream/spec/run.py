@@ -175,7 +175,8 @@ class ConditionsConfig:
                 raise c.fail(f"conditions.grid.{key}", values, "must be a non-empty list of values")
             values = [_grid_value(key, v) for v in values]
             if len(set(map(str, values))) != len(values):
-                raise c.fail(f"conditions.grid.{key}", [_plain(v) for v in values], "must not repeat a value")
+                raise c.fail(f"conditions.grid.{key}", [plain_grid_value(v) for v in values],
+                             "must not repeat a value")
             checked[key] = tuple(values)
         object.__setattr__(self, "grid", checked)
         for name in ("scenes", "holdout"):
@@ -192,8 +193,8 @@ class ConditionsConfig:
             raise c.fail("conditions.holdout", list(self.holdout), "must name each condition once")
 
     def to_json(self) -> dict[str, Any]:
-        return {"grid": {k: [_plain(x) for x in v] for k, v in self.grid.items()}, "scenes": list(self.scenes),
-                "holdout": list(self.holdout)}
+        return {"grid": {k: [plain_grid_value(x) for x in v] for k, v in self.grid.items()},
+                "scenes": list(self.scenes), "holdout": list(self.holdout)}
 
     @classmethod
     def from_json(cls, d: Any) -> "ConditionsConfig":
@@ -216,8 +217,8 @@ def _grid_value(key: str, v: Any) -> Any:
     raise c.fail(f"conditions.grid.{key}", v, "values must be strings, numbers or lists of numbers")
 
 
-def _plain(v: Any) -> Any:
-    """A grid value as JSON and YAML write it (a tuple as a list)."""
+def plain_grid_value(v: Any) -> Any:
+    """A grid value as JSON, YAML and spec files hold it (a tuple as a list)."""
     return list(v) if isinstance(v, tuple) else v
 
 
