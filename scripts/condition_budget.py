@@ -4,7 +4,7 @@
 
     .venv/bin/python scripts/condition_budget.py --out build/condition_budget --victim bundled:yolo \\
         [--seeds 0 1 2] [--eps 8 16 50] [--attacks pgd apgd] [--steps 100] [--multi RUN_CONFIG] [--multi-only] \\
-        [--frame-weights unit]
+        [--frame-weights unit] [--loss margin]
 
 The two run configs are the main job (examples/runs/bin_orbit_pgd.yaml, one scene) and
 examples/runs/bin_orbit_conditions.yaml (its scene over 16 conditions, none held out here; ``--multi``:
@@ -20,7 +20,8 @@ the runs' own evaluation, not used here, at 4 spp: the attack does not depend on
 (``OUT/<victim>_<multi config>.csv`` / ``.png`` with ``--multi``).
 Finished runs and judgements in ``OUT/runs`` are read, not redone: the script can be stopped and
 started again (runs of other than 100 steps are named with their steps, so they never stand in for them;
-``--frame-weights unit`` sets every run's ``attack.frame_weights`` and names its runs and files ``_unit``).
+``--frame-weights unit`` sets every run's ``attack.frame_weights`` and names its runs and files ``_unit``;
+``--loss`` another loss than the task's first, the runs and files named ``_<loss>``).
 """
 from __future__ import annotations
 
@@ -58,6 +59,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frame-weights", choices=("mean", "unit"),
                         help="every run's attack.frame_weights (default: each config's own; unit: runs and "
                              "files named _unit)")
+    parser.add_argument("--loss", help="every run's loss (default: the victim task's first, ce or vanish; "
+                        "another names runs and files _<loss>)")
     args = parser.parse_args(argv)
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     sys.path.insert(0, str(ROOT))
@@ -69,7 +72,9 @@ def main(argv: list[str] | None = None) -> int:
 
     start = time.monotonic()
     task = load_victim(args.victim).task
-    loss = TASK_LOSSES[task][0]
+    loss = args.loss or TASK_LOSSES[task][0]
+    if loss not in TASK_LOSSES[task]:
+        raise SystemExit(f"--loss {loss}: a {task} victim takes {', '.join(TASK_LOSSES[task])}")
     multi = yaml.safe_load(args.multi.read_text())  # read and composed before anything is written
     if not isinstance(multi, dict) or not isinstance(multi.get("conditions"), dict):
         raise SystemExit(f"{args.multi}: --multi needs a run config with a conditions block")
@@ -92,6 +97,7 @@ def main(argv: list[str] | None = None) -> int:
     victim_slug = args.victim.replace(":", "_").replace("/", "_")
     slug = victim_slug if default_multi else f"{victim_slug}_{multi['name']}"
     weights = "" if args.frame_weights in (None, "mean") else f"_{args.frame_weights}"
+    weights += "" if args.loss in (None, TASK_LOSSES[task][0]) else f"_{loss}"
     suffix = ("" if args.steps == 100 else f"_steps{args.steps}") + weights  # 100 steps: the names runs always had
     slug += weights
     rows = []

@@ -7,12 +7,17 @@ downloaded weights.
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 import torch
 import torch.nn.functional as F
 
+from farm_support import make_scene, make_victim, run_config, write_yaml
 from undream.errors import VictimError
+from undream.store import open_store
 from undream.victims import (
     Classifier,
     Detector,
@@ -358,6 +363,21 @@ def test_dlr_known_answer():
         losses.dlr(torch.zeros(1, 2), 0)
 
 
+def test_margin_is_clipped_so_frames_already_wrong_give_no_gradient():
+    z = torch.tensor([[3.0, 1.0, 0.0], [0.0, 2.0, 1.0], [0.0, 9.0, 1.0]], requires_grad=True)
+    per_image = losses.margin(z, 0, kappa=5.0, reduction="none")
+    assert per_image.tolist() == [-2.0, 2.0, 5.0]  # right (< 0), wrong (> 0), wrong beyond kappa
+    per_image.sum().backward()
+    assert z.grad[0].tolist() == [-1.0, 1.0, 0.0]  # pushes the true logit down, the runner-up up
+    assert z.grad[2].tolist() == [0.0, 0.0, 0.0]  # already wrong by kappa: nothing left to gain
+    with pytest.raises(VictimError, match=r"class ids must be in \[0, 2\]"):
+        losses.margin(z, 3)
+    # why: ce's gradient fades on a frame the model is sure of and stays on one it already gets wrong
+    zc = torch.tensor([[12.0, 0.0, 0.0], [0.0, 9.0, 1.0]], requires_grad=True)
+    losses.ce_untargeted(zc, 0, reduction="none").sum().backward()
+    assert float(zc.grad[0].norm()) < 1e-4 < 1.0 < float(zc.grad[1].norm())
+
+
 def test_ce_losses_match_torch_and_sign():
     z = torch.tensor([[2.0, 0.5, -1.0], [0.0, 1.0, 0.0]])
     y = torch.tensor([0, 1])
@@ -557,3 +577,21 @@ def test_truncated_weights_are_one_victim_error(tmp_path):
     weights.write_bytes(weights.read_bytes()[: weights.stat().st_size // 2])
     with pytest.raises(VictimError, match=r"trunc.*not a complete save_pretrained checkpoint.*deserializ"):
         load_victim(str(folder), task="classification")
+
+
+def test_undream_run_attacks_with_the_margin_loss(tmp_path):
+    """Through `undream run`: `loss: margin` is accepted, every frame's loss stays at or under the
+    clip, and the results name the loss."""
+    scene = make_scene(tmp_path / "scene", n_frames=4, size=16)
+    cfg = run_config(scene, make_victim(tmp_path / "victim"), name="margin", steps=3, holdout="none",
+                     loss="margin", attack={"eps": 255.0})
+    out = tmp_path / "run"
+    res = subprocess.run([sys.executable, "-m", "undream.cli", "run", str(write_yaml(tmp_path / "run.yaml", cfg)),
+                          "--out", str(out), "--no-progress"], capture_output=True, text=True,
+                         cwd=Path(__file__).resolve().parents[1])
+    assert res.returncode == 0, res.stderr
+    results = json.loads((out / "results.json").read_text())
+    assert results["loss_kind"] == "margin"
+    with open_store(None, out / "store") as store:
+        jobs = [j for it in range(3) for j in store.jobs(results["run_id"], it)]
+    assert len(jobs) == 12 and all(j.finite and j.loss <= losses.MARGIN_KAPPA for j in jobs)

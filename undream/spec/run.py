@@ -17,7 +17,7 @@ from undream.spec.attack import AttackConfig
 from undream.spec.io import read_yaml
 from undream.spec.limits import bounded
 
-TASK_LOSSES = {"classification": ("ce", "targeted_ce", "dlr"), "detection": ("vanish", "mislabel", "box")}
+TASK_LOSSES = {"classification": ("ce", "targeted_ce", "dlr", "margin"), "detection": ("vanish", "mislabel", "box")}
 ALL_LOSSES = tuple(k for kinds in TASK_LOSSES.values() for k in kinds)
 SIMULATORS = ("mitsuba", "blender", "unreal")  # undream.sim backends a run may name
 

@@ -15,7 +15,7 @@ from undream.victims import losses
 from undream.victims.base import ClassPrediction, Target, Victim, require_target_label
 from undream.victims.preprocess import PreprocessConfig
 
-CLASSIFICATION_LOSSES = ("ce", "targeted_ce", "dlr")
+CLASSIFICATION_LOSSES = ("ce", "targeted_ce", "dlr", "margin")
 
 
 def _logits_of(out: Any) -> Any:
@@ -33,7 +33,8 @@ class Classifier(Victim):
 
     - ``ce``: cross-entropy of the true label (untargeted),
     - ``targeted_ce``: minus cross-entropy of ``Target.target_label``,
-    - ``dlr``: Croce & Hein's Difference of Logits Ratio (untargeted).
+    - ``dlr``: Croce & Hein's Difference of Logits Ratio (untargeted),
+    - ``margin``: Carlini & Wagner's margin clipped at ``losses.MARGIN_KAPPA`` (untargeted).
     """
 
     task = "classification"
@@ -68,5 +69,7 @@ class Classifier(Victim):
             return losses.ce_untargeted(raw, y, reduction="none")
         if kind == "dlr":
             return losses.dlr(raw, y, reduction="none")
+        if kind == "margin":
+            return losses.margin(raw, y, reduction="none")
         t = require_target_label(targets, kind)
         return losses.ce_targeted(raw, t.to(raw.device), reduction="none")

@@ -94,6 +94,25 @@ def dlr(logits: torch.Tensor, y: torch.Tensor | int, *, reduction: str = "mean")
     return _reduce(-ratio, reduction, "dlr")
 
 
+MARGIN_KAPPA = 5.0  # :func:`margin`'s clip, in logits
+
+
+def margin(logits: torch.Tensor, y: torch.Tensor | int, *, kappa: float = MARGIN_KAPPA,
+           reduction: str = "mean") -> torch.Tensor:
+    """Carlini & Wagner's margin (S&P 2017, f6 with confidence ``kappa``), untargeted:
+    ``min(max_{i != y} z_i - z_y, kappa)``.
+
+    > 0 exactly when the image is misclassified; clipped at ``kappa``, so a frame already wrong by
+    that margin gives no gradient and a step over many frames goes to those still right (cross-entropy
+    does the opposite: its gradient fades on frames the model is sure of and stays on frames it
+    already gets wrong).
+    """
+    yt = _labels(y, logits.shape[0], logits.shape[1], logits.device)
+    z_y = logits.gather(1, yt[:, None]).squeeze(1)
+    z_other = logits.masked_fill(F.one_hot(yt, logits.shape[1]).bool(), float("-inf")).max(dim=1).values
+    return _reduce((z_other - z_y).clamp(max=kappa), reduction, "margin")
+
+
 # --------------------------------------------------------------------------- detection helpers
 
 def class_log_probs(logits: torch.Tensor, activation: str) -> torch.Tensor:
