@@ -19,7 +19,7 @@ from undream.report.data import RunData
 from undream.report.draw import INK, PAPER, caption_png, decode_png, encode_png, font, with_caption
 from undream.report.tables import SPLIT_NAMES, Point, metric_name
 
-LOSS_UNITS = {"ce": "nats", "targeted_ce": "nats"}  # every other loss is unitless
+LOSS_UNITS = {"ce": "nats", "targeted_ce": "nats", "margin": "logits"}  # every other loss is unitless
 SPLIT_STYLE = {"attacked": "-", "held_out": "--"}
 
 
