@@ -22,6 +22,7 @@ from PIL import Image
 
 from scheduler.preflight import is_scene
 from scheduler.scenes import unpack_scene
+from undream.engine.job import prediction_record
 from undream.errors import SpecError, StoreError
 from undream.scene.mesh import Mesh, read_ply
 from undream.scene.mitsuba_scene import OBJECT_ID
@@ -137,17 +138,41 @@ def farm_textures(store: "Store", ref: str, cache_dir: Path | str) -> dict[str, 
     return out
 
 
+def frame_rows(ctx: Any, parts: Any, benign: Sequence[Any], texture: Sequence[Any]) -> list[dict[str, Any]]:
+    """One row per frame of ``ctx``'s sequence: its index, condition (a multi-condition scene's, else
+    empty), split (``attacked`` or ``held_out``, as :func:`split_conditions` made ``parts``) and the
+    victim's verdict on it with the scene's own texture (``benign_*``) and with the texture
+    (``texture_*``): a classifier's predicted class, its probability and whether it is the object's;
+    a detector's whether it found the object, its top score and its number of detections."""
+    conditions = {p: part.name for part, span in ctx.sequence.condition_ranges() for p in span} \
+        if ctx.sequence.conditions else {}
+    held = set(parts.held)
+    rows = []
+    for p in range(len(ctx.sequence.frames)):
+        row: dict[str, Any] = {"frame": ctx.frame_indices[p], "condition": conditions.get(p, ""),
+                               "split": "held_out" if p in held else "attacked"}
+        for prefix, preds in (("benign", benign), ("texture", texture)):
+            record = prediction_record(ctx, p, preds[p])
+            if "label" in record:
+                record["label"] = ctx.victim.labels[record["label"]]
+            row.update({f"{prefix}_{k}": v for k, v in record.items()})
+        rows.append(row)
+    return rows
+
+
 def evaluate(textures: Mapping[str, Texture], scenes: Sequence[Path], victims: Sequence[str], sim: str = "mitsuba",
              spp: int = 32, holdout: Any = "auto", label: str | None = None, seed: int = 0,
-             local: LocalSettings = LocalSettings()) -> list[dict[str, Any]]:
+             local: LocalSettings = LocalSettings(), per_frame: list[dict[str, Any]] | None = None
+             ) -> list[dict[str, Any]]:
     """One row per (scene, victim, texture, split ``all``/``attacked``/``held_out``, and ``condition NAME``
     for each condition of a multi-condition scene directory): frames, metric,
     the scene's own texture's value (``benign``) and the texture's (``adversarial``), fractions in
     [0, 1]. ``textures``: name → (texture, the scene directory it was optimised on or None), whose
-    object's UV layout every scene's must share (:func:`check_uv_layout`)."""
+    object's UV layout every scene's must share (:func:`check_uv_layout`). ``per_frame``: a list that
+    receives one row per (scene, victim, texture, frame) as well (:func:`frame_rows`)."""
     from undream.engine.algorithm import start_texture
     from undream.engine.context import build_context
-    from undream.engine.patch import evaluate_texture
+    from undream.engine.patch import judge_splits, texture_predictions
     from undream.victims import load_victim
 
     loaded = {name: load_victim(name) for name in victims}  # an unknown victim fails before any render
@@ -175,16 +200,21 @@ def evaluate(textures: Mapping[str, Texture], scenes: Sequence[Path], victims: S
                                             f"but scene {scene}'s texture is {wanted[1]}×{wanted[0]}: a texture "
                                             "made for another object or UV layout")
             for scene, name, ctx in contexts:
-                split = split_conditions(holdout, ctx.sequence.condition_ranges())
-                splits = {"all": sorted(split.attacked + split.held), "attacked": split.attacked, "held_out": split.held}
+                parts = split_conditions(holdout, ctx.sequence.condition_ranges())
+                splits = {"all": sorted(parts.attacked + parts.held), "attacked": parts.attacked, "held_out": parts.held}
                 if ctx.sequence.conditions:  # a multi-condition scene: a row per condition too
                     splits.update({f"condition {part.name}": list(span) for part, span in ctx.sequence.condition_ranges()})
-                benign = evaluate_texture(ctx, start_texture(ctx), splits)
+                benign_preds = texture_predictions(ctx, start_texture(ctx))
+                benign = judge_splits(ctx, benign_preds, splits)
                 for texture_name, (texture, _) in textures.items():
-                    for split, judged in evaluate_texture(ctx, texture, splits).items():
+                    preds = texture_predictions(ctx, texture)
+                    for split, judged in judge_splits(ctx, preds, splits).items():
                         rows.append({"scene": str(scene), "victim": name, "sim": sim, "texture": texture_name,
                                      "split": split, "frames": len(judged["frames"]), "metric": judged["metric"],
                                      "benign": benign[split]["value"], "adversarial": judged["value"]})
+                    if per_frame is not None:
+                        head = {"scene": str(scene), "victim": name, "sim": sim, "texture": texture_name}
+                        per_frame.extend({**head, **r} for r in frame_rows(ctx, parts, benign_preds, preds))
         finally:
             for _, _, ctx in contexts:
                 ctx.scenes.close()

@@ -2,6 +2,7 @@
 through the command; bad inputs are one line each and render nothing."""
 from __future__ import annotations
 
+import csv
 import json
 import shutil
 from pathlib import Path
@@ -11,7 +12,7 @@ import pytest
 from click.testing import CliRunner
 from PIL import Image
 
-from farm_support import make_scene, make_victim
+from farm_support import LABELS, make_scene, make_victim
 from undream.cli import main
 
 
@@ -47,6 +48,28 @@ def test_a_texture_is_judged_on_every_split_and_written_as_json_and_csv(inputs, 
     assert png.exit_code == 0, png.output
     assert [{**r, "texture": None} for r in json.loads((tmp_path / "png.json").read_text())["rows"]] == \
         [{**r, "texture": None} for r in rows]
+
+
+def test_frames_csv_says_which_views_hold(inputs, tmp_path):
+    """--frames-csv: one row per frame and victim, with its split and both verdicts, agreeing with the
+    table's accuracies; a detector's verdict in its own columns."""
+    res = _evaluate(str(inputs["base"] / "texture.npy"), str(inputs["scene"]), "--victim", inputs["victim"],
+                    "--victim", "bundled:yolo", "--spp", "2", "--json", str(tmp_path / "rows.json"),
+                    "--frames-csv", str(tmp_path / "frames.csv"))
+    assert res.exit_code == 0, res.output
+    rows = json.loads((tmp_path / "rows.json").read_text())["rows"]
+    frames = list(csv.DictReader((tmp_path / "frames.csv").open()))
+    mine = [f for f in frames if f["victim"] == inputs["victim"]]
+    assert [(f["frame"], f["split"]) for f in mine] == [("0", "attacked"), ("1", "attacked"), ("2", "attacked"),
+                                                        ("3", "held_out")]
+    for prefix, column in (("benign", "benign"), ("texture", "adversarial")):
+        assert {f[f"{prefix}_label"] for f in mine} <= set(LABELS)
+        right = [f[f"{prefix}_correct"] == "True" for f in mine]
+        table = {r["split"]: r[column] for r in rows if r["victim"] == inputs["victim"]}
+        assert sum(right) / 4 == pytest.approx(table["all"]) and float(right[3]) == pytest.approx(table["held_out"])
+    detector = [f for f in frames if f["victim"] == "bundled:yolo"]
+    assert len(detector) == 4 and all(f["texture_detected"] in ("True", "False") and f["texture_label"] == ""
+                                      for f in detector)
 
 
 def test_a_detector_judges_by_ap_against_the_objects_box(inputs, tmp_path):

@@ -30,31 +30,45 @@ if TYPE_CHECKING:
 @click.option("--label", default=None, help="The object's class (default: the scene's).")
 @click.option("--json", "json_out", type=click.Path(path_type=Path), default=None, help="Write the rows as JSON.")
 @click.option("--csv", "csv_out", type=click.Path(path_type=Path), default=None, help="Write the rows as CSV.")
+@click.option("--frames-csv", "frames_out", type=click.Path(path_type=Path), default=None,
+              help="Write one row per frame as CSV: its condition and split, and the victim's verdict with "
+                   "the scene's texture and with TEXTURE (which views still hold).")
 @settings_options
 @one_line_errors
 def evaluate_cmd(texture: Path, scenes: tuple[Path, ...], victims: tuple[str, ...], sim: str, spp: int,
                  holdout: str, label: str | None, json_out: Path | None, csv_out: Path | None,
-                 settings: Callable[..., "Settings"]) -> None:
+                 frames_out: Path | None, settings: Callable[..., "Settings"]) -> None:
     """Judge TEXTURE (a .npy, a .png, an `undream run` output folder, or a farm run or sweep by id or
     name: each of its runs' final textures) on SCENES (scene directories or spec files) by each
     victim, rendered by one simulator: per scene, victim and texture, on every frame and apart on the
     frames a run would attack and hold out, beside the scene's own texture."""
     from scheduler.evaluate import evaluate
 
-    for flag, path in (("--json", json_out), ("--csv", csv_out)):  # before the renders, not after
+    outputs = (("--json", json_out), ("--csv", csv_out), ("--frames-csv", frames_out))
+    for flag, path in outputs:  # before the renders, not after
         if path is not None and not path.parent.is_dir():
             raise SpecError(f"{flag} {path}: its folder {path.parent} does not exist")
+    per_frame: list[dict[str, Any]] | None = None if frames_out is None else []
     rows = evaluate(_textures(texture, settings), scenes, victims, sim=sim, spp=spp, holdout=holdout, label=label,
-                    local=local_settings())
+                    local=local_settings(), per_frame=per_frame)
     click.echo(_table(rows))
     if json_out is not None:
         json_out.write_text(json.dumps({"texture": str(texture), "rows": rows}, indent=2, allow_nan=False) + "\n")
     if csv_out is not None:
-        buf = io.StringIO()
-        writer = csv.DictWriter(buf, fieldnames=list(rows[0]), lineterminator="\n")
-        writer.writeheader()
-        writer.writerows(rows)
-        csv_out.write_text(buf.getvalue())
+        csv_out.write_text(_csv(rows))
+    if frames_out is not None and per_frame is not None:
+        frames_out.write_text(_csv(per_frame))
+
+
+def _csv(rows: list[dict[str, Any]]) -> str:
+    """``rows`` as CSV text, the columns of every row in the order first seen (a classifier's and a
+    detector's verdicts differ)."""
+    fields = list(dict.fromkeys(k for r in rows for k in r))
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=fields, restval="", lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    return buf.getvalue()
 
 
 def _textures(texture: Path, settings: Callable[..., "Settings"]) -> dict[str, Any]:

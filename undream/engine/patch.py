@@ -134,7 +134,16 @@ def judge_pasted(ctx: RunContext, frames: Sequence[tuple[Footprint, Any]], patch
 
 def evaluate_texture(ctx: RunContext, texture: np.ndarray, splits: dict[str, list[int]]) -> dict[str, Any]:
     """Render every frame with ``texture`` quantised to 8 bits (eval_spp) and judge each split of positions."""
-    preds = predict(ctx, render_frames(ctx, quantise(texture), None))
+    return judge_splits(ctx, texture_predictions(ctx, texture), splits)
+
+
+def texture_predictions(ctx: RunContext, texture: np.ndarray) -> list[Any]:
+    """The victim's prediction on every frame (by position) rendered with ``texture`` quantised to 8 bits."""
+    return predict(ctx, render_frames(ctx, quantise(texture), None))
+
+
+def judge_splits(ctx: RunContext, preds: Sequence[Any], splits: dict[str, list[int]]) -> dict[str, Any]:
+    """Each non-empty split of positions judged from the predictions ``preds`` (by position)."""
     out = {}
     for name, positions in splits.items():
         if positions:
