@@ -88,8 +88,7 @@ def dlr(logits: torch.Tensor, y: torch.Tensor | int, *, reduction: str = "mean")
     yt = _labels(y, logits.shape[0], logits.shape[1], logits.device)
     z_sorted = logits.sort(dim=1, descending=True).values
     z_y = logits.gather(1, yt[:, None]).squeeze(1)
-    others = logits.masked_fill(F.one_hot(yt, logits.shape[1]).bool(), float("-inf"))
-    z_other = others.max(dim=1).values
+    z_other = _runner_up(logits, yt)
     ratio = (z_y - z_other) / (z_sorted[:, 0] - z_sorted[:, 2] + 1e-12)
     return _reduce(-ratio, reduction, "dlr")
 
@@ -109,8 +108,12 @@ def margin(logits: torch.Tensor, y: torch.Tensor | int, *, kappa: float = MARGIN
     """
     yt = _labels(y, logits.shape[0], logits.shape[1], logits.device)
     z_y = logits.gather(1, yt[:, None]).squeeze(1)
-    z_other = logits.masked_fill(F.one_hot(yt, logits.shape[1]).bool(), float("-inf")).max(dim=1).values
-    return _reduce((z_other - z_y).clamp(max=kappa), reduction, "margin")
+    return _reduce((_runner_up(logits, yt) - z_y).clamp(max=kappa), reduction, "margin")
+
+
+def _runner_up(logits: torch.Tensor, yt: torch.Tensor) -> torch.Tensor:
+    """``B``: each image's largest logit of a class other than its ``yt``."""
+    return logits.masked_fill(F.one_hot(yt, logits.shape[1]).bool(), float("-inf")).max(dim=1).values
 
 
 # --------------------------------------------------------------------------- detection helpers
