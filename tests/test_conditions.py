@@ -7,6 +7,7 @@ local run's texture. Bad conditions are refused in one line, before anything is 
 """
 from __future__ import annotations
 
+import csv
 import json
 import re
 import subprocess
@@ -254,9 +255,16 @@ def test_a_minibatched_run_captures_each_frame_about_every_refresh_uses(local_ru
 def test_undream_evaluate_judges_a_multi_condition_scene_per_condition(local_run, tmp_path):
     out = tmp_path / "rows.json"
     res = _undream("evaluate", local_run["out"], local_run["out"] / "scene", "--victim",
-                   local_run["results"]["victim"], "--spp", 2, "--json", out)
+                   local_run["results"]["victim"], "--spp", 2, "--json", out, "--frames-csv", tmp_path / "frames.csv")
     assert res.returncode == 0, res.stderr
     rows = {r["split"]: r for r in json.loads(out.read_text())["rows"]}
     assert [s for s in rows if s.startswith("condition ")] == [f"condition {n}" for n in NAMES]
     assert rows[f"condition {NAMES[1]}"]["frames"] == 4 and rows["all"]["frames"] == 16
     assert rows["held_out"]["frames"] == 4  # each condition's 4th view
+    # one row per frame, named by its condition, each condition's 4th view held out
+    frames = list(csv.DictReader((tmp_path / "frames.csv").open()))
+    assert [f["condition"] for f in frames] == [n for n in NAMES for _ in range(4)]
+    assert [f["split"] for f in frames[:4]] == ["attacked"] * 3 + ["held_out"]
+    for n in NAMES:
+        right = [f["texture_correct"] == "True" for f in frames if f["condition"] == n]
+        assert sum(right) / 4 == pytest.approx(rows[f"condition {n}"]["adversarial"])
