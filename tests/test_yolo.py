@@ -61,12 +61,17 @@ def trained():
         before, _ = yolo_loss(model(_normalise(images[fixed])), boxes[fixed], labels[fixed], (SIZE, SIZE))
     opt = torch.optim.AdamW(model.parameters(), 3e-3)
     model.train()
-    for _ in range(150):
-        idx = torch.randint(0, len(images), (16,), generator=gen)
-        loss, _ = yolo_loss(model(_normalise(images[idx])), boxes[idx], labels[idx], (SIZE, SIZE))
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # one thread: the same weights in every process on a machine (two varied them)
+    try:
+        for _ in range(150):
+            idx = torch.randint(0, len(images), (16,), generator=gen)
+            loss, _ = yolo_loss(model(_normalise(images[idx])), boxes[idx], labels[idx], (SIZE, SIZE))
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+    finally:
+        torch.set_num_threads(threads)
     model.eval()
     with torch.no_grad():
         after, _ = yolo_loss(model(_normalise(images[fixed])), boxes[fixed], labels[fixed], (SIZE, SIZE))
@@ -209,12 +214,14 @@ def test_vanish_steps_lower_the_objects_top_score(trained, reduce):
     x = _square(0)
     target = Target(0, box=(18, 14, 46, 42))
     scores = [_top_score(victim, x, 0)]
-    for _ in range(STEPS):  # PGD ascent on the loss, 2/255 per step
+    for _ in range(2 * STEPS):  # PGD ascent on the loss, 2/255 per step
         x = x.clone().requires_grad_(True)
         (g,) = torch.autograd.grad(victim.loss(x, target, "vanish"), x)
         x = (x + 2 / 255 * g.sign()).clamp(0, 1).detach()
         scores.append(_top_score(victim, x, 0))
-    assert scores[0] > 0.9 and scores[-1] < 0.6 * scores[0], scores  # measured: 0.997 → 0.021 (mean), 0.449 (max)
+    # 20 steps: after 10, max read 0.449 on one machine and 0.636 on another (an AMD EPYC), the tiny
+    # model's training differing in its floats; after 20, measured on the EPYC: 0.993 → 0.038 (mean), 0.028 (max)
+    assert scores[0] > 0.9 and scores[-1] < 0.6 * scores[0], scores
 
 
 def test_dense_weights_known_answer():
