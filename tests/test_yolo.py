@@ -62,7 +62,7 @@ def trained():
     opt = torch.optim.AdamW(model.parameters(), 3e-3)
     model.train()
     threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # one thread: the same weights in every process on a machine (two varied them)
+    torch.set_num_threads(1)  # one thread: its floats do not depend on how many cores the machine has
     try:
         for _ in range(150):
             idx = torch.randint(0, len(images), (16,), generator=gen)
