@@ -11,11 +11,12 @@ from typing import Any, Sequence
 import torch
 
 from undream.errors import VictimError
+from undream.spec.run import TASK_LOSSES
 from undream.victims import losses
 from undream.victims.base import ClassPrediction, Target, Victim, require_target_label
 from undream.victims.preprocess import PreprocessConfig
 
-CLASSIFICATION_LOSSES = ("ce", "targeted_ce", "dlr", "margin")
+CLASSIFICATION_LOSSES = TASK_LOSSES["classification"]  # one list: what a run config accepts
 
 
 def _logits_of(out: Any) -> Any:

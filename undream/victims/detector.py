@@ -19,11 +19,12 @@ from typing import Any, Sequence, cast
 import torch
 
 from undream.errors import VictimError
+from undream.spec.run import TASK_LOSSES
 from undream.victims import losses
 from undream.victims.base import DetPrediction, Target, Victim, require_target_label
 from undream.victims.preprocess import PreprocessConfig
 
-DETECTION_LOSSES = ("vanish", "mislabel", "box")
+DETECTION_LOSSES = TASK_LOSSES["detection"]  # one list: what a run config accepts
 
 
 @dataclass(frozen=True)
