@@ -31,6 +31,7 @@ import json
 import os
 import statistics
 import sys
+import textwrap
 import time
 from pathlib import Path
 
@@ -96,10 +97,10 @@ def main(argv: list[str] | None = None) -> int:
         del kinds["one scene"], bases["one scene"]
     victim_slug = args.victim.replace(":", "_").replace("/", "_")
     slug = victim_slug if default_multi else f"{victim_slug}_{multi['name']}"
-    weights = "" if args.frame_weights in (None, "mean") else f"_{args.frame_weights}"
-    weights += "" if args.loss in (None, TASK_LOSSES[task][0]) else f"_{loss}"
-    suffix = ("" if args.steps == 100 else f"_steps{args.steps}") + weights  # 100 steps: the names runs always had
-    slug += weights
+    method = "" if args.frame_weights in (None, "mean") else f"_{args.frame_weights}"  # names runs and files
+    method += "" if args.loss in (None, TASK_LOSSES[task][0]) else f"_{loss}"
+    suffix = ("" if args.steps == 100 else f"_steps{args.steps}") + method  # 100 steps: the names runs always had
+    slug += method
     rows = []
     for eps in args.eps:  # each ε's cells whole before the next ε's (a long study stopped early has whole rows)
         for attack in args.attacks:
@@ -187,12 +188,15 @@ def _chart(args: argparse.Namespace, slug: str, kinds: list[str], metric: str, b
     ax.set_title(f"{args.victim}: textures on held-out conditions, {args.steps} steps, seeds {args.seeds}",
                  fontsize=8)
     ax.legend(fontsize=7)
-    fig.text(0.01, 0.01, f"made by: scripts/condition_budget.py --out {args.out} --victim {args.victim} --seeds "
-             f"{' '.join(map(str, args.seeds))} --eps {' '.join(f'{e:g}' for e in args.eps)} --attacks "
-             f"{' '.join(args.attacks)} --steps {args.steps}"
-             + ("" if args.multi.resolve() == MULTI else f" --multi {_shown(args.multi)}")
-             + (f" --frame-weights {args.frame_weights}" if args.frame_weights else ""), fontsize=5)
-    fig.tight_layout(rect=(0, 0.04, 1, 1))
+    command = (f"made by: scripts/condition_budget.py --out {args.out} --victim {args.victim} --seeds "
+               f"{' '.join(map(str, args.seeds))} --eps {' '.join(f'{e:g}' for e in args.eps)} --attacks "
+               f"{' '.join(args.attacks)} --steps {args.steps}"
+               + ("" if args.multi.resolve() == MULTI else f" --multi {_shown(args.multi)}")
+               + (f" --frame-weights {args.frame_weights}" if args.frame_weights else "")
+               + (f" --loss {args.loss}" if args.loss else ""))
+    lines = textwrap.wrap(command, 140)  # the whole command, however long its paths: one line was cut off
+    fig.text(0.01, 0.01, "\n".join(lines), fontsize=5, va="bottom")
+    fig.tight_layout(rect=(0, 0.02 + 0.02 * len(lines), 1, 1))
     fig.savefig(args.out / f"{slug}.png")
     plt.close(fig)
 
