@@ -42,6 +42,11 @@ def test_a_texture_is_judged_on_every_split_and_written_as_json_and_csv(inputs, 
         "scene,victim,sim,texture,split,frames,metric,benign,adversarial"
     assert {r["texture"] for r in rows} == {"texture.npy"}
     assert "held_out" in res.output and "→" in res.output
+    # the printed table names the victim whole (a folder's path here, longer than any fixed column; a
+    # 20-character column once printed bundled:classifier-v3 as "undled:classifier-v3"), columns aligned
+    table = [line for line in res.output.splitlines() if "→" in line]
+    assert len(table) == 1 + len(rows) and all(str(inputs["victim"]) in line for line in table[1:]), res.output
+    assert len({line.index("→") for line in table}) == 1, res.output
     # the same 8-bit texture as a PNG: the same frames, the same verdicts (the evaluation wears 8 bits)
     png = _evaluate(str(base / "texture.png"), str(inputs["scene"]), "--victim", inputs["victim"], "--spp", "2",
                     "--json", str(tmp_path / "png.json"))

@@ -84,14 +84,19 @@ def _textures(texture: Path, settings: Callable[..., "Settings"]) -> dict[str, A
 
 
 def _table(rows: list[dict]) -> str:
-    lines = [f"{'scene':<24} {'victim':<20} {'sim':<8} {'texture':<24} {'split':<9} {'frames':>6}  "
-             "metric     benign → texture"]
-    for r in rows:
-        benign = "n/a" if r["benign"] is None else f"{r['benign']:.3f}"
-        adv = "n/a" if r["adversarial"] is None else f"{r['adversarial']:.3f}"
-        lines.append(f"{Path(r['scene']).name[:24]:<24} {r['victim'][-20:]:<20} {r['sim']:<8} {r['texture'][:24]:<24} "
-                     f"{r['split']:<9} {r['frames']:>6}  {r['metric']:<10} {benign} → {adv}")
-    return "\n".join(lines)
+    """The rows as aligned columns, each as wide as its longest value: a victim, scene or texture is
+    never cut (a cut name, ``undled:classifier-v3``, named no victim)."""
+    cells = [(Path(r["scene"]).name, r["victim"], r["sim"], r["texture"], r["split"], str(r["frames"]), r["metric"],
+              "n/a" if r["benign"] is None else f"{r['benign']:.3f}",
+              "n/a" if r["adversarial"] is None else f"{r['adversarial']:.3f}") for r in rows]
+    head = ("scene", "victim", "sim", "texture", "split", "frames", "metric", "benign", "texture")
+    widths = [max(len(c) for c in column) for column in zip(head, *cells)]
+
+    def line(values: tuple[str, ...]) -> str:
+        padded = [v.rjust(w) if i == 5 else v.ljust(w) for i, (v, w) in enumerate(zip(values, widths))]
+        return (" ".join(padded[:6]) + "  " + " ".join(padded[6:8]) + " → " + values[8]).rstrip()
+
+    return "\n".join(line(values) for values in [head, *cells])
 
 
 COMMANDS = (evaluate_cmd,)
