@@ -112,10 +112,22 @@ def texture_name(run: Any) -> str:
     return f"{run.name} ({run.id[:8]})"
 
 
-def farm_textures(store: "Store", ref: str, cache_dir: Path | str) -> dict[str, Texture]:
+def run_victim(path: Path) -> str | None:
+    """The victim an ``undream run`` output folder's texture was attacked against (its
+    ``metadata.json``'s config), when ``path`` is one that says; else None."""
+    try:
+        victim = json.loads((path / "metadata.json").read_text())["config"]["victim"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return victim if isinstance(victim, str) and victim else None
+
+
+def farm_textures(store: "Store", ref: str, cache_dir: Path | str,
+                  victims: list[str] | None = None) -> dict[str, Texture]:
     """The final textures of the farm's run ``ref`` (an id or its first characters), else of every
     run of sweep ``ref`` (an id or a name) that has one, by ``name (id8)``, each with its run's scene
-    (unpacked under ``cache_dir``) for the UV-layout check; SpecError in one line when there is none."""
+    (unpacked under ``cache_dir``) for the UV-layout check; SpecError in one line when there is none.
+    ``victims``, when given, receives the victims those runs attacked, each once, in run order."""
     try:
         runs, what = [store.find_run(ref)], "run"
     except StoreError as run_err:
@@ -132,6 +144,9 @@ def farm_textures(store: "Store", ref: str, cache_dir: Path | str) -> dict[str, 
             continue
         scene = unpack_scene(store.blobs, run.scene_ref, cache_dir) if run.scene_ref else None
         out[texture_name(run)] = (final, scene)
+        victim = run.config.get("victim")
+        if victims is not None and isinstance(victim, str) and victim and victim not in victims:
+            victims.append(victim)
     if not out:
         raise SpecError(f"TEXTURE {ref}: the {what} has no final texture yet (a run has one once its evaluation "
                         "picked it)")

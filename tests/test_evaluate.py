@@ -135,6 +135,27 @@ def test_a_runs_texture_on_a_scene_with_another_uv_layout_is_one_line(inputs, tm
     assert same.exit_code == 0, same.output  # its own scene: the same layout
 
 
+def test_a_runs_texture_is_judged_by_the_victim_it_was_attacked_against(inputs, tmp_path):
+    """Without --victim, an `undream run` folder's texture is judged by its run config's victim (the
+    main job attacks bundled:classifier-v3; judging it by the default bundled:classifier measured
+    another victim without saying so), and the command says which; --victim still chooses."""
+    run = tmp_path / "run"
+    run.mkdir()
+    np.save(run / "texture_final.npy", np.load(inputs["base"] / "texture.npy"))
+    (run / "metadata.json").write_text(json.dumps({"scene_dir": str(inputs["scene"]),
+                                                   "config": {"victim": inputs["victim"]}}))
+    res = _evaluate(str(run), str(inputs["scene"]), "--spp", "1", "--json", str(tmp_path / "rows.json"))
+    assert res.exit_code == 0, res.output
+    assert {r["victim"] for r in json.loads((tmp_path / "rows.json").read_text())["rows"]} == {inputs["victim"]}
+    assert f"victim: {inputs['victim']} (the one TEXTURE was attacked against; --victim to choose)" in res.output
+    other = make_victim(tmp_path / "other_victim")
+    chosen = _evaluate(str(run), str(inputs["scene"]), "--spp", "1", "--victim", other,
+                       "--json", str(tmp_path / "chosen.json"))
+    assert chosen.exit_code == 0, chosen.output
+    assert {r["victim"] for r in json.loads((tmp_path / "chosen.json").read_text())["rows"]} == {other}
+    assert "victim:" not in chosen.output
+
+
 def test_a_farm_sweeps_final_textures_are_judged_by_name(inputs, tmp_path):
     """TEXTURE as a sweep of the farm (by name) or one of its runs (by id): every final texture."""
     from scheduler.scenes import store_scene
@@ -160,6 +181,16 @@ def test_a_farm_sweeps_final_textures_are_judged_by_name(inputs, tmp_path):
     assert [r for r in json.loads((tmp_path / "run.json").read_text())["rows"]] == rows[:3]
     nothing = _evaluate("no-such-sweep", str(inputs["scene"]), *env, env=farm)
     assert nothing.exit_code != 0 and "TEXTURE no-such-sweep: no such file, and no run or sweep" in nothing.output
+    # without --victim: the victim the farm's runs attacked (their configs'), named on stderr
+    with open_store(None, blobs) as store:
+        attacked = [NewRun("v", {"scene": "s", "name": "v", "victim": inputs["victim"]}, 4, 0, scene_ref=scene_ref)]
+        store.create_sweep("with-victim", {}, attacked)
+        store.put_final_texture(attacked[0].id, texture)
+    own = _evaluate("with-victim", str(inputs["scene"]), "--blobs", str(blobs), "--spp", "1",
+                    "--json", str(tmp_path / "own.json"), env=farm)
+    assert own.exit_code == 0, own.output
+    assert {r["victim"] for r in json.loads((tmp_path / "own.json").read_text())["rows"]} == {inputs["victim"]}
+    assert f"victim: {inputs['victim']} (the one TEXTURE was attacked against" in own.output
 
 
 @pytest.mark.slow

@@ -18,11 +18,15 @@ if TYPE_CHECKING:
     from undream.settings import Settings
 
 
+DEFAULT_VICTIM = "bundled:classifier"  # a texture file names no victim
+
+
 @click.command("evaluate")
 @click.argument("texture", type=click.Path(path_type=Path))
 @click.argument("scenes", nargs=-1, required=True, type=click.Path(path_type=Path))
-@click.option("--victim", "victims", multiple=True, default=("bundled:classifier",), show_default=True,
-              help="A victim (bundled:NAME, a folder or a hub id); repeat for several.")
+@click.option("--victim", "victims", multiple=True,
+              help="A victim (bundled:NAME, a folder or a hub id); repeat for several.  [default: the "
+                   f"victim TEXTURE was attacked against (its runs' config), else {DEFAULT_VICTIM}]")
 @click.option("--sim", default="mitsuba", show_default=True, help="The simulator that renders: mitsuba or blender.")
 @spp_option("--spp", 32, "Samples per pixel of every frame.")
 @click.option("--holdout", default="auto", show_default=True,
@@ -49,7 +53,13 @@ def evaluate_cmd(texture: Path, scenes: tuple[Path, ...], victims: tuple[str, ..
         if path is not None and not path.parent.is_dir():
             raise SpecError(f"{flag} {path}: its folder {path.parent} does not exist")
     per_frame: list[dict[str, Any]] | None = None if frames_out is None else []
-    rows = evaluate(_textures(texture, settings), scenes, victims, sim=sim, spp=spp, holdout=holdout, label=label,
+    attacked: list[str] = []
+    textures = _textures(texture, settings, attacked)
+    if not victims:  # judged by the victim it was made against, not silently by another
+        victims = tuple(attacked) or (DEFAULT_VICTIM,)
+        source = "the one TEXTURE was attacked against" if attacked else "the default"
+        click.echo(f"victim: {', '.join(victims)} ({source}; --victim to choose)", err=True)
+    rows = evaluate(textures, scenes, victims, sim=sim, spp=spp, holdout=holdout, label=label,
                     local=local_settings(), per_frame=per_frame)
     click.echo(_table(rows))
     if json_out is not None:
@@ -71,16 +81,19 @@ def _csv(rows: list[dict[str, Any]]) -> str:
     return buf.getvalue()
 
 
-def _textures(texture: Path, settings: Callable[..., "Settings"]) -> dict[str, Any]:
+def _textures(texture: Path, settings: Callable[..., "Settings"], victims: list[str]) -> dict[str, Any]:
     """TEXTURE as name → (texture, the scene it was optimised on): a file or output folder, else the
-    farm's run or sweep by that id or name."""
-    from scheduler.evaluate import farm_textures, read_texture, run_scene
+    farm's run or sweep by that id or name; ``victims`` receives the victims its runs attacked."""
+    from scheduler.evaluate import farm_textures, read_texture, run_scene, run_victim
     from undream.store import open_farm_store
 
     if texture.exists() or texture.suffix.lower() in (".npy", ".png"):
-        return {texture.name: (read_texture(texture), run_scene(texture) if texture.is_dir() else None)}
+        found = {texture.name: (read_texture(texture), run_scene(texture) if texture.is_dir() else None)}
+        victim = run_victim(texture) if texture.is_dir() else None
+        victims.extend([victim] if victim else [])
+        return found
     cfg = settings()
-    return farm_textures(open_farm_store(cfg, create=False), str(texture), cfg.cache_dir)
+    return farm_textures(open_farm_store(cfg, create=False), str(texture), cfg.cache_dir, victims)
 
 
 def _table(rows: list[dict]) -> str:
