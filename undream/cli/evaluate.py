@@ -106,7 +106,7 @@ def _table(rows: list[dict]) -> str:
     widths = [max(len(c) for c in column) for column in zip(head, *cells)]
 
     def line(values: tuple[str, ...]) -> str:
-        padded = [v.rjust(w) if i == 5 else v.ljust(w) for i, (v, w) in enumerate(zip(values, widths))]
+        padded = [v.rjust(w) if i in (5, 7) else v.ljust(w) for i, (v, w) in enumerate(zip(values, widths))]
         return (" ".join(padded[:6]) + "  " + " ".join(padded[6:8]) + " → " + values[8]).rstrip()
 
     return "\n".join(line(values) for values in [head, *cells])
