@@ -67,6 +67,15 @@ def project_linf(T: torch.Tensor, T0: torch.Tensor, eps: float) -> torch.Tensor:
     return torch.clamp(torch.min(torch.max(T, T0 - eps), T0 + eps), 0.0, 1.0)
 
 
+def decayed_step(step_size: float, iteration: int, steps: int, decay: str) -> float:
+    """The sign-step size of ``iteration`` (0-based) of ``steps`` under ``attack.step_decay``."""
+    if decay == "none":
+        return step_size
+    if decay == "cosine":
+        return step_size * 0.5 * (1.0 + math.cos(math.pi * min(iteration, steps) / steps))
+    raise AttackError(f"attack.step_decay: must be none or cosine, got {decay!r}")
+
+
 def finite_gradient(G: torch.Tensor) -> tuple[torch.Tensor, int]:
     """``G`` with NaN and ±Inf entries set to 0, and how many there were."""
     ok = torch.isfinite(G)

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import torch
 
-from undream.attacks.base import Attack, State, project_linf, register
+from undream.attacks.base import Attack, State, decayed_step, project_linf, register
 
 _TINY = 1e-12
 
@@ -37,6 +37,6 @@ class MIFGSM(Attack):
 
     def _step(self, T: torch.Tensor, G: torch.Tensor, loss: float,
               state: State) -> tuple[torch.Tensor, State]:
-        T_next, g = mifgsm_step(T, G, state["g"], state["T0"], self.eps, self.step_size,
-                                self.config.momentum)
+        size = decayed_step(self.step_size, state["iteration"], self.config.steps, self.config.step_decay)
+        T_next, g = mifgsm_step(T, G, state["g"], state["T0"], self.eps, size, self.config.momentum)
         return T_next, {"g": g}

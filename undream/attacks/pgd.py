@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import torch
 
-from undream.attacks.base import Attack, State, project_linf, register
+from undream.attacks.base import Attack, State, decayed_step, project_linf, register
 
 
 def pgd_step(T: torch.Tensor, G: torch.Tensor, T0: torch.Tensor, eps: float,
@@ -30,4 +30,5 @@ class PGD(Attack):
 
     def _step(self, T: torch.Tensor, G: torch.Tensor, loss: float,
               state: State) -> tuple[torch.Tensor, State]:
-        return pgd_step(T, G, state["T0"], self.eps, self.step_size), {}
+        size = decayed_step(self.step_size, state["iteration"], self.config.steps, self.config.step_decay)
+        return pgd_step(T, G, state["T0"], self.eps, size), {}

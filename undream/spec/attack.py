@@ -20,6 +20,7 @@ from undream.spec.limits import bounded
 
 
 FRAME_WEIGHTS = ("mean", "unit")  # AttackConfig.frame_weights
+STEP_DECAYS = ("none", "cosine")  # AttackConfig.step_decay
 
 
 def _fail(field: str, value: Any, expected: str) -> SpecError:
@@ -50,6 +51,11 @@ class AttackConfig:
       mean (the gradient of the mean loss). ``unit``: each scaled to the frames' mean L2 norm
       first, so that a frame where the texture moves few pixels (a back-lit view at night, a far
       camera) steers the step as much as a sunlit one (docs/runs.md, "Lamps at night").
+    - ``step_decay``: PGD's and MI-FGSM's step size over the iterations. ``none``: ``step_size``
+      throughout. ``cosine``: ``step_size·(1 + cos(π·k/steps))/2`` at iteration k, from
+      ``step_size`` down to nearly 0, so that a run on minibatches of frames, whose gradient changes
+      with every draw, settles on a texture instead of ending wherever its last fixed step left it
+      (docs/runs.md, "Lamps at night").
     """
 
     name: str = "pgd"
@@ -63,6 +69,7 @@ class AttackConfig:
     seed: int = 0
     frames_per_step: int | None = None
     frame_weights: str = "mean"
+    step_decay: str = "none"
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name.strip():
@@ -75,6 +82,11 @@ class AttackConfig:
             raise _fail("random_start", self.random_start, "must be true or false")
         if self.frame_weights not in FRAME_WEIGHTS:
             raise _fail("frame_weights", self.frame_weights, f"must be one of {', '.join(FRAME_WEIGHTS)}")
+        if self.step_decay not in STEP_DECAYS:
+            raise _fail("step_decay", self.step_decay, f"must be one of {', '.join(STEP_DECAYS)}")
+        if self.step_decay != "none" and self.name in ("apgd", "adam"):
+            raise _fail("step_decay", self.step_decay, f"{self.name} sets its own step sizes; step_decay is "
+                        "for pgd and mifgsm (leave it none)")
         for key, value in checked.items():
             object.__setattr__(self, key, value)
 
