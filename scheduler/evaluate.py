@@ -144,9 +144,8 @@ def farm_textures(store: "Store", ref: str, cache_dir: Path | str,
             continue
         scene = unpack_scene(store.blobs, run.scene_ref, cache_dir) if run.scene_ref else None
         out[texture_name(run)] = (final, scene)
-        victim = run.config.get("victim")
-        if victims is not None and isinstance(victim, str) and victim and victim not in victims:
-            victims.append(victim)
+        if victims is not None and run.run_config.victim not in victims:
+            victims.append(run.run_config.victim)
     if not out:
         raise SpecError(f"TEXTURE {ref}: the {what} has no final texture yet (a run has one once its evaluation "
                         "picked it)")
