@@ -191,6 +191,14 @@ def test_a_farm_sweeps_final_textures_are_judged_by_name(inputs, tmp_path):
     assert own.exit_code == 0, own.output
     assert {r["victim"] for r in json.loads((tmp_path / "own.json").read_text())["rows"]} == {inputs["victim"]}
     assert f"victim: {inputs['victim']} (the one TEXTURE was attacked against" in own.output
+    # with --victim the runs' configs are not read: a run stored by another version (a config this one
+    # cannot type) is still judged
+    with open_store(None, blobs) as store:
+        odd = [NewRun("odd", {"scene": "s", "name": "odd", "attack": {"epsilon": 8}}, 4, 0, scene_ref=scene_ref)]
+        store.create_sweep("odd-config", {}, odd)
+        store.put_final_texture(odd[0].id, texture)
+    judged = _evaluate("odd-config", str(inputs["scene"]), *env, env=farm)
+    assert judged.exit_code == 0 and "odd (" in judged.output, judged.output
 
 
 @pytest.mark.slow

@@ -53,9 +53,9 @@ def evaluate_cmd(texture: Path, scenes: tuple[Path, ...], victims: tuple[str, ..
         if path is not None and not path.parent.is_dir():
             raise SpecError(f"{flag} {path}: its folder {path.parent} does not exist")
     per_frame: list[dict[str, Any]] | None = None if frames_out is None else []
-    attacked: list[str] = []
+    attacked: list[str] | None = None if victims else []  # the runs' configs read only when --victim is not given
     textures = _textures(texture, settings, attacked)
-    if not victims:  # judged by the victim it was made against, not silently by another
+    if attacked is not None:  # judged by the victim it was made against, not silently by another
         victims = tuple(attacked) or (DEFAULT_VICTIM,)
         source = "the one TEXTURE was attacked against" if attacked else "the default"
         click.echo(f"victim: {', '.join(victims)} ({source}; --victim to choose)", err=True)
@@ -81,16 +81,16 @@ def _csv(rows: list[dict[str, Any]]) -> str:
     return buf.getvalue()
 
 
-def _textures(texture: Path, settings: Callable[..., "Settings"], victims: list[str]) -> dict[str, Any]:
+def _textures(texture: Path, settings: Callable[..., "Settings"], victims: list[str] | None) -> dict[str, Any]:
     """TEXTURE as name → (texture, the scene it was optimised on): a file or output folder, else the
-    farm's run or sweep by that id or name; ``victims`` receives the victims its runs attacked."""
+    farm's run or sweep by that id or name; ``victims``, when given, receives the victims its runs attacked."""
     from scheduler.evaluate import farm_textures, read_texture, run_scene, run_victim
     from undream.store import open_farm_store
 
     if texture.exists() or texture.suffix.lower() in (".npy", ".png"):
         found = {texture.name: (read_texture(texture), run_scene(texture) if texture.is_dir() else None)}
-        victim = run_victim(texture) if texture.is_dir() else None
-        victims.extend([victim] if victim else [])
+        if victims is not None and texture.is_dir() and (victim := run_victim(texture)):
+            victims.append(victim)
         return found
     cfg = settings()
     return farm_textures(open_farm_store(cfg, create=False), str(texture), cfg.cache_dir, victims)
