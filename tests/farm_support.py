@@ -84,6 +84,23 @@ def write_yaml(path: Path, data: dict[str, Any]) -> Path:
     return path
 
 
+def runs_per_attack_value(tmp_path: Path, scene: Path, victim: str, field: str,
+                          values: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """Through `undream run` (a process each): the same tiny run once per value of ``attack.<field>``,
+    asserting each exits 0 and keeps the value in its results.json; each run's final texture by value."""
+    textures = {}
+    for value in values:
+        cfg = run_config(scene, victim, name=f"{field}_{value}", steps=3, holdout="none", attack={field: value})
+        out = tmp_path / f"{field}_{value}"
+        res = subprocess.run([sys.executable, "-m", "undream.cli", "run",
+                              str(write_yaml(tmp_path / f"{field}_{value}.yaml", cfg)), "--out", str(out),
+                              "--no-progress"], capture_output=True, text=True, cwd=ROOT)
+        assert res.returncode == 0, res.stderr
+        assert json.loads((out / "results.json").read_text())["attack"][field] == value
+        textures[value] = np.load(out / "texture_final.npy")
+    return textures
+
+
 def redis_client(db: int = 0):
     import redis
 

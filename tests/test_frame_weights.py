@@ -1,21 +1,14 @@
 """attack.frame_weights: how an iteration's frame gradients are combined (docs/runs.md, "Lamps at night")."""
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 import torch
 
-from farm_support import make_scene, make_victim, run_config, write_yaml
+from farm_support import make_scene, make_victim, runs_per_attack_value
 from undream.attacks import AttackError, average_frames
 from undream.errors import SpecError
 from undream.spec.attack import AttackConfig
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_unit_weights_give_a_dim_frame_the_pull_of_a_bright_one():
@@ -48,15 +41,5 @@ def test_undream_run_combines_the_frames_as_the_config_says(tmp_path):
     (the same seed and frames, only the weighting differs)."""
     scene = make_scene(tmp_path / "scene", n_frames=4, size=16)
     victim = make_victim(tmp_path / "victim")
-    textures = {}
-    for weights in ("mean", "unit"):
-        cfg = run_config(scene, victim, name=f"w_{weights}", steps=3, holdout="none",
-                         attack={"frame_weights": weights})
-        out = tmp_path / weights
-        res = subprocess.run([sys.executable, "-m", "undream.cli", "run",
-                              str(write_yaml(tmp_path / f"{weights}.yaml", cfg)), "--out", str(out), "--no-progress"],
-                             capture_output=True, text=True, cwd=ROOT)
-        assert res.returncode == 0, res.stderr
-        assert json.loads((out / "results.json").read_text())["attack"]["frame_weights"] == weights
-        textures[weights] = np.load(out / "texture_final.npy")
+    textures = runs_per_attack_value(tmp_path, scene, victim, "frame_weights", ("mean", "unit"))
     assert not np.array_equal(textures["mean"], textures["unit"])

@@ -1,7 +1,6 @@
 """attack.step_decay: PGD's and MI-FGSM's step size over the iterations (docs/runs.md, "Lamps at night")."""
 from __future__ import annotations
 
-import json
 import math
 import subprocess
 import sys
@@ -11,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from farm_support import make_scene, make_victim, run_config, write_yaml
+from farm_support import make_scene, make_victim, run_config, runs_per_attack_value, write_yaml
 from undream.attacks import make_attack
 from undream.errors import SpecError
 from undream.spec.attack import AttackConfig
@@ -53,16 +52,7 @@ def test_undream_run_decays_its_steps_as_the_config_says(tmp_path):
     (the same seed and frames, only the step sizes differ); a bad value is one line, nothing written."""
     scene = make_scene(tmp_path / "scene", n_frames=4, size=16)
     victim = make_victim(tmp_path / "victim")
-    textures = {}
-    for decay in ("none", "cosine"):
-        cfg = run_config(scene, victim, name=f"d_{decay}", steps=3, holdout="none", attack={"step_decay": decay})
-        out = tmp_path / decay
-        res = subprocess.run([sys.executable, "-m", "undream.cli", "run",
-                              str(write_yaml(tmp_path / f"{decay}.yaml", cfg)), "--out", str(out), "--no-progress"],
-                             capture_output=True, text=True, cwd=ROOT)
-        assert res.returncode == 0, res.stderr
-        assert json.loads((out / "results.json").read_text())["attack"]["step_decay"] == decay
-        textures[decay] = np.load(out / "texture_final.npy")
+    textures = runs_per_attack_value(tmp_path, scene, victim, "step_decay", ("none", "cosine"))
     assert not np.array_equal(textures["none"], textures["cosine"])
     bad = run_config(scene, victim, name="d_bad", steps=3, attack={"name": "apgd", "step_decay": "cosine"})
     res = subprocess.run([sys.executable, "-m", "undream.cli", "run", str(write_yaml(tmp_path / "bad.yaml", bad)),
