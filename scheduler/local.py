@@ -21,6 +21,7 @@ from undream.engine.context import RunContext, build_context
 from undream.scenedir.conditions import conditions_sequence
 from undream.scenedir.init import InitOptions, init_scene
 from undream.settings import LocalSettings
+from undream import interrupts
 from undream.errors import SpecError, UndreamError
 from undream.progress import progress as progress_bar
 from undream.spec.io import join_against
@@ -78,12 +79,14 @@ def drain(store: Any, contexts: stages.Contexts, dispatch: LocalDispatch,
     is called after each callback.
     """
     while dispatch.queue:
+        interrupts.check()  # a stop whose exception was dropped (raised in a __del__) ends the run here
         item = dispatch.queue.popleft()
         if item[0] == "start":
             stages.start(store, contexts, item[1], dispatch)
             continue
         _, run_id, phase, k, batches = item
         for batch in batches:
+            interrupts.check()
             while stages.run_batch(store, contexts, run_id, phase, k, batch)["retry"]:
                 pass
         outcome = stages.collect(store, contexts, run_id, phase, k, dispatch)

@@ -10,6 +10,7 @@ from typing import Any, Callable, Iterator
 
 import click
 
+from undream import interrupts
 from undream.errors import UndreamError
 from undream.redact import install_log_redaction, redact_text
 
@@ -62,20 +63,21 @@ class OneLineGroup(click.Group):
 def signals_end_commands() -> Iterator[None]:
     """While a command runs, SIGTERM and SIGHUP end it as Ctrl-C does: as an exception, so every
     ``finally`` and ``except BaseException`` on the way out runs (temporary folders removed, a run's
-    lease given up and the run marked failed). Handlers set by others (Celery's) are left alone."""
-    def stop(signum: int, _frame: Any) -> None:
-        raise SystemExit(128 + signum)
-
+    lease given up and the run marked failed). The three are held back while the store writes and
+    raised again if their first exception was dropped (:mod:`undream.interrupts`). Handlers set by
+    others (Celery's) are left alone."""
     previous = {}
     if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGTERM, signal.SIGHUP):
-            if signal.getsignal(sig) in (signal.SIG_DFL, None):
-                previous[sig] = signal.signal(sig, stop)
+        for sig, default in ((signal.SIGTERM, signal.SIG_DFL), (signal.SIGHUP, signal.SIG_DFL),
+                             (signal.SIGINT, signal.default_int_handler)):
+            if signal.getsignal(sig) in (default, None):
+                previous[sig] = signal.signal(sig, interrupts.interrupt)
     try:
         yield
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+        interrupts.reset()
 
 
 def _usage_line(err: click.ClickException) -> str:

@@ -33,6 +33,7 @@ from sqlalchemy import Engine, delete, insert, select, update
 from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.orm import Session
 
+from undream import interrupts
 from undream.errors import StoreError
 from undream.store.activity import ActivityTables
 from undream.store.blobs import (
@@ -110,8 +111,8 @@ class Store(JobTables, LeaseMethods, ListMethods, ActivityTables):
 
     @contextmanager
     def _tx(self, op: str, write: bool) -> Iterator[Session]:
-        try:
-            with Session(self._writer if write else self.engine) as session, session.begin():
+        try:  # a signal during the transaction ends the command after it (undream.interrupts)
+            with interrupts.held(), Session(self._writer if write else self.engine) as session, session.begin():
                 if not write:
                     yield session
                     return

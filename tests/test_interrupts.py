@@ -1,0 +1,106 @@
+"""SIGTERM ends a command cleanly wherever it lands (undream.interrupts).
+
+Before: the handler raised SystemExit wherever the main thread was. Inside a ``__del__`` Python
+reports that exception and drops it, and ``undream run`` went on to its last step as if no signal
+had come (a clean-clone CI waited 60 s for a run told to stop, tests/test_output_folders.py); inside
+a store transaction it could interrupt the write half done.
+"""
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from farm_support import ROOT, make_scene, make_victim, run_config, write_yaml
+
+# `undream run`, with a frame batch that drops the first SIGTERM: the signal arrives while a
+# __del__ runs, so the handler's SystemExit is raised there and Python drops it.
+DROPPED = """
+import os, signal, sys
+import scheduler.stages as stages
+from undream.cli import main
+
+class Sends:
+    def __del__(self):
+        os.kill(os.getpid(), signal.SIGTERM)
+        sum(range(1000))  # bytecode for the handler to run in: its exception ends here, dropped
+
+calls = []
+real = stages.run_batch
+
+def run_batch(*args, **kwargs):
+    calls.append(1)
+    if len(calls) == 3:
+        Sends()  # deleted at once: the signal lands in its __del__
+        print("signal sent", file=sys.stderr, flush=True)
+    return real(*args, **kwargs)
+
+stages.run_batch = run_batch
+sys.argv = ["undream", "run", sys.argv[1], "--out", sys.argv[2], "--no-progress"]
+main()
+"""
+
+# A store write with a SIGTERM arriving in the middle of it: the INSERT has been sent, not committed.
+DURING_WRITE = """
+import os, signal, sys
+from sqlalchemy import event
+from undream.cli.errors import signals_end_commands
+from undream.store import open_store
+
+store = open_store(None, sys.argv[1])
+
+@event.listens_for(store._writer, "before_cursor_execute")
+def kill(conn, cursor, statement, *args):
+    if statement.lstrip().upper().startswith("INSERT INTO RUNS"):
+        os.kill(os.getpid(), signal.SIGTERM)
+        sum(range(1000))
+
+with signals_end_commands():
+    store.create_run("interrupted", {}, 2, 0)
+    print("the command went on after the write", flush=True)
+"""
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory):
+    root = tmp_path_factory.mktemp("interrupts")
+    return {"scene": make_scene(root / "scene", n_frames=2, size=16), "victim": make_victim(root / "victim")}
+
+
+def test_a_sigterm_whose_exception_is_dropped_still_ends_undream_run(inputs, tmp_path):
+    cfg = write_yaml(tmp_path / "run.yaml", run_config(inputs["scene"], inputs["victim"], steps=40))
+    out = tmp_path / "out"
+    res = subprocess.run([sys.executable, "-c", DROPPED, str(cfg), str(out)], cwd=ROOT, capture_output=True,
+                         text=True, timeout=300)
+    assert "signal sent" in res.stderr, res.stderr[-3000:]
+    assert res.returncode == 128 + signal.SIGTERM, (res.returncode, res.stderr[-3000:])
+    assert not (out / "results.json").exists()  # it did not run its 40 steps to the end
+    from undream.store import open_store
+
+    store = open_store(None, out / "store", create=False)
+    try:
+        (run,) = store.runs()
+        assert run.status == "failed" and "SystemExit" in (run.error or "") and not run.owner, (run.status, run.error)
+        assert run.iteration < 40
+    finally:
+        store.close()
+
+
+def test_a_sigterm_during_a_store_write_ends_the_command_after_the_write(tmp_path):
+    res = subprocess.run([sys.executable, "-c", DURING_WRITE, str(tmp_path / "store")], cwd=ROOT,
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 128 + signal.SIGTERM, (res.returncode, res.stdout, res.stderr[-3000:])
+    assert "went on" not in res.stdout
+    from undream.store import open_store
+
+    store = open_store(None, tmp_path / "store", create=False)
+    try:  # the write was whole (committed, not cut off half way), and the database takes the next one
+        assert [r.name for r in store.runs()] == ["interrupted"]
+        store.create_run("next", {}, 2, 0)
+        assert json.dumps(sorted(r.name for r in store.runs())) == '["interrupted", "next"]'
+    finally:
+        store.close()
