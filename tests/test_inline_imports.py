@@ -57,7 +57,7 @@ HEAVY_OWN = {
 # `undream --help` and one-line errors stay fast: `import undream.cli` loads only these of undream
 # (checked by test_the_cli_starts_light); a command imports the rest of undream, scheduler and
 # workers when it runs.
-CLI_START = ("undream.cli", "undream.errors", "undream.redact", "undream.runlist")
+CLI_START = ("undream.cli", "undream.errors", "undream.interrupts", "undream.redact", "undream.runlist")
 
 # `import undream.spec` stays ~20 ms (docs/architecture.md): numpy (~120 ms) and yaml (~15 ms) load
 # only when a JSON file's depth is measured or a YAML file is read.

@@ -1,4 +1,4 @@
-"""SIGTERM ends a command cleanly wherever it lands (undream.interrupts).
+"""SIGTERM ends a command cleanly wherever it lands (undream.interrupts, undream.progress).
 
 Before: the handler raised SystemExit wherever the main thread was. Inside a ``__del__`` Python
 reports that exception and drops it, and ``undream run`` went on to its last step as if no signal
@@ -65,6 +65,38 @@ with signals_end_commands():
 """
 
 
+# `undream init`, whose frame loop (a progress bar) drops the first SIGTERM the same way.
+DROPPED_INIT = """
+import os, signal, sys
+import undream.scenedir.init as init
+from undream.cli import main
+
+class Sends:
+    def __del__(self):
+        os.kill(os.getpid(), signal.SIGTERM)
+        sum(range(1000))
+
+calls = []
+real = init.save_mask
+
+def save_mask(*args, **kwargs):
+    calls.append(1)
+    if len(calls) == 2:
+        Sends()
+        print("signal sent", file=sys.stderr, flush=True)
+    return real(*args, **kwargs)
+
+init.save_mask = save_mask
+sys.argv = ["undream", "init", sys.argv[1], "--out", sys.argv[2], "--no-progress"]
+main()
+"""
+
+SPEC = {"name": "interrupted", "frames": 6,
+        "camera": {"fov": 40, "resolution": [16, 16], "path": {"type": "orbit", "radius": 4, "height": 1}},
+        "object": {"asset": {"name": "ball", "mesh": "builtin:sphere"},
+                   "path": {"type": "static", "position": [0, 0, 0]}}}
+
+
 @pytest.fixture(scope="module")
 def inputs(tmp_path_factory):
     root = tmp_path_factory.mktemp("interrupts")
@@ -104,3 +136,14 @@ def test_a_sigterm_during_a_store_write_ends_the_command_after_the_write(tmp_pat
         assert json.dumps(sorted(r.name for r in store.runs())) == '["interrupted", "next"]'
     finally:
         store.close()
+
+
+def test_a_sigterm_whose_exception_is_dropped_still_ends_undream_init(tmp_path):
+    spec = write_yaml(tmp_path / "spec.yaml", SPEC)
+    out = tmp_path / "scene"
+    res = subprocess.run([sys.executable, "-c", DROPPED_INIT, str(spec), str(out)], cwd=ROOT, capture_output=True,
+                         text=True, timeout=300)
+    assert "signal sent" in res.stderr, res.stderr[-3000:]
+    assert res.returncode == 128 + signal.SIGTERM, (res.returncode, res.stderr[-3000:])
+    assert not out.exists()  # stopped at the next frame and removed what it had begun
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["spec.yaml"]
