@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from conftest import service_missing
 from farm_support import Farm, make_scene, make_victim, redis_up, run_config, write_yaml
@@ -151,7 +152,42 @@ def test_a_grid_over_a_vector_field_moves_it_per_condition(inputs):
     assert per_frame == [tuple(lamps[0])] * 4 + [tuple(lamps[1])] * 4
 
 
+def test_grids_join_products_that_one_grid_would_multiply(inputs):
+    """``conditions.grids``: each grid a product of its own values, their conditions after ``grid``'s
+    (nights under two lamps beside days under two weathers: 4 conditions, not the 2 × 2 × 2 of one
+    grid), each condition's frames carrying its own values, and the JSON round trip keeps them."""
+    from undream.scenedir.conditions import conditions_sequence
+    from undream.spec.run import RunConfig
+
+    lamps = [[1.0, 5.0, 2.0], [-2.5, 6.0, 1.5]]
+    cfg = RunConfig.from_json(_config(inputs, "joined", conditions={
+        "grid": {"environment.weather": ["night"], "environment.lamp_offset": lamps},
+        "grids": [{"environment.weather": ["clear", "fog"]}], "holdout": ["weather_fog"]}))
+    assert RunConfig.from_json(json.loads(json.dumps(cfg.to_json()))) == cfg
+    seq = conditions_sequence(cfg, ROOT)
+    assert [c.name for c in seq.conditions] == ["weather_night-lamp_offset_1p0_5p0_2p0",
+                                                "weather_night-lamp_offset_-2p5_6p0_1p5", "weather_clear",
+                                                "weather_fog"]
+    assert [f.environment.weather for f in seq.frames] == ["night"] * 8 + ["clear"] * 4 + ["fog"] * 4
+    grids_only = RunConfig.from_json(_config(inputs, "grids", conditions={"grids": [GRID]}))
+    assert [c.name for c in conditions_sequence(grids_only, ROOT).conditions] == NAMES  # `scene` is not one
+    out = inputs["root"] / "joined"  # and through `undream run`: the held-out grid condition is never attacked
+    (inputs["root"] / "joined.yaml").write_text(yaml.safe_dump(cfg.to_json(), sort_keys=False))  # names follow key order
+    res = _undream("run", inputs["root"] / "joined.yaml", "--out", out, "--no-progress")
+    assert res.returncode == 0, res.stderr
+    results = json.loads((out / "results.json").read_text())
+    assert [r["name"] for r in results["conditions"]] == [c.name for c in seq.conditions]
+    assert results["held_out_conditions"]["frames"] == [12, 13, 14, 15]
+    assert results["attacked"]["frames"] == [0, 1, 2, 4, 5, 6, 8, 9, 10]
+
+
 @pytest.mark.parametrize("conditions, expected", [
+    ({"grid": GRID, "grids": [GRID]}, "conditions: two conditions are named height_0p6-weather_clear"),
+    ({"grids": {"environment.weather": ["fog"]}}, "conditions.grids: must be a list of grids"),
+    ({"grids": [{}]}, "conditions.grids[0]: must name at least one field"),
+    ({"grids": [{"environment.weather": ["fog"]}, {"camera.path.height": [0.6, 0.6]}]},
+     "conditions.grids[1].camera.path.height: must not repeat a value"),
+    ({"grids": [{"camera.path.height": ["high"]}]}, "conditions.grids[0] (height_high)"),
     ({"scenes": ["cone.yaml"]}, "condition 'cone': its object (builtin:traffic_cone"),
     ({"scenes": ["big.yaml"]}, "condition 'big': its texture (adv_texture, 32×8"),
     ({"grid": GRID, "holdout": ["weather_snow"]}, "conditions.holdout: 'weather_snow' is not a condition"),

@@ -1,7 +1,7 @@
 """Multi-condition runs: one sequence made of several scenes of one object.
 
 A run's ``conditions`` block (:class:`undream.spec.run.ConditionsConfig`)
-names scenes (spec files or scene directories) or a grid over fields of the
+names scenes (spec files or scene directories) or grids over fields of the
 run's spec file. Each becomes a :class:`Sequence`; :func:`compose` checks that
 they show the same object (mesh, UVs and texture size) and chains their frames
 into one sequence whose ``conditions`` say which frames were which scene, so
@@ -19,7 +19,7 @@ import itertools
 import re
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -45,9 +45,11 @@ def conditions_sequence(config: RunConfig, base_dir: Path) -> Sequence:
     assert config.conditions is not None
     base, *more = condition_sources(config, base_dir)
     parts: list[tuple[str, Sequence]] = []
-    if config.conditions.grid:
-        parts += grid_sequences(base, config.conditions.grid)
-    else:
+    grids = [("conditions.grid", config.conditions.grid)] if config.conditions.grid else []
+    grids += [(f"conditions.grids[{i}]", grid) for i, grid in enumerate(config.conditions.grids)]
+    for where, grid in grids:
+        parts += grid_sequences(base, grid, where)
+    if not grids:
         parts.append((_slug(base.stem if base.is_file() else base.name), _read(base)))
     for i, src in enumerate(more):
         try:
@@ -57,8 +59,9 @@ def conditions_sequence(config: RunConfig, base_dir: Path) -> Sequence:
     names = [name for name, _ in parts]
     repeated = sorted({n for n in names if names.count(n) > 1})
     if repeated:
-        raise SpecError(f"conditions: two scenes are named {', '.join(repeated)} (conditions are named by file or "
-                        "folder name); rename one")
+        raise SpecError(f"conditions: two conditions are named {', '.join(repeated)} (a scene by its file or "
+                        "folder name, a grid's by its fields and values); rename a scene or give the grids "
+                        "other fields")
     unknown = [h for h in config.conditions.holdout if h not in names]
     if unknown:
         raise SpecError(f"conditions.holdout: {', '.join(map(repr, unknown))} is not a condition of the run "
@@ -66,10 +69,12 @@ def conditions_sequence(config: RunConfig, base_dir: Path) -> Sequence:
     return compose(parts, config.name)
 
 
-def grid_sequences(spec_file: Path, grid: dict[str, tuple[Any, ...]]) -> list[tuple[str, Sequence]]:
-    """One sequence per combination of ``grid``'s values, each the spec file with those values set."""
+def grid_sequences(spec_file: Path, grid: Mapping[str, tuple[Any, ...]],
+                   where: str = "conditions.grid") -> list[tuple[str, Sequence]]:
+    """One sequence per combination of ``grid``'s values, each the spec file with those values set
+    (``where``: the grid's place in the run config, named in errors)."""
     if not spec_file.is_file() or spec_file.suffix.lower() not in (".yaml", ".yml"):
-        raise SpecError(f"conditions.grid: needs scene to be a YAML spec file, got {spec_file}")
+        raise SpecError(f"{where}: needs scene to be a YAML spec file, got {spec_file}")
     spec = read_yaml(spec_file)
     if not isinstance(spec, dict):
         raise SpecError(f"{spec_file}: a spec must be a mapping")
@@ -79,22 +84,22 @@ def grid_sequences(spec_file: Path, grid: dict[str, tuple[Any, ...]]) -> list[tu
         name = "-".join(f"{key.rsplit('.', 1)[-1]}_{_value_slug(v)}" for key, v in point.items())
         data = copy.deepcopy(spec)
         for key, value in point.items():
-            _set(data, key, plain_grid_value(value))
+            _set(data, key, plain_grid_value(value), where)
         try:
             out.append((name, sequence_from_trajectory(data, base_dir=spec_file.parent)))
         except UndreamError as err:
-            raise type(err)(f"conditions.grid ({name}): {spec_file}: {err}") from None
+            raise type(err)(f"{where} ({name}): {spec_file}: {err}") from None
     return out
 
 
-def _set(spec: dict[str, Any], dotted: str, value: Any) -> None:
+def _set(spec: dict[str, Any], dotted: str, value: Any, where: str) -> None:
     keys = dotted.split(".")
     node = spec
     for i, key in enumerate(keys[:-1]):
         if node.get(key) is None:
             node[key] = {}
         if not isinstance(node[key], dict):
-            raise SpecError(f"conditions.grid.{dotted}: the spec's {'.'.join(keys[:i + 1])} is not a mapping "
+            raise SpecError(f"{where}.{dotted}: the spec's {'.'.join(keys[:i + 1])} is not a mapping "
                             "(a per-frame list cannot take one value)")
         node = node[key]
     node[keys[-1]] = value

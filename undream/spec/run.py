@@ -152,8 +152,11 @@ class ConditionsConfig:
     ``grid``: dotted fields of the ``scene`` spec file (``environment.weather``,
     ``camera.path.height``, ...) → values; each combination is one condition
     (the spec with those values), named ``weather_rain-height_2`` from the
-    fields' last parts and the values. Without a grid, ``scene`` itself is the
-    first condition. ``scenes``: more spec files or scene directories, one
+    fields' last parts and the values. Without grids, ``scene`` itself is the
+    first condition. ``grids``: more grids over the same spec file, each a
+    product of its own values, their conditions after ``grid``'s (nights under
+    eight lamps beside days under three weathers, say, which one product would
+    multiply). ``scenes``: more spec files or scene directories, one
     condition each (named by their file or folder name). Every condition shows
     the same mesh with the same UVs and texture size; the attack's frames are
     all of theirs, and a minibatch draws across them. ``holdout``: names of
@@ -162,23 +165,20 @@ class ConditionsConfig:
     """
 
     grid: Mapping[str, tuple[Any, ...]] = field(default_factory=dict)
+    grids: tuple[Mapping[str, tuple[Any, ...]], ...] = ()
     scenes: tuple[str, ...] = ()
     holdout: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
-        grid = c.mapping("conditions.grid", self.grid)
-        checked = {}
-        for key, values in grid.items():
-            if not isinstance(key, str) or not key or not all(part.isidentifier() for part in key.split(".")):
-                raise c.fail("conditions.grid", key, "keys must be dotted spec fields such as environment.weather")
-            if isinstance(values, (str, bytes)) or not isinstance(values, (list, tuple)) or not values:
-                raise c.fail(f"conditions.grid.{key}", values, "must be a non-empty list of values")
-            values = [_grid_value(key, v) for v in values]
-            if len(set(map(str, values))) != len(values):
-                raise c.fail(f"conditions.grid.{key}", [plain_grid_value(v) for v in values],
-                             "must not repeat a value")
-            checked[key] = tuple(values)
-        object.__setattr__(self, "grid", checked)
+        object.__setattr__(self, "grid", _checked_grid("conditions.grid", self.grid))
+        if isinstance(self.grids, (str, bytes, Mapping)) or not isinstance(self.grids, (list, tuple)):
+            raise c.fail("conditions.grids", self.grids, "must be a list of grids (mappings of field → values)")
+        grids = tuple(_checked_grid(f"conditions.grids[{i}]", g) for i, g in enumerate(self.grids))
+        for i, g in enumerate(grids):
+            if not g:
+                raise c.fail(f"conditions.grids[{i}]", {}, "must name at least one field")
+        object.__setattr__(self, "grids", grids)
+        checked = self.grid or grids
         for name in ("scenes", "holdout"):
             items = getattr(self, name)
             if isinstance(items, (str, bytes)) or not isinstance(items, (list, tuple)):
@@ -193,20 +193,39 @@ class ConditionsConfig:
             raise c.fail("conditions.holdout", list(self.holdout), "must name each condition once")
 
     def to_json(self) -> dict[str, Any]:
-        return {"grid": {k: [plain_grid_value(x) for x in v] for k, v in self.grid.items()},
-                "scenes": list(self.scenes), "holdout": list(self.holdout)}
+        grids = {"grids": [_plain_grid(g) for g in self.grids]} if self.grids else {}  # stored configs as before
+        return {"grid": _plain_grid(self.grid), **grids, "scenes": list(self.scenes), "holdout": list(self.holdout)}
 
     @classmethod
     def from_json(cls, d: Any) -> "ConditionsConfig":
         d = c.mapping("conditions", d)
         with c.at("conditions"):
-            c.no_extra(d, {"grid", "scenes", "holdout"})
+            c.no_extra(d, {"grid", "grids", "scenes", "holdout"})
         return cls(**d)
 
 
-def _grid_value(key: str, v: Any) -> Any:
-    """One value of ``conditions.grid.<key>``: a string, a number, or a list of numbers (a vector
-    field such as ``environment.lamp_offset``), kept as a tuple."""
+def _checked_grid(where: str, grid: Any) -> dict[str, tuple[Any, ...]]:
+    """``grid`` (dotted spec field → non-empty list of distinct values) checked, values as kept."""
+    checked = {}
+    for key, values in c.mapping(where, grid).items():
+        if not isinstance(key, str) or not key or not all(part.isidentifier() for part in key.split(".")):
+            raise c.fail(where, key, "keys must be dotted spec fields such as environment.weather")
+        if isinstance(values, (str, bytes)) or not isinstance(values, (list, tuple)) or not values:
+            raise c.fail(f"{where}.{key}", values, "must be a non-empty list of values")
+        values = [_grid_value(f"{where}.{key}", v) for v in values]
+        if len(set(map(str, values))) != len(values):
+            raise c.fail(f"{where}.{key}", [plain_grid_value(v) for v in values], "must not repeat a value")
+        checked[key] = tuple(values)
+    return checked
+
+
+def _plain_grid(grid: Mapping[str, tuple[Any, ...]]) -> dict[str, list[Any]]:
+    return {k: [plain_grid_value(x) for x in v] for k, v in grid.items()}
+
+
+def _grid_value(where: str, v: Any) -> Any:
+    """One value of a grid's field ``where`` (``conditions.grid.<key>``): a string, a number, or a list
+    of numbers (a vector field such as ``environment.lamp_offset``), kept as a tuple."""
     def number(x: Any) -> bool:
         return isinstance(x, (int, float)) and not isinstance(x, bool)
 
@@ -214,7 +233,7 @@ def _grid_value(key: str, v: Any) -> Any:
         return v
     if isinstance(v, (list, tuple)) and v and all(number(x) for x in v):
         return tuple(v)
-    raise c.fail(f"conditions.grid.{key}", v, "values must be strings, numbers or lists of numbers")
+    raise c.fail(where, v, "values must be strings, numbers or lists of numbers")
 
 
 def plain_grid_value(v: Any) -> Any:
