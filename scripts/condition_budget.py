@@ -19,7 +19,8 @@ the runs' own evaluation, not used here, at 4 spp: the attack does not depend on
 ``OUT/<victim>.csv`` (every run and condition, with each run's wall time) and ``OUT/<victim>.png``
 (``OUT/<victim>_<multi config>.csv`` / ``.png`` with ``--multi``).
 Finished runs and judgements in ``OUT/runs`` are read, not redone: the script can be stopped and
-started again (runs of other than 100 steps are named with their steps, so they never stand in for them;
+started again (runs, CSVs and charts of other than 100 steps are named with their steps, so they never
+stand in for them;
 ``--frame-weights unit`` sets every run's ``attack.frame_weights`` and names its runs and files ``_unit``;
 ``--loss`` another loss than the task's first, the runs and files named ``_<loss>``; ``--step-decay cosine``
 PGD's and MI-FGSM's steps shrinking over the run, named ``_cosine``; ``--frames-per-step N`` every run's
@@ -110,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
     method += "" if args.step_decay in (None, "none") else f"_{args.step_decay}"
     method += "" if args.frames_per_step is None else f"_fps{args.frames_per_step}"
     suffix = ("" if args.steps == 100 else f"_steps{args.steps}") + method  # 100 steps: the names runs always had
-    slug += method
+    slug += suffix  # the steps too: a 200-step study wrote over the 100-step one's CSV and chart
     rows = []
     for eps in args.eps:  # each ε's cells whole before the next ε's (a long study stopped early has whole rows)
         for attack in args.attacks:
