@@ -26,7 +26,7 @@ def test_every_example_run_config_loads(path):
         assert bundled_path(folder).is_dir()
         assert config.loss in TASK_LOSSES[BUNDLED[folder]]
     if config.conditions is not None:  # every condition composes: its files are found from the config's folder
-        grids = ([config.conditions.grid] if config.conditions.grid else []) + list(config.conditions.grids)
+        grids = [grid for _, grid in config.conditions.placed_grids()]
         expected = (sum(math.prod(map(len, g.values())) for g in grids) if grids else 1) + len(config.conditions.scenes)
         assert len(conditions_sequence(config, path.parent).conditions) == expected
 

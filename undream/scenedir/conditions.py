@@ -45,8 +45,7 @@ def conditions_sequence(config: RunConfig, base_dir: Path) -> Sequence:
     assert config.conditions is not None
     base, *more = condition_sources(config, base_dir)
     parts: list[tuple[str, Sequence]] = []
-    grids = [("conditions.grid", config.conditions.grid)] if config.conditions.grid else []
-    grids += [(f"conditions.grids[{i}]", grid) for i, grid in enumerate(config.conditions.grids)]
+    grids = config.conditions.placed_grids()
     for where, grid in grids:
         parts += grid_sequences(base, grid, where)
     if not grids:

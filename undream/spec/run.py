@@ -178,7 +178,6 @@ class ConditionsConfig:
             if not g:
                 raise c.fail(f"conditions.grids[{i}]", {}, "must name at least one field")
         object.__setattr__(self, "grids", grids)
-        checked = self.grid or grids
         for name in ("scenes", "holdout"):
             items = getattr(self, name)
             if isinstance(items, (str, bytes)) or not isinstance(items, (list, tuple)):
@@ -187,10 +186,16 @@ class ConditionsConfig:
                 if not isinstance(item, str) or not item:
                     raise c.fail(f"conditions.{name}[{i}]", item, "must be a non-empty string")
             object.__setattr__(self, name, tuple(items))
-        if not checked and not self.scenes:
+        if not self.placed_grids() and not self.scenes:
             raise c.fail("conditions", {}, "needs a grid or scenes (a run of one scene has no conditions block)")
         if len(set(self.holdout)) != len(self.holdout):
             raise c.fail("conditions.holdout", list(self.holdout), "must name each condition once")
+
+    def placed_grids(self) -> list[tuple[str, Mapping[str, tuple[Any, ...]]]]:
+        """Every grid in the order its conditions come (``grid`` when given, then ``grids``), each with
+        its place in the run config, which errors about it name."""
+        placed = [("conditions.grid", self.grid)] if self.grid else []
+        return placed + [(f"conditions.grids[{i}]", grid) for i, grid in enumerate(self.grids)]
 
     def to_json(self) -> dict[str, Any]:
         grids = {"grids": [_plain_grid(g) for g in self.grids]} if self.grids else {}  # stored configs as before
