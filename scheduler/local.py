@@ -17,11 +17,11 @@ from scheduler import stages
 from scheduler.options import attacked_positions
 from scheduler.preflight import (check_output_folder, is_run_output, is_scene, mark_output, preflight, scene_source,
                                  scene_sources)
+from undream import interrupts
 from undream.engine.context import RunContext, build_context
 from undream.scenedir.conditions import conditions_sequence
 from undream.scenedir.init import InitOptions, init_scene
 from undream.settings import LocalSettings
-from undream import interrupts
 from undream.errors import SpecError, UndreamError
 from undream.progress import progress as progress_bar
 from undream.spec.io import join_against

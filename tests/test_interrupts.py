@@ -17,11 +17,11 @@ import pytest
 
 from farm_support import ROOT, make_scene, make_victim, run_config, write_yaml
 
-# `undream run`, with a frame batch that drops the first SIGTERM: the signal arrives while a
-# __del__ runs, so the handler's SystemExit is raised there and Python drops it.
+# An undream command in which the n-th call of MODULE.FUNCTION drops the first SIGTERM: the signal
+# arrives while a __del__ runs, so the handler's exception is raised there and Python drops it.
 DROPPED = """
 import os, signal, sys
-import scheduler.stages as stages
+import {module} as patched
 from undream.cli import main
 
 class Sends:
@@ -30,19 +30,27 @@ class Sends:
         sum(range(1000))  # bytecode for the handler to run in: its exception ends here, dropped
 
 calls = []
-real = stages.run_batch
+real = patched.{function}
 
-def run_batch(*args, **kwargs):
+def wrapper(*args, **kwargs):
     calls.append(1)
-    if len(calls) == 3:
+    if len(calls) == {nth}:
         Sends()  # deleted at once: the signal lands in its __del__
         print("signal sent", file=sys.stderr, flush=True)
     return real(*args, **kwargs)
 
-stages.run_batch = run_batch
-sys.argv = ["undream", "run", sys.argv[1], "--out", sys.argv[2], "--no-progress"]
+patched.{function} = wrapper
+sys.argv = ["undream", *sys.argv[1:]]
 main()
 """
+
+
+def _dropping(module: str, function: str, nth: int, *args: str) -> subprocess.CompletedProcess:
+    """``undream ARGS`` whose ``nth`` call of ``module.function`` drops the first SIGTERM."""
+    script = DROPPED.format(module=module, function=function, nth=nth)
+    return subprocess.run([sys.executable, "-c", script, *args], cwd=ROOT, capture_output=True, text=True,
+                          timeout=300)
+
 
 # A store write with a SIGTERM arriving in the middle of it: the INSERT has been sent, not committed.
 DURING_WRITE = """
@@ -65,32 +73,6 @@ with signals_end_commands():
 """
 
 
-# `undream init`, whose frame loop (a progress bar) drops the first SIGTERM the same way.
-DROPPED_INIT = """
-import os, signal, sys
-import undream.scenedir.init as init
-from undream.cli import main
-
-class Sends:
-    def __del__(self):
-        os.kill(os.getpid(), signal.SIGTERM)
-        sum(range(1000))
-
-calls = []
-real = init.save_mask
-
-def save_mask(*args, **kwargs):
-    calls.append(1)
-    if len(calls) == 2:
-        Sends()
-        print("signal sent", file=sys.stderr, flush=True)
-    return real(*args, **kwargs)
-
-init.save_mask = save_mask
-sys.argv = ["undream", "init", sys.argv[1], "--out", sys.argv[2], "--no-progress"]
-main()
-"""
-
 SPEC = {"name": "interrupted", "frames": 6,
         "camera": {"fov": 40, "resolution": [16, 16], "path": {"type": "orbit", "radius": 4, "height": 1}},
         "object": {"asset": {"name": "ball", "mesh": "builtin:sphere"},
@@ -106,8 +88,7 @@ def inputs(tmp_path_factory):
 def test_a_sigterm_whose_exception_is_dropped_still_ends_undream_run(inputs, tmp_path):
     cfg = write_yaml(tmp_path / "run.yaml", run_config(inputs["scene"], inputs["victim"], steps=40))
     out = tmp_path / "out"
-    res = subprocess.run([sys.executable, "-c", DROPPED, str(cfg), str(out)], cwd=ROOT, capture_output=True,
-                         text=True, timeout=300)
+    res = _dropping("scheduler.stages", "run_batch", 3, "run", str(cfg), "--out", str(out), "--no-progress")
     assert "signal sent" in res.stderr, res.stderr[-3000:]
     assert res.returncode == 128 + signal.SIGTERM, (res.returncode, res.stderr[-3000:])
     assert not (out / "results.json").exists()  # it did not run its 40 steps to the end
@@ -141,8 +122,7 @@ def test_a_sigterm_during_a_store_write_ends_the_command_after_the_write(tmp_pat
 def test_a_sigterm_whose_exception_is_dropped_still_ends_undream_init(tmp_path):
     spec = write_yaml(tmp_path / "spec.yaml", SPEC)
     out = tmp_path / "scene"
-    res = subprocess.run([sys.executable, "-c", DROPPED_INIT, str(spec), str(out)], cwd=ROOT, capture_output=True,
-                         text=True, timeout=300)
+    res = _dropping("undream.scenedir.init", "save_mask", 2, "init", str(spec), "--out", str(out), "--no-progress")
     assert "signal sent" in res.stderr, res.stderr[-3000:]
     assert res.returncode == 128 + signal.SIGTERM, (res.returncode, res.stderr[-3000:])
     assert not out.exists()  # stopped at the next frame and removed what it had begun
