@@ -4,7 +4,8 @@
 
     .venv/bin/python scripts/condition_budget.py --out build/condition_budget --victim bundled:yolo \\
         [--seeds 0 1 2] [--eps 8 16 50] [--attacks pgd apgd] [--steps 100] [--multi RUN_CONFIG] [--multi-only] \\
-        [--frame-weights unit] [--loss margin] [--step-decay cosine] [--frames-per-step 36]
+        [--frame-weights unit] [--loss margin] [--step-decay cosine] [--frames-per-step 36] \\
+        [--grad-blur 2]
 
 The two run configs are the main job (examples/runs/bin_orbit_pgd.yaml, one scene) and
 examples/runs/bin_orbit_conditions.yaml (its scene over 16 conditions, none held out here; ``--multi``:
@@ -24,7 +25,8 @@ stand in for them;
 ``--frame-weights unit`` sets every run's ``attack.frame_weights`` and names its runs and files ``_unit``;
 ``--loss`` another loss than the task's first, the runs and files named ``_<loss>``; ``--step-decay cosine``
 PGD's and MI-FGSM's steps shrinking over the run, named ``_cosine``; ``--frames-per-step N`` every run's
-minibatch, named ``_fpsN``).
+minibatch, named ``_fpsN``; ``--grad-blur S`` every run's ``attack.grad_blur`` (the gradient smoothed by a
+Gaussian of σ S texels), named ``_blurS``).
 """
 from __future__ import annotations
 
@@ -69,7 +71,11 @@ def main(argv: list[str] | None = None) -> int:
                         help="every run's attack.step_decay (pgd, mifgsm; cosine: runs and files named _cosine)")
     parser.add_argument("--frames-per-step", type=int,
                         help="every run's attack.frames_per_step (the minibatch; runs and files named _fps<N>)")
+    parser.add_argument("--grad-blur", type=float,
+                        help="every run's attack.grad_blur (σ in texels; runs and files named _blur<σ>)")
     args = parser.parse_args(argv)
+    if args.grad_blur is not None and not 0 < args.grad_blur <= 64:
+        parser.error(f"--grad-blur {args.grad_blur:g}: give a σ in texels, 0 < σ ≤ 64")
     if args.frames_per_step is not None and args.frames_per_step < 1:
         parser.error(f"--frames-per-step {args.frames_per_step}: give a whole number of frames ≥ 1")
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
@@ -110,6 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     method += "" if args.loss in (None, TASK_LOSSES[task][0]) else f"_{loss}"
     method += "" if args.step_decay in (None, "none") else f"_{args.step_decay}"
     method += "" if args.frames_per_step is None else f"_fps{args.frames_per_step}"
+    method += "" if args.grad_blur is None else f"_blur{args.grad_blur:g}"
     suffix = ("" if args.steps == 100 else f"_steps{args.steps}") + method  # 100 steps: the names runs always had
     slug += suffix  # the steps too: a 200-step study wrote over the 100-step one's CSV and chart
     rows = []
@@ -122,7 +129,8 @@ def main(argv: list[str] | None = None) -> int:
                             "attack": {**base["attack"], "name": attack, "eps": eps, "steps": args.steps,
                                        **({"frame_weights": args.frame_weights} if args.frame_weights else {}),
                                        **({"step_decay": args.step_decay} if args.step_decay else {}),
-                                       **({"frames_per_step": args.frames_per_step} if args.frames_per_step else {})}}
+                                       **({"frames_per_step": args.frames_per_step} if args.frames_per_step else {}),
+                                       **({"grad_blur": args.grad_blur} if args.grad_blur else {})}}
                     config = RunConfig.from_json(data)
                     out = args.out / "runs" / victim_slug / data["name"]
                     wall = run_once(config, out, run_local)
@@ -208,7 +216,8 @@ def _chart(args: argparse.Namespace, slug: str, kinds: list[str], metric: str, b
                + (f" --frame-weights {args.frame_weights}" if args.frame_weights else "")
                + (f" --loss {args.loss}" if args.loss else "")
                + (f" --step-decay {args.step_decay}" if args.step_decay else "")
-               + (f" --frames-per-step {args.frames_per_step}" if args.frames_per_step else ""))
+               + (f" --frames-per-step {args.frames_per_step}" if args.frames_per_step else "")
+               + (f" --grad-blur {args.grad_blur:g}" if args.grad_blur else ""))
     lines = textwrap.wrap(command, 140)  # the whole command, however long its paths: one line was cut off
     fig.text(0.01, 0.01, "\n".join(lines), fontsize=5, va="bottom")
     fig.tight_layout(rect=(0, 0.02 + 0.02 * len(lines), 1, 1))

@@ -24,6 +24,10 @@ step grows the mask by the texels whose gradient is non-zero in some channel
 for bit. So a texel no frame ever sees keeps its starting value ``T0``; with
 ``visible=None`` and a random start it keeps its random start value.
 
+Smoothed gradients. With ``config.grad_blur`` σ > 0, ``step`` smooths ``G`` by a
+Gaussian of σ texels (:func:`blur_gradient`) after the "seen so far" mask is
+taken from the raw gradient and before the attack's own step reads it.
+
 Non-finite gradients. The reduce step drops frames whose gradient is not
 finite, but ``step`` defends anyway: NaN and ±Inf entries of ``G`` count as 0
 (no information about that texel) and their number is added to
@@ -45,7 +49,7 @@ from undream.spec.attack import AttackConfig
 from undream.attacks.state import state_from_dict, state_to_dict
 from undream.errors import SpecError
 
-__all__ = ["Attack", "AttackConfig", "AttackError", "attack_names", "finite_gradient",
+__all__ = ["Attack", "AttackConfig", "AttackError", "attack_names", "blur_gradient", "finite_gradient",
            "make_attack", "project_linf", "register"]
 
 State = dict[str, Any]
@@ -74,6 +78,26 @@ def decayed_step(step_size: float, iteration: int, steps: int, decay: str) -> fl
     if decay == "cosine":
         return step_size * 0.5 * (1.0 + math.cos(math.pi * min(iteration, steps) / steps))
     raise AttackError(f"attack.step_decay: must be none or cosine, got {decay!r}")
+
+
+def blur_gradient(G: torch.Tensor, sigma: float) -> torch.Tensor:
+    """``G`` (``H×W×C``) smoothed by a Gaussian of σ ``sigma`` texels, each channel alone.
+
+    Separable, truncated at 3σ (at most the texture's size less one) and normalised to sum 1, so a
+    constant gradient stays itself; the edges repeat their last texel. ``sigma`` 0 returns ``G``.
+    """
+    if sigma <= 0:
+        return G
+    height, width, channels = G.shape
+    radius = max(1, min(math.ceil(3 * sigma), height - 1, width - 1))
+    offsets = torch.arange(-radius, radius + 1, dtype=G.dtype, device=G.device)
+    kernel = torch.exp(-0.5 * (offsets / sigma) ** 2)
+    kernel = kernel / kernel.sum()
+    planes = G.permute(2, 0, 1)[:, None]  # C×1×H×W
+    planes = torch.nn.functional.pad(planes, (radius, radius, radius, radius), mode="replicate")
+    planes = torch.nn.functional.conv2d(planes, kernel.view(1, 1, 1, -1))
+    planes = torch.nn.functional.conv2d(planes, kernel.view(1, 1, -1, 1))
+    return planes[:, 0].permute(1, 2, 0).contiguous()
 
 
 def finite_gradient(G: torch.Tensor) -> tuple[torch.Tensor, int]:
@@ -176,6 +200,7 @@ class Attack:
             raise AttackError(f"G: must be a tensor shaped like T {tuple(T.shape)}, got {what}")
         G, bad = finite_gradient(G.to(T))
         seen = state["visible"] | (G != 0).any(dim=-1)
+        G = blur_gradient(G, self.config.grad_blur)  # after `seen`: blurring shows no texel to a frame
         raw, own = self._step(T, G, loss_value(loss), state)
         T_next = torch.where(seen[..., None], self.project(raw, T0), T)
         return T_next, {**state, **own, "iteration": state["iteration"] + 1,

@@ -56,6 +56,10 @@ class AttackConfig:
       ``step_size`` down to nearly 0, so that a run on minibatches of frames, whose gradient changes
       with every draw, settles on a texture instead of ending wherever its last fixed step left it
       (docs/runs.md, "Lamps at night").
+    - ``grad_blur``: σ, in texels, of a Gaussian that smooths each iteration's texture gradient
+      before the attack uses it (0: off). The translation-invariant attack of Dong et al. 2019
+      moved onto the texture: each step moves a texel with its neighbours, so the texture changes
+      in patches a far or blurred view still resolves (docs/runs.md, "Smoothed gradients").
     """
 
     name: str = "pgd"
@@ -70,6 +74,7 @@ class AttackConfig:
     frames_per_step: int | None = None
     frame_weights: str = "mean"
     step_decay: str = "none"
+    grad_blur: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name.strip():
@@ -77,7 +82,8 @@ class AttackConfig:
         optional = ("step_size", "frames_per_step")  # None: derived (see above)
         checked = {key: None if key in optional and getattr(self, key) is None
                    else bounded(f"attack.{key}", getattr(self, key))
-                   for key in ("eps", "steps", "step_size", "momentum", "lr", "rho", "seed", "frames_per_step")}
+                   for key in ("eps", "steps", "step_size", "momentum", "lr", "rho", "seed", "frames_per_step",
+                               "grad_blur")}
         if not isinstance(self.random_start, bool):
             raise _fail("random_start", self.random_start, "must be true or false")
         if self.frame_weights not in FRAME_WEIGHTS:

@@ -49,6 +49,7 @@ BOUNDS: dict[str, Bound] = {
     "attack.rho": Bound(0, 1, lo_open=True),
     "attack.seed": Bound(0, 2**31 - 1, integer=True),
     "attack.frames_per_step": Bound(1, MAX_FRAMES, integer=True),
+    "attack.grad_blur": Bound(0, 64, unit="texels, the Gaussian's σ; 0: off"),
     "sim_spp": Bound(1, 65_536, integer=True),
     "grad_spp": Bound(1, 65_536, integer=True),
     "eval_spp": Bound(1, 65_536, integer=True),
