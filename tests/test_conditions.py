@@ -197,6 +197,14 @@ def test_grids_join_products_that_one_grid_would_multiply(inputs):
     ({"scenes": ["missing.yaml"]}, "conditions.scenes[0]"),
     ({"grid": {"environment.lamp_offset": [[1, "x", 2]]}},
      "conditions.grid.environment.lamp_offset: values must be strings, numbers or lists of numbers, got [1, 'x', 2]"),
+    # more combinations than a run's frames: refused from the counts, before one spec is built (it was after
+    # every one of them, which for a grid of millions took hours before the frame bound's error)
+    ({"grid": {f: [0.5 + i / 10 for i in range(11)] for f in
+               ("camera.path.height", "camera.path.radius", "camera.fov", "environment.time_of_day")}},
+     "conditions: 14,641 conditions (conditions.grid 14,641) is more than a run's 10,000 frames"),
+    ({"grid": GRID, "grids": [{"camera.path.height": list(range(1, 101)), "camera.path.radius": list(range(1, 101))}],
+      "scenes": ["cone.yaml"]},
+     "conditions: 10,005 conditions (conditions.grid 4, conditions.grids[0] 10,000) is more than"),
 ])
 def test_bad_conditions_are_refused_in_one_line_before_anything_is_written(inputs, conditions, expected):
     root = inputs["root"]

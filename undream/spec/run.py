@@ -7,6 +7,7 @@ numbers through :class:`RunConfig` (``RunSnapshot.run_config`` for a stored run)
 """
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
@@ -15,7 +16,7 @@ from undream.errors import SpecError
 from undream.spec import _check as c
 from undream.spec.attack import AttackConfig
 from undream.spec.io import read_yaml
-from undream.spec.limits import bounded
+from undream.spec.limits import MAX_FRAMES, bounded
 
 TASK_LOSSES = {"classification": ("ce", "targeted_ce", "dlr", "margin"), "detection": ("vanish", "mislabel", "box")}
 ALL_LOSSES = tuple(k for kinds in TASK_LOSSES.values() for k in kinds)
@@ -188,8 +189,21 @@ class ConditionsConfig:
             object.__setattr__(self, name, tuple(items))
         if not self.placed_grids() and not self.scenes:
             raise c.fail("conditions", {}, "needs a grid or scenes (a run of one scene has no conditions block)")
+        self._check_count()
         if len(set(self.holdout)) != len(self.holdout):
             raise c.fail("conditions.holdout", list(self.holdout), "must name each condition once")
+
+    def _check_count(self) -> None:
+        """Refuse, before any grid is expanded, more conditions than a run has frames: each condition
+        holds a frame at least, and a grid of millions of combinations would otherwise be built
+        spec by spec before the composed sequence's frame bound refused it."""
+        sizes = [(where, math.prod(len(values) for values in grid.values())) for where, grid in self.placed_grids()]
+        total = sum(size for _, size in sizes) + len(self.scenes) + (0 if sizes else 1)
+        if total > MAX_FRAMES:
+            counts = ", ".join(f"{where} {size:,}" for where, size in sizes)
+            raise SpecError(f"conditions: {total:,} conditions ({counts}) is more than a run's {MAX_FRAMES:,} frames "
+                            "(each condition holds at least one); split the grid into runs or give its fields "
+                            "fewer values")
 
     def placed_grids(self) -> list[tuple[str, Mapping[str, tuple[Any, ...]]]]:
         """Every grid in the order its conditions come (``grid`` when given, then ``grids``), each with
