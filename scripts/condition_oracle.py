@@ -59,7 +59,8 @@ def main(argv: list[str] | None = None) -> int:
     task = load_victim(args.victim).task
     configs = {(name, seed): RunConfig.from_json({  # every config checked before anything runs
         "name": f"oracle_{name}_{args.attack}_eps{args.eps:g}_steps{args.steps}_seed{seed}",
-        "scene": str((args.conditions_dir / f"{name}.yaml").resolve()), "victim": args.victim, "loss": TASK_LOSSES[task][0],
+        "scene": str((args.conditions_dir / f"{name}.yaml").resolve()), "victim": args.victim,
+        "loss": TASK_LOSSES[task][0],
         "attack": {"name": args.attack, "eps": args.eps, "steps": args.steps, "seed": seed},
         "holdout": "none", "sim_spp": 16, "grad_spp": 8, "eval_spp": 32, "seed": seed})
         for name in names for seed in args.seeds}
