@@ -83,13 +83,13 @@ def decayed_step(step_size: float, iteration: int, steps: int, decay: str) -> fl
 def blur_gradient(G: torch.Tensor, sigma: float) -> torch.Tensor:
     """``G`` (``H×W×C``) smoothed by a Gaussian of σ ``sigma`` texels, each channel alone.
 
-    Separable, truncated at 3σ (at most the texture's size less one) and normalised to sum 1, so a
+    Separable, truncated at 3σ (at most the texture's longer side) and normalised to sum 1, so a
     constant gradient stays itself; the edges repeat their last texel. ``sigma`` 0 returns ``G``.
     """
     if sigma <= 0:
         return G
-    height, width, channels = G.shape
-    radius = max(1, min(math.ceil(3 * sigma), height - 1, width - 1))
+    height, width, _ = G.shape
+    radius = max(1, min(math.ceil(3 * sigma), max(height, width)))
     offsets = torch.arange(-radius, radius + 1, dtype=G.dtype, device=G.device)
     kernel = torch.exp(-0.5 * (offsets / sigma) ** 2)
     kernel = kernel / kernel.sum()
