@@ -42,7 +42,7 @@ from pathlib import Path
 
 import yaml
 
-from condition_suite import mean_sd, run_once
+from condition_suite import mean_sd, run_once, victim_slug
 
 ROOT = Path(__file__).resolve().parents[1]
 ONE_SCENE = ROOT / "examples" / "runs" / "bin_orbit_pgd.yaml"
@@ -110,8 +110,8 @@ def main(argv: list[str] | None = None) -> int:
                              "scene": str(_init_once(composed, args.out / "scenes" / scene_name))}
     if args.multi_only:
         del kinds["one scene"], bases["one scene"]
-    victim_slug = args.victim.replace(":", "_").replace("/", "_")
-    slug = victim_slug if default_multi else f"{victim_slug}_{multi['name']}"
+    victim_name = victim_slug(args.victim)
+    slug = victim_name if default_multi else f"{victim_name}_{multi['name']}"
     method = "" if args.frame_weights in (None, "mean") else f"_{args.frame_weights}"  # names runs and files
     method += "" if args.loss in (None, TASK_LOSSES[task][0]) else f"_{loss}"
     method += "" if args.step_decay in (None, "none") else f"_{args.step_decay}"
@@ -132,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
                                        **({"frames_per_step": args.frames_per_step} if args.frames_per_step else {}),
                                        **({"grad_blur": args.grad_blur} if args.grad_blur else {})}}
                     config = RunConfig.from_json(data)
-                    out = args.out / "runs" / victim_slug / data["name"]
+                    out = args.out / "runs" / victim_name / data["name"]
                     wall = run_once(config, out, run_local)
                     judged_file = out / "held_out_conditions.json"
                     if judged_file.is_file():

@@ -25,7 +25,7 @@ import sys
 import time
 from pathlib import Path
 
-from condition_suite import mean_sd, run_once
+from condition_suite import mean_sd, run_once, victim_slug
 
 ROOT = Path(__file__).resolve().parents[1]
 CONDITIONS = ROOT / "examples" / "conditions"
@@ -66,9 +66,9 @@ def main(argv: list[str] | None = None) -> int:
         for name in names for seed in args.seeds}
     start = time.monotonic()
     rows = []
-    victim_slug = args.victim.replace(":", "_").replace("/", "_")
+    victim_name = victim_slug(args.victim)
     for (name, seed), config in configs.items():
-        out = args.out / "runs" / victim_slug / config.name
+        out = args.out / "runs" / victim_name / config.name
         wall = run_once(config, out, run_local)
         results = json.loads((out / "results.json").read_text())
         rows.append({"victim": args.victim, "condition": name, "attack": args.attack, "eps": args.eps,
@@ -78,7 +78,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name} seed {seed}: benign {rows[-1]['benign']:.3f}, oracle {rows[-1]['oracle']:.3f} "
               f"({time.monotonic() - start:.0f} s)", flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
-    csv_path = args.out / f"oracle_{victim_slug}_{args.attack}_eps{args.eps:g}_steps{args.steps}.csv"
+    csv_path = args.out / f"oracle_{victim_name}_{args.attack}_eps{args.eps:g}_steps{args.steps}.csv"
     with open(csv_path, "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()

@@ -89,6 +89,12 @@ def run_once(config, out: Path, run_local) -> float:
     return run_local(config, out, base_dir=ROOT, progress=False, force=True)["wall_time_seconds"]["wall"]
 
 
+def victim_slug(victim: str) -> str:
+    """The victim spec as the studies name their folders and files (``bundled:classifier-v3`` →
+    ``bundled_classifier-v3``; a path's separators too)."""
+    return victim.replace(":", "_").replace("/", "_")
+
+
 def mean_sd(values: list[float]) -> str:
     mean = statistics.fmean(values)
     return f"{mean:.2f} ± {statistics.stdev(values):.2f}" if len(values) > 1 else f"{mean:.2f}"
