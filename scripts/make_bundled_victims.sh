@@ -5,13 +5,17 @@
 #   scripts/make_bundled_victims.sh [WORK_DIR] [OUT_DIR]
 #   DISTRIBUTION=v2 scripts/make_bundled_victims.sh [WORK_DIR] [OUT_DIR]
 #   DISTRIBUTION=v3 scripts/make_bundled_victims.sh [WORK_DIR] [OUT_DIR]
+#   DISTRIBUTION=v4 scripts/make_bundled_victims.sh [WORK_DIR] [OUT_DIR]
 #
 # DISTRIBUTION=v1 (default) makes bundled:classifier, bundled:detector and bundled:yolo (about
 # 50 minutes on 2 free cores; the YOLO-style detector alone: 4.2 min on 2 threads, from scratch);
 # DISTRIBUTION=v2 makes bundled:classifier-v2 and bundled:detector-v2 (camera height and ground
 # distance, every background and weather; about 72 minutes on ONE core: 31 min of renders, 18 min
 # for the classifier, 23 min for the detector); DISTRIBUTION=v3 makes bundled:classifier-v3 and
-# bundled:detector-v3 (v2 with plain, unsaturated objects too; the same sizes, on ONE core).
+# bundled:detector-v3 (v2 with plain, unsaturated objects too; the same sizes, on ONE core);
+# DISTRIBUTION=v4 makes bundled:classifier-v4 only: the v3 data, twice the training renders (16,000,
+# rendered as two parts under seeds 0 and 1, one core each; the first part is v3's own set), the same
+# held-out set and training as classifier-v3.
 #
 # WORK_DIR (default build/bundled-victims, or build/bundled-victims-v2 / -v3) receives the datasets;
 # OUT_DIR (default WORK_DIR/models) the two model folders. Pass OUT_DIR=undream/victims/bundled
@@ -32,11 +36,27 @@ case "$DISTRIBUTION" in
         CLS_THREADS=${CLS_THREADS:-1} DET_THREADS=${DET_THREADS:-1} ;;
     v3) N_TRAIN=8000 N_TEST=1200 CLS_EPOCHS=40 DET_EPOCHS=50 SUFFIX=-v3
         CLS_THREADS=${CLS_THREADS:-1} DET_THREADS=${DET_THREADS:-1} ;;
-    *) echo "DISTRIBUTION must be v1, v2 or v3, got '$DISTRIBUTION'" >&2; exit 2 ;;
+    v4) N_TRAIN=8000 N_TEST=1200 CLS_EPOCHS=40 SUFFIX=-v4 CLS_THREADS=${CLS_THREADS:-1} ;;
+    *) echo "DISTRIBUTION must be v1, v2, v3 or v4, got '$DISTRIBUTION'" >&2; exit 2 ;;
 esac
 WORK=${1:-build/bundled-victims${SUFFIX}}
 OUT=${2:-$WORK/models}
 UNDREAM=${UNDREAM:-undream}
+
+if [ "$DISTRIBUTION" = v4 ]; then  # v3's data in two parts, one core each; classifier only
+    taskset -c 0 $UNDREAM victims make-dataset --out "$WORK/train1" --n "$N_TRAIN" --seed 1 --split train \
+        --distribution v3 --no-progress &
+    part1=$!
+    taskset -c 1 $UNDREAM victims make-dataset --out "$WORK/train0" --n "$N_TRAIN" --seed 0 --split train \
+        --distribution v3 --no-progress
+    taskset -c 1 $UNDREAM victims make-dataset --out "$WORK/test" --n "$N_TEST" --seed 0 --split test \
+        --distribution v3 --no-progress
+    wait "$part1"  # its exit status: a failed part stops the script (set -e)
+    $UNDREAM victims train --task classification --data "$WORK/train0" --data "$WORK/train1" --test "$WORK/test" \
+        --out "$OUT/classifier$SUFFIX" --seed 0 --epochs "$CLS_EPOCHS" --threads "$CLS_THREADS"
+    $UNDREAM victims evaluate --victim "$OUT/classifier$SUFFIX" --data "$WORK/test"
+    exit 0
+fi
 
 $UNDREAM victims make-dataset --out "$WORK/train" --n "$N_TRAIN" --seed 0 --split train \
     --distribution "$DISTRIBUTION"

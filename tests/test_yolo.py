@@ -416,10 +416,10 @@ def test_victims_train_arch_yolo_end_to_end(tmp_path):
 
     from undream.cli.victims import victims
 
-    data = _synthetic_dataset(tmp_path / "data", 24, 0)
+    data, test = _synthetic_dataset(tmp_path / "data", 24, 0), _synthetic_dataset(tmp_path / "test", 8, 1)
     out = tmp_path / "out"
     res = CliRunner().invoke(victims, ["train", "--task", "detection", "--arch", "yolo", "--data", str(data),
-                                       "--test", str(data), "--out", str(out), "--epochs", "1",
+                                       "--test", str(test), "--out", str(out), "--epochs", "1",
                                        "--threads", "1"])
     assert res.exit_code == 0, res.output
     assert {p.name for p in out.iterdir()} >= {"config.json", "model.safetensors", "preprocessor_config.json",
@@ -433,7 +433,7 @@ def test_victims_train_arch_yolo_end_to_end(tmp_path):
     for args, message in ((["--task", "classification", "--arch", "yolo"], "classification trains resnet, got 'yolo'"),
                           (["--task", "detection", "--arch", "yolo", "--backbone", str(data)],
                            "the yolo detector trains from scratch")):
-        res = CliRunner().invoke(victims, ["train", *args, "--data", str(data), "--test", str(data),
+        res = CliRunner().invoke(victims, ["train", *args, "--data", str(data), "--test", str(test),
                                            "--out", str(tmp_path / "new")])
         assert res.exit_code == 2 and res.output.strip().count("\n") == 0 and message in res.output, res.output
 

@@ -58,7 +58,9 @@ def make_dataset_cmd(out: Path, n: int, seed: int, split: str, size: int, spp: i
 
 @victims.command("train")
 @click.option("--task", required=True, type=click.Choice(["classification", "detection"]))
-@click.option("--data", required=True, type=click.Path(path_type=Path), help="Training dataset.")
+@click.option("--data", required=True, multiple=True, type=click.Path(path_type=Path),
+              help="Training dataset; repeat for a set rendered in parts (the same distribution "
+                   "and split under other seeds), trained on as one.")
 @click.option("--test", "test", required=True, type=click.Path(path_type=Path),
               help="Held-out dataset, evaluated after training.")
 @out_option("Folder to write the model to (save_pretrained layout).")
@@ -73,13 +75,13 @@ def make_dataset_cmd(out: Path, n: int, seed: int, split: str, size: int, spp: i
               help="The model: classification trains resnet; detection detr (default) or yolo "
                    "(undream's YOLOv8-shaped detector, from scratch).")
 @one_line_errors
-def train_cmd(task: str, data: Path, test: Path, out: Path, seed: int, epochs: int | None,
+def train_cmd(task: str, data: tuple[Path, ...], test: Path, out: Path, seed: int, epochs: int | None,
               backbone: Path | None, threads: int | None, arch: str | None) -> None:
     """Train a bundled-style victim on DATA and evaluate it on TEST."""
     from undream.training.train import TrainConfig, train
 
     cfg = TrainConfig(task=task, seed=seed, epochs=epochs, backbone=backbone, threads=threads, arch=arch)
-    result = train(data, test, out, cfg, command=_command())
+    result = train(list(data), test, out, cfg, command=_command())
     click.echo(json.dumps(result["test"], indent=2))
     click.echo(f"wrote {out}")
 

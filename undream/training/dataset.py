@@ -46,7 +46,7 @@ import tempfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from types import ModuleType
-from typing import Any, Iterator
+from typing import Any, Iterable, Iterator
 
 import numpy as np
 from PIL import Image
@@ -426,3 +426,44 @@ def load_dataset(folder: str | Path) -> Dataset:
         raise DatasetError(f"{folder}: {LABELS_FILE} is empty")
     return Dataset(np.stack(images), np.array([r["label"] for r in records], dtype=np.int64),
                    np.array([r["box"] for r in records], dtype=np.float32), records, meta)
+
+
+def load_datasets(folders: Iterable[str | Path]) -> Dataset:
+    """Several folders written by :func:`make_dataset` as one training set, in the order given.
+
+    They must be parts of one set: the same distribution, split, image size and samples per
+    pixel. Each image of a dataset depends only on its ``(seed, split, index)``, so two parts
+    drawn under one seed would repeat images: a seed given twice is refused, as is a folder given
+    twice. The result's ``metadata`` is the first part's, with ``parts``: every part's config,
+    folder and command.
+    """
+    folders = [Path(f) for f in folders]
+    if not folders:
+        raise DatasetError("no dataset given")
+    if len(folders) == 1:
+        return load_dataset(folders[0])
+    resolved = [f.resolve() for f in folders]
+    for k, f in enumerate(resolved):
+        if f in resolved[:k]:
+            raise DatasetError(f"{folders[k]}: given twice")
+    parts = [load_dataset(f) for f in folders]
+    first = parts[0].metadata.get("config") or {}
+    seeds: dict[Any, Path] = {}
+    for folder, ds in zip(folders, parts):
+        cfg = ds.metadata.get("config")
+        if not cfg:
+            raise DatasetError(f"{folder}: no config in its {METADATA_FILE}; cannot tell whether it is "
+                               "a part of the same set")
+        for key in ("distribution", "split", "size", "spp"):
+            if cfg.get(key) != first.get(key):
+                raise DatasetError(f"{folder}: {key} {cfg.get(key)!r} differs from {folders[0]}'s "
+                                   f"{first.get(key)!r}; the parts of one training set must agree")
+        if cfg.get("seed") in seeds:
+            raise DatasetError(f"{folder}: seed {cfg.get('seed')} is {seeds[cfg.get('seed')]}'s too, and "
+                               "the same seed draws the same images; make the other part with another --seed")
+        seeds[cfg.get("seed")] = folder
+    meta = {**parts[0].metadata,
+            "parts": [{"folder": str(f), "n": len(ds), "config": ds.metadata.get("config"),
+                       "command": ds.metadata.get("command")} for f, ds in zip(folders, parts)]}
+    return Dataset(np.concatenate([ds.images for ds in parts]), np.concatenate([ds.labels for ds in parts]),
+                   np.concatenate([ds.boxes for ds in parts]), [r for ds in parts for r in ds.records], meta)

@@ -12,6 +12,7 @@ model (see :mod:`undream.victims.registry`).
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from typing import Any
 
@@ -146,7 +147,7 @@ def model_card(folder: str | Path, commands: list[str] | None = None, note: str 
     tr, te = rec["train_data"], rec["test_data"]
     config = _model_config(folder)  # the architecture as saved, not as the code says today
     distribution = tr["config"].get("distribution", "v1")
-    suffix = "" if distribution == "v1" else f"-{distribution}"
+    suffix = _suffix(folder, distribution)
     if task == "classification":
         r = config
         title = f"bundled:classifier{suffix} — ResNet image classifier"
@@ -191,7 +192,7 @@ def model_card(folder: str | Path, commands: list[str] | None = None, note: str 
         f"`undream.training.dataset`): {tr['config']['size']}×{tr['config']['size']} sRGB images, "
         f"{tr['config']['spp']} spp, path traced by the project's scene adapter (`volpath` in "
         "fog, rain and snow), " + _data_text(distribution), "",
-        f"- training set: {tr['n']} images (seed {tr['config']['seed']}, split `train`)",
+        f"- training set: {tr['n']} images ({_seeds(tr)}, split `train`)",
         f"- held-out set: {te['n']} images (seed {te['config']['seed']}, split `test`)",
         f"- rendered with Mitsuba variant `{tr.get('mitsuba_variant')}`", "",
         "Held-out split: train and test draw environments and camera poses from DISJOINT sets. "
@@ -245,9 +246,31 @@ def _yolo_card(c: dict[str, Any], test: dict[str, Any]) -> tuple[str, str, list[
     return "bundled:yolo — YOLO-style one-stage detector", arch, numbers
 
 
+def _suffix(folder: Path, distribution: str) -> str:
+    """The bundled name's version: the folder's own where it is named as the bundled ones are
+    (``classifier-v4``: a model of a later version trained on an earlier distribution's data),
+    else the data's distribution (none for ``v1``)."""
+    named = re.fullmatch(r"(classifier|detector)(-v\d+)", folder.name)
+    if named:
+        return named.group(2)
+    return "" if distribution == "v1" else f"-{distribution}"
+
+
+def _seeds(data: dict[str, Any]) -> str:
+    """"seed 0", or "seeds 0 and 1 (two parts of 8000)" for a set rendered in parts."""
+    parts = data.get("parts")
+    if not parts:
+        return f"seed {data['config']['seed']}"
+    seeds = [str(p["config"]["seed"]) for p in parts]
+    sizes = sorted({p["n"] for p in parts})
+    each = f"of {sizes[0]}" if len(sizes) == 1 else "of " + ", ".join(str(p["n"]) for p in parts)
+    return f"seeds {', '.join(seeds[:-1])} and {seeds[-1]} ({len(parts)} parts {each})"
+
+
 def _commands(rec: dict[str, Any]) -> list[str]:
     """The commands that made a model: its datasets, its backbone (if any), its training."""
-    cmds = [rec["train_data"].get("command"), rec["test_data"].get("command")]
+    parts = rec["train_data"].get("parts") or [rec["train_data"]]
+    cmds = [*(p.get("command") for p in parts), rec["test_data"].get("command")]
     backbone = rec["config"].get("backbone")
     if backbone and (Path(backbone) / "training.json").is_file():
         cmds.append(training_record(backbone).get("command"))

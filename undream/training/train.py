@@ -44,10 +44,10 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from undream.errors import VictimError
+from undream.errors import DatasetError, VictimError
 from undream.spec.io import check_new_folder, restored_on_failure
 from undream.versions import versions
-from undream.training.dataset import CLASSES, Dataset, load_dataset
+from undream.training.dataset import CLASSES, Dataset, load_dataset, load_datasets
 from undream.training.yolo import build_yolo, yolo_loss
 from undream.victims.registry import load_victim
 from undream.training.evaluation import evaluate
@@ -298,16 +298,21 @@ def fit(model: torch.nn.Module, ds: Dataset, cfg: TrainConfig, log: Callable[[st
 
 # --------------------------------------------------------------------------- the whole run
 
-def train(data: str | Path, test: str | Path, out: str | Path, cfg: TrainConfig,
+def train(data: str | Path | list[str | Path], test: str | Path, out: str | Path, cfg: TrainConfig,
           command: str = "", log: Callable[[str], None] = print) -> dict[str, Any]:
-    """Train on ``data``, save to ``out`` (``save_pretrained`` + preprocessor +
-    ``training.json``), reload from disk as a victim and evaluate on ``test``. ``out`` must be new
-    or empty (checked before training and again before saving); a failure leaves it as it was."""
-    inputs = tuple(p for p in (data, test, cfg.backbone) if p is not None)
+    """Train on ``data`` (a dataset folder, or several parts of one set: :func:`.load_datasets`),
+    save to ``out`` (``save_pretrained`` + preprocessor + ``training.json``), reload from disk as a
+    victim and evaluate on ``test``. ``out`` must be new or empty (checked before training and
+    again before saving); a failure leaves it as it was."""
+    parts = [data] if isinstance(data, (str, Path)) else list(data)
+    if Path(test).resolve() in {Path(p).resolve() for p in parts}:
+        raise DatasetError(f"{test}: is both a training dataset and the held-out one; "
+                           "a model judged on its own training images measures nothing")
+    inputs = tuple(p for p in (*parts, test, cfg.backbone) if p is not None)
     check_new_folder(out, inputs=inputs)  # before minutes of training, not after
     if cfg.threads is not None:
         torch.set_num_threads(cfg.threads)
-    train_ds, test_ds = load_dataset(data), load_dataset(test)
+    train_ds, test_ds = load_datasets(parts), load_dataset(test)
     log(f"{cfg.task}: {len(train_ds)} training images, {len(test_ds)} held-out images")
     torch.manual_seed(cfg.seed)
     model = build_model(cfg)
@@ -315,11 +320,12 @@ def train(data: str | Path, test: str | Path, out: str | Path, cfg: TrainConfig,
     out = Path(out)
     check_new_folder(out, inputs=inputs)  # still new after training (another command may have written it)
     with restored_on_failure(out):  # the folder goes back to how it was found
-        return _save_and_evaluate(model, out, cfg, seconds, train_ds, test_ds, data, test, command)
+        return _save_and_evaluate(model, out, cfg, seconds, train_ds, test_ds, parts, test, command)
 
 
 def _save_and_evaluate(model: Any, out: Path, cfg: TrainConfig, seconds: float, train_ds: Dataset,
-                       test_ds: Dataset, data: str | Path, test: str | Path, command: str) -> dict[str, Any]:
+                       test_ds: Dataset, parts: list[str | Path], test: str | Path,
+                       command: str) -> dict[str, Any]:
     out.mkdir(parents=True, exist_ok=True)
     model.save_pretrained(str(out))
     processor = processor_json(cfg.task, cfg.input_size)
@@ -327,7 +333,7 @@ def _save_and_evaluate(model: Any, out: Path, cfg: TrainConfig, seconds: float, 
     victim = load_victim(str(out), task=cfg.task)
     result = {"task": cfg.task, "command": command, "config": _jsonable(asdict(cfg)),
               "defaults": cfg.defaults, "train_seconds": round(seconds, 1),
-              "threads": torch.get_num_threads(), "train_data": _about(train_ds, data),
+              "threads": torch.get_num_threads(), "train_data": _about(train_ds, *parts),
               "test_data": _about(test_ds, test), "test": evaluate(victim, test_ds),
               "parameters": sum(p.numel() for p in model.parameters()),
               "versions": versions()}
@@ -337,10 +343,13 @@ def _save_and_evaluate(model: Any, out: Path, cfg: TrainConfig, seconds: float, 
     return result
 
 
-def _about(ds: Dataset, folder: str | Path) -> dict[str, Any]:
-    return {"folder": str(folder), "n": len(ds), "config": ds.metadata.get("config"),
-            "mitsuba_variant": ds.metadata.get("mitsuba_variant"),
-            "command": ds.metadata.get("command")}
+def _about(ds: Dataset, *folders: str | Path) -> dict[str, Any]:
+    """A dataset's record in ``training.json``; a set of several parts (:func:`.load_datasets`) is
+    recorded with its first part's config and every part's (``parts``)."""
+    about = {"folder": ", ".join(str(f) for f in folders), "n": len(ds), "config": ds.metadata.get("config"),
+             "mitsuba_variant": ds.metadata.get("mitsuba_variant"),
+             "command": ds.metadata.get("command")}
+    return {**about, "parts": ds.metadata["parts"]} if "parts" in ds.metadata else about
 
 
 def _jsonable(d: dict[str, Any]) -> dict[str, Any]:
