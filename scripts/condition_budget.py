@@ -80,6 +80,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--frames-per-step {args.frames_per_step}: give a whole number of frames ≥ 1")
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     sys.path.insert(0, str(ROOT))
+    from undream.cli.options import local_settings
+
+    local_settings()  # Mitsuba's variant and Dr.Jit's pool ($UNDREAM_DRJIT_THREADS), as the commands set them
     from scheduler.evaluate import evaluate, read_texture, run_scene
     from scheduler.local import run_local
     from undream.scenedir.conditions import conditions_sequence

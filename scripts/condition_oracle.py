@@ -52,6 +52,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--conditions: {', '.join(unknown)} is not one of {', '.join(known)}")
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     sys.path.insert(0, str(ROOT))
+    from undream.cli.options import local_settings
+
+    local_settings()  # Mitsuba's variant and Dr.Jit's pool ($UNDREAM_DRJIT_THREADS), as the commands set them
     from scheduler.local import run_local
     from undream.spec.run import TASK_LOSSES, RunConfig
     from undream.victims import load_victim

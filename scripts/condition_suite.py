@@ -42,6 +42,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     sys.path.insert(0, str(ROOT))
+    from undream.cli.options import local_settings
+
+    local_settings()  # Mitsuba's variant and Dr.Jit's pool ($UNDREAM_DRJIT_THREADS), as the commands set them
     from scheduler.evaluate import evaluate, read_texture, run_scene
     from scheduler.local import run_local
     from undream.scenedir.init import InitOptions, init_scene

@@ -252,6 +252,7 @@ BLENDER_PYTHON_ENV = "UNDREAM_BLENDER_PYTHON"
 BLENDER_THREADS_ENV = "UNDREAM_BLENDER_THREADS"
 UNREAL_SPOOL_ENV = "UNDREAM_UNREAL_SPOOL"
 UNREAL_TIMEOUT_ENV = "UNDREAM_UNREAL_TIMEOUT"
+DRJIT_THREADS_ENV = "UNDREAM_DRJIT_THREADS"  # also the farm's drjit_threads (Settings)
 HF_OFFLINE_ENVS = ("HF_HUB_OFFLINE", "TRANSFORMERS_OFFLINE")
 DEFAULT_LIBCUDA = "libcuda.so.1"
 _TRUE = ("1", "true", "yes", "on")
@@ -270,6 +271,7 @@ class LocalSettings:
     memory_limit: int | None = None  # bytes a render may use; None: the system's MemAvailable
     blender_python: str | None = None  # None: <repo>/.venv-blender/bin/python
     blender_threads: int | None = None  # Cycles' threads; None: the process's Dr.Jit threads
+    drjit_threads: int | None = None  # Dr.Jit's pool in this process; None: Dr.Jit's default (the cores)
     unreal_spool: str | None = None  # the Unreal spool folder; None: none (sim: unreal refuses)
     unreal_timeout_s: float | None = None  # None: undream.sim.unreal.DEFAULT_TIMEOUT_S
     hf_offline: bool = False  # never ask the Hugging Face hub
@@ -285,6 +287,8 @@ class LocalSettings:
             object.__setattr__(self, "cache_home", str(Path.home() / ".cache"))
         if self.blender_threads is not None:
             _check_int("blender_threads", self.blender_threads, 0)
+        if self.drjit_threads is not None:
+            _check_int("drjit_threads", self.drjit_threads, 1)
 
 
 def parse_bytes(text: str, source: str = MEMORY_LIMIT_ENV) -> int:
@@ -303,6 +307,9 @@ def load_local(env: Mapping[str, str] | None = None) -> LocalSettings:
     if threads and not (threads.isdigit()):
         raise SettingsError(f"{BLENDER_THREADS_ENV}: must be a whole number of threads (0: all cores), "
                             f"got {threads!r}")
+    drjit = env.get(DRJIT_THREADS_ENV, "").strip()
+    if drjit and not (drjit.isdigit() and int(drjit) >= 1):
+        raise SettingsError(f"{DRJIT_THREADS_ENV}: must be a whole number of threads >= 1, got {drjit!r}")
     timeout = env.get(UNREAL_TIMEOUT_ENV, "").strip()
     try:
         timeout_s = float(timeout) if timeout else None
@@ -317,6 +324,7 @@ def load_local(env: Mapping[str, str] | None = None) -> LocalSettings:
         memory_limit=parse_bytes(limit) if limit else None,
         blender_python=env.get(BLENDER_PYTHON_ENV) or None,
         blender_threads=int(threads) if threads else None,
+        drjit_threads=int(drjit) if drjit else None,
         unreal_spool=env.get(UNREAL_SPOOL_ENV) or None,
         unreal_timeout_s=timeout_s,
         hf_offline=any(env.get(v, "").strip().lower() in _TRUE for v in HF_OFFLINE_ENVS),

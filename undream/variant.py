@@ -20,7 +20,23 @@ from typing import Callable
 from undream.errors import RenderError
 
 PREFERRED = ("cuda_ad_rgb", "llvm_ad_rgb")
+# Mitsuba 3.9.1 deadlocks writing or reading an EXR (a run's texture, a scene's bitmaps) when Dr.Jit's
+# pool has fewer than two threads: OpenEXR hands its work to tasks no thread runs, and the call waits
+# forever. Dr.Jit's default pool is the cores the process may use, so on a one-core machine, container
+# or cpuset (taskset -c 0) every render would hang; a pool of one asked for gets two (on one core).
+MIN_DRJIT_POOL = 2
 log = logging.getLogger(__name__)
+
+
+def set_drjit_pool(threads: int | None = None) -> int:
+    """Size Dr.Jit's thread pool: ``threads`` (None: Dr.Jit's default, the cores this process may
+    use), never fewer than :data:`MIN_DRJIT_POOL`; returns the size it has."""
+    import drjit as dr
+
+    wanted = max(threads if threads is not None else dr.thread_count(), MIN_DRJIT_POOL)
+    if dr.thread_count() != wanted:
+        dr.set_thread_count(wanted)
+    return wanted
 
 
 def mitsuba(variant: str | None = None, *, libcuda: str = "libcuda.so.1",
@@ -56,6 +72,7 @@ def mitsuba(variant: str | None = None, *, libcuda: str = "libcuda.so.1",
         if failed:
             log.info("falling back to Mitsuba variant %s: %s", name,
                      "; ".join(f"{n} failed: {why}" for n, why in failed))
+        set_drjit_pool()  # its size as it is, but never below MIN_DRJIT_POOL, whoever renders next
         return mi
     raise RenderError("no usable Mitsuba variant (" + "; ".join(f"{n}: {why}" for n, why in failed) +
                       "); the CPU variant needs libLLVM >= 16 (Debian: apt-get install libllvm19)")

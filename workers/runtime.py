@@ -21,7 +21,7 @@ from typing import IO, TYPE_CHECKING
 from scheduler.contexts import ContextCache
 from undream.lru import LRU
 from undream.settings import load_local
-from undream.variant import mitsuba
+from undream.variant import mitsuba, set_drjit_pool
 from workers.dispatch import CeleryDispatch
 
 if TYPE_CHECKING:
@@ -34,10 +34,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-# Mitsuba 3.9.1 deadlocks reading an EXR texture (scene loading, T0) when Dr.Jit's pool has one
-# thread (measured: the read waits for OpenEXR tasks no thread runs). A worker that should use one
-# core gets a pool of two pinned to that core instead.
-MIN_DRJIT_POOL = 2
 _HELD: list[IO[str]] = []  # lock files of the cores this process claimed (released when it exits)
 
 
@@ -132,7 +128,7 @@ def init_process(settings: "Settings", local: "LocalSettings | None" = None) -> 
     local = load_local() if local is None else local
     threads = drjit_threads_for(settings)
     cores = claim_cores(threads, Path(settings.cache_dir) / "cores")
-    dr.set_thread_count(max(threads, MIN_DRJIT_POOL))
+    set_drjit_pool(threads)  # a worker that should use one core gets a pool of two pinned to it
     if local.blender_threads is None:
         local = replace(local, blender_threads=threads)
     torch.set_num_threads(settings.torch_threads)

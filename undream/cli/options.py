@@ -35,13 +35,15 @@ def local_settings(render: bool = True) -> "LocalSettings":
     (:func:`undream.settings.load_local`: ``UNDREAM_MI_VARIANT``, ``UNDREAM_MEMORY_LIMIT``, ...).
 
     ``render``: the command renders, so Mitsuba's variant is chosen now, before anything renders
-    (:func:`undream.variant.mitsuba`; later calls without a variant keep it).
+    (:func:`undream.variant.mitsuba`; later calls without a variant keep it), and Dr.Jit's pool is
+    sized (``UNDREAM_DRJIT_THREADS``, at least two: :func:`undream.variant.set_drjit_pool`).
     """
     from undream.settings import load_local
 
     local = load_local()
     if render:
-        from undream.variant import mitsuba
+        from undream.variant import mitsuba, set_drjit_pool
 
         mitsuba(local.mi_variant, libcuda=local.libcuda_path, visible_devices=local.cuda_visible_devices)
+        set_drjit_pool(local.drjit_threads)
     return local
