@@ -260,6 +260,7 @@ def test_classes_are_the_bundled_victims_and_built_in_assets():
     from undream.victims.registry import bundled_path
 
     assert set(CLASSES) <= set(BUILTINS)
-    for name in ("classifier", "detector", "classifier-v2", "detector-v2", "classifier-v3", "detector-v3", "yolo"):
+    for name in ("classifier", "detector", "classifier-v2", "detector-v2", "classifier-v3", "detector-v3",
+                 "classifier-v4", "yolo"):
         config = json.loads((bundled_path(name) / "config.json").read_text())
         assert [config["id2label"][str(i)] for i in range(len(config["id2label"]))] == list(CLASSES)

@@ -9,7 +9,8 @@ A spec is one of
   also named ``classifier-v1`` / ``detector-v1``) and ``classifier-v2`` /
   ``detector-v2`` (trained on the ``v2`` data: camera heights 0.2–3.5 m,
   distances 1.5–8 m, every background and weather) and ``classifier-v3`` /
-  ``detector-v3`` (the ``v3`` data: ``v2``'s, with plain, unsaturated objects too);
+  ``detector-v3`` (the ``v3`` data: ``v2``'s, with plain, unsaturated objects too) and
+  ``classifier-v4`` (the ``v3`` data twice over: 16,000 renders in two parts; no v4 detector);
 - ``bundled:yolo``: undream's YOLO-style one-stage detector
   (:mod:`undream.victims.yolo`), trained from scratch on the ``v1`` data
   (``undream victims train --task detection --arch yolo``; model card in its folder);
@@ -37,7 +38,8 @@ BUNDLED_DIR = Path(__file__).resolve().parent / "bundled"
 # Folder name -> task.
 BUNDLED = {"classifier": "classification", "detector": "detection",
            "classifier-v2": "classification", "detector-v2": "detection",
-           "classifier-v3": "classification", "detector-v3": "detection", "yolo": "detection"}
+           "classifier-v3": "classification", "detector-v3": "detection", "classifier-v4": "classification",
+           "yolo": "detection"}
 # How to get a bundled victim whose folder is absent.
 NOT_SHIPPED = {"yolo": "this installation lacks its folder: train one with `undream victims train --task "
                        "detection --arch yolo` and pass its folder"}
