@@ -257,7 +257,7 @@ def _suffix(folder: Path, distribution: str) -> str:
 
 
 def _seeds(data: dict[str, Any]) -> str:
-    """"seed 0", or "seeds 0 and 1 (two parts of 8000)" for a set rendered in parts."""
+    """"seed 0", or "seeds 0 and 1 (2 parts of 8000)" for a set rendered in parts."""
     parts = data.get("parts")
     if not parts:
         return f"seed {data['config']['seed']}"
