@@ -139,10 +139,6 @@ def test_bundled_v3_files(name):
 
 
 def test_bundled_v3_offline(monkeypatch, held_out_v3):
-    from undream.victims import load_victim
-    from undream.victims.hf import HFClassifier
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
     monkeypatch.setenv("TRANSFORMERS_OFFLINE", "1")
-    v = load_victim("bundled:classifier-v3")
-    assert isinstance(v, HFClassifier) and v.labels == list(CLASSES)
     check_offline("v3", held_out_v3)
