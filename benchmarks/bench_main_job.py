@@ -57,9 +57,17 @@ def seeded(config: str, seed: int, device: str | None = None) -> Path:
     return out
 
 
+def run_env(tree: Path) -> dict[str, str]:
+    """The environment of ``undream run`` for ``tree``: its code first on ``PYTHONPATH``, and the
+    ``PYTHONPATH`` this process was given after it (dependencies installed with ``pip --target``, as
+    on a lent GPU machine, are found there)."""
+    path = os.pathsep.join(p for p in (str(tree), os.environ.get("PYTHONPATH", "")) if p)
+    return {**os.environ, "PYTHONPATH": path, "HF_HUB_OFFLINE": "1"}
+
+
 def run_once(tree: Path, config: Path, out: Path) -> dict:
     """``undream run`` with the code of ``tree``; its results.json, the process wall time and texture."""
-    env = {**os.environ, "PYTHONPATH": str(tree), "HF_HUB_OFFLINE": "1"}
+    env = run_env(tree)
     t0 = time.perf_counter()
     res = subprocess.run([sys.executable, "-m", "undream.cli", "run", str(config), "--out", str(out),
                           "--no-progress"], cwd=tree, env=env, capture_output=True, text=True)

@@ -10,7 +10,9 @@
 #    benchmarks/bench_main_job.py's table of seconds per part;
 # 3. the main job (examples/runs/bin_orbit_conditions.yaml, victim on cuda where it can): the same
 #    table, whose "process" row is the whole command's time;
-# 4. the tests of the gradient's path on that variant (transport against prb, batched frames).
+# 4. the tests of the gradient's path on that variant (transport against prb, batched frames);
+# 5. with a GPU: the main job again with the GPU hidden (llvm_ad_rgb on the same machine's cores), and one
+#    iteration at 256 spp (benchmarks/bench_iteration.py) on each: the ratios of one machine.
 #
 # Everything it prints also goes to OUT_DIR (default build/gpu_check). No GPU: step 1 says why
 # (undream falls back to llvm_ad_rgb, and the rest then measures the CPU).
@@ -32,3 +34,10 @@ fi
     --device "$DEVICE" 2>&1 | tee "$OUT/main_job.txt"
 "$PY" -m pytest -q -p no:cacheprovider tests/test_gradient_path.py tests/test_batched_frames.py tests/test_transport.py \
     2>&1 | tail -30 | tee "$OUT/tests.txt"
+if [ "$DEVICE" = cuda ]; then
+    CUDA_VISIBLE_DEVICES= "$PY" benchmarks/bench_main_job.py --before '' --seeds 0 \
+        --config examples/runs/bin_orbit_conditions.yaml 2>&1 | tee "$OUT/main_job_cpu.txt"
+    "$PY" benchmarks/bench_iteration.py --sim-spp 256 --grad-spp 64 --iterations 2 2>&1 | tee "$OUT/iteration256_gpu.txt"
+    CUDA_VISIBLE_DEVICES= "$PY" benchmarks/bench_iteration.py --sim-spp 256 --grad-spp 64 --iterations 2 \
+        2>&1 | tee "$OUT/iteration256_cpu.txt"
+fi
