@@ -37,7 +37,8 @@ fi
 if [ "$DEVICE" = cuda ]; then
     CUDA_VISIBLE_DEVICES= "$PY" benchmarks/bench_main_job.py --before '' --seeds 0 \
         --config examples/runs/bin_orbit_conditions.yaml 2>&1 | tee "$OUT/main_job_cpu.txt"
-    "$PY" benchmarks/bench_iteration.py --sim-spp 256 --grad-spp 64 --iterations 2 2>&1 | tee "$OUT/iteration256_gpu.txt"
+    "$PY" benchmarks/bench_iteration.py --sim-spp 256 --grad-spp 64 --iterations 2 \
+        2>&1 | tee "$OUT/iteration256_gpu.txt"
     CUDA_VISIBLE_DEVICES= "$PY" benchmarks/bench_iteration.py --sim-spp 256 --grad-spp 64 --iterations 2 \
         2>&1 | tee "$OUT/iteration256_cpu.txt"
 fi
