@@ -185,6 +185,44 @@ def check_output_folder(out: Path, scene_src: Path | None, force: bool, command:
                         "before replacing the folder")
 
 
+def check_output_files(outputs: tuple[tuple[str, Path | None], ...], inputs: tuple[Path | None, ...] = ()) -> None:
+    """The one rule of a command's output files (``undream evaluate --json/--csv/--frames-csv``,
+    ``undream victims evaluate --json``), checked before the command's work: a refusal in one line
+    naming the option, nothing written.
+
+    ``outputs`` are (option, path) pairs, None paths skipped. Each must be a file name in a folder
+    that exists and can be written, and no two may name the same file. A file that exists is replaced
+    only when it is none of ``inputs`` (the texture, the scenes, the data; None entries and names that
+    are no path, a farm run's id, are skipped), lies in none of the folders among them, and lies in no
+    scene directory or output folder of ``undream run``: minutes of renders are not lost to a path
+    that cannot be written, and no input or earlier result is overwritten by a swapped argument.
+    """
+    given = [Path(p).resolve() for p in inputs if p is not None and Path(p).exists()]
+    seen: dict[Path, str] = {}
+    for option, path in outputs:
+        if path is None:
+            continue
+        target = Path(path).resolve()
+        if target in seen:
+            raise SpecError(f"{option} {path}: {seen[target]} names the same file; give each output its own")
+        seen[target] = option
+        if target.is_dir():
+            raise SpecError(f"{option} {path}: is a folder; give a file name")
+        if not target.parent.is_dir():
+            raise SpecError(f"{option} {path}: its folder {target.parent} does not exist")
+        check_writable_target(target.parent, option)
+        if not target.exists():
+            continue
+        for source in given:
+            if target == source or source in target.parents:
+                where = "is" if target == source else f"lies in {source},"
+                raise SpecError(f"{option} {path}: {where} this command's input; choose another file")
+        owner = next((d for d in target.parents if is_scene(d) or is_run_output(d)), None)
+        if owner is not None:
+            kind = "the scene directory" if is_scene(owner) else "the output folder of `undream run`"
+            raise SpecError(f"{option} {path}: would replace a file of {kind} {owner}; choose another file")
+
+
 def live_owner(out: Path) -> str | None:
     """``run ID (host:pid)`` when a run recorded in the store under ``out`` is held by a live process
     (its lease: :func:`scheduler.lease.stale_reason`), else None. A store that cannot be read for

@@ -150,6 +150,21 @@ def test_cli_one_line_errors(tiny):
     assert res.exit_code == 2 and "not a dataset" in res.output
 
 
+def test_victims_evaluate_never_writes_its_json_over_the_data(tiny):
+    """`--json` given a file of the dataset it scores (a swapped argument) is refused before the
+    victim is loaded or the data read, and the file is left as it was."""
+    from click.testing import CliRunner
+
+    from undream.cli.victims import victims
+    record = tiny / "metadata.json"
+    before = record.read_bytes()
+    res = CliRunner().invoke(victims, ["evaluate", "--victim", "bundled:classifier", "--data", str(tiny),
+                                       "--json", str(record)])
+    assert res.exit_code == 2, res.output
+    assert res.output.strip().count("\n") == 0 and "this command's input" in res.output, res.output
+    assert record.read_bytes() == before
+
+
 # --------------------------------------------------------------------------- training helpers
 
 def test_augment_moves_boxes_with_the_content():

@@ -112,6 +112,55 @@ def test_bad_inputs_are_one_line(inputs, texture, extra, needle):
     assert len(lines) == 1 and needle in lines[0], res.output
 
 
+@pytest.mark.parametrize("case", ["texture", "scene file", "in the scene", "same file", "folder",
+                                  "another run's results"])
+def test_an_output_file_never_replaces_an_input_or_a_result(inputs, tmp_path, case):
+    """--json/--csv/--frames-csv are checked before any render: a swapped argument that names the
+    texture, a file of a scene directory or of a run's output folder, one file twice or a folder
+    is refused in one line, and every file is left as it was."""
+    base, scene = inputs["base"], inputs["scene"]
+    texture = base / "texture.npy"
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "metadata.json").write_text(json.dumps({"undream_output": "run"}))
+    (run / "results.json").write_text("{}\n")
+    args, needle, kept = {
+        "texture": (["--json", str(texture)], f"--json {texture}: is this command's input", texture),
+        "scene file": (["--csv", str(scene / "sequence.json")], "this command's input", scene / "sequence.json"),
+        "in the scene": (["--frames-csv", str(scene / "metadata.json")], "this command's input",
+                         scene / "metadata.json"),
+        "same file": (["--json", str(tmp_path / "rows"), "--csv", str(tmp_path / "rows")],
+                      "--json names the same file", None),
+        "folder": (["--csv", str(tmp_path)], "is a folder; give a file name", None),
+        "another run's results": (["--json", str(run / "results.json")],
+                                  f"would replace a file of the output folder of `undream run` {run}",
+                                  run / "results.json"),
+    }[case]
+    before = None if kept is None else kept.read_bytes()
+    res = _evaluate(str(texture), str(scene), "--victim", inputs["victim"], "--spp", "1", *args)
+    lines = [line for line in res.output.strip().splitlines() if line]
+    assert res.exit_code != 0 and len(lines) == 1 and needle in lines[0], res.output
+    if kept is not None:
+        assert kept.read_bytes() == before
+    assert not (tmp_path / "rows").exists()
+
+
+def test_an_output_file_may_be_new_in_a_run_folder_or_replace_a_file_of_ones_own(inputs, tmp_path):
+    """What the rule leaves alone: a new file in another run's folder, and a file written before
+    (evaluating again replaces it, whole)."""
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "metadata.json").write_text(json.dumps({"undream_output": "run"}))
+    again = tmp_path / "rows.csv"
+    again.write_text("an earlier evaluation\n")
+    res = _evaluate(str(inputs["base"] / "texture.npy"), str(inputs["scene"]), "--victim", inputs["victim"],
+                    "--spp", "1", "--json", str(run / "transfer.json"), "--csv", str(again))
+    assert res.exit_code == 0, res.output
+    assert json.loads((run / "transfer.json").read_text())["rows"]
+    assert "split" in again.read_text().splitlines()[0].split(",")
+    assert not list(tmp_path.glob(".*.tmp")) and not list(run.glob(".*.tmp"))
+
+
 def test_a_runs_texture_on_a_scene_with_another_uv_layout_is_one_line(inputs, tmp_path):
     """An `undream run` output folder names its scene: a scene whose object has other UVs is refused."""
     import dataclasses

@@ -12,7 +12,6 @@ import click
 from undream.cli.errors import one_line_errors
 from undream.cli.farm import settings_options
 from undream.cli.options import local_settings, spp_option
-from undream.errors import SpecError
 
 if TYPE_CHECKING:
     from undream.settings import Settings
@@ -47,11 +46,12 @@ def evaluate_cmd(texture: Path, scenes: tuple[Path, ...], victims: tuple[str, ..
     victim, rendered by one simulator: per scene, victim and texture, on every frame and apart on the
     frames a run would attack and hold out, beside the scene's own texture."""
     from scheduler.evaluate import evaluate
+    from scheduler.preflight import check_output_files
+    from undream.spec.io import atomic_write
 
-    outputs = (("--json", json_out), ("--csv", csv_out), ("--frames-csv", frames_out))
-    for flag, path in outputs:  # before the renders, not after
-        if path is not None and not path.parent.is_dir():
-            raise SpecError(f"{flag} {path}: its folder {path.parent} does not exist")
+    # before the renders, not after: a path that cannot be written, or one of the inputs
+    check_output_files((("--json", json_out), ("--csv", csv_out), ("--frames-csv", frames_out)),
+                       inputs=(texture, *scenes))
     per_frame: list[dict[str, Any]] | None = None if frames_out is None else []
     attacked: list[str] | None = None if victims else []  # the runs' configs read only when --victim is not given
     textures = _textures(texture, settings, attacked)
@@ -63,11 +63,11 @@ def evaluate_cmd(texture: Path, scenes: tuple[Path, ...], victims: tuple[str, ..
                     local=local_settings(), per_frame=per_frame)
     click.echo(_table(rows))
     if json_out is not None:
-        json_out.write_text(json.dumps({"texture": str(texture), "rows": rows}, indent=2, allow_nan=False) + "\n")
+        atomic_write(json_out, json.dumps({"texture": str(texture), "rows": rows}, indent=2, allow_nan=False) + "\n")
     if csv_out is not None:
-        csv_out.write_text(_csv(rows))
+        atomic_write(csv_out, _csv(rows))
     if frames_out is not None and per_frame is not None:
-        frames_out.write_text(_csv(per_frame))
+        atomic_write(frames_out, _csv(per_frame))
 
 
 def _csv(rows: list[dict[str, Any]]) -> str:

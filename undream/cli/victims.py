@@ -96,13 +96,16 @@ def train_cmd(task: str, data: tuple[Path, ...], test: Path, out: Path, seed: in
 @one_line_errors
 def evaluate_cmd(victim: str, data: Path, json_out: Path | None) -> None:
     """Accuracy (classifier) or AP@0.5 (detector) of VICTIM on a dataset."""
+    from scheduler.preflight import check_output_files
+    from undream.spec.io import atomic_write
     from undream.victims import load_victim
     from undream.training.dataset import load_dataset
     from undream.training.evaluation import evaluate
 
+    check_output_files((("--json", json_out),), inputs=(data, Path(victim)))
     ds = load_dataset(data)  # the cheaper check first
     result = evaluate(load_victim(victim, offline=local_settings(render=False).hf_offline), ds)
     text = json.dumps(result, indent=2)
     click.echo(text)
     if json_out is not None:
-        json_out.write_text(text + "\n", encoding="utf-8")
+        atomic_write(json_out, text + "\n")
