@@ -1,5 +1,6 @@
 #!/usr/bin/env python
-"""Held-out conditions × studies: one chart from the CSVs of scripts/condition_budget.py.
+"""Held-out conditions × studies: one chart from the CSVs of scripts/condition_budget.py (and of
+scripts/condition_oracle.py, whose ``oracle`` column is read as the score).
 
     .venv/bin/python scripts/held_out_heatmap.py --out docs/held_out_nights.png \\
         --study "64 nights, 18 frames/step=docs/condition_budget_classifier-v3_pgd_adam255_nights_grid.csv" \\
@@ -20,13 +21,17 @@ from collections import defaultdict
 from pathlib import Path
 
 GOAL = 0.05  # issue 22: the adversarial score on every held-out condition, for every seed
+SCORES = ("adversarial", "oracle")  # the score column of a study's CSV: condition_budget's, condition_oracle's
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, required=True, help="the chart to write (.png)")
     parser.add_argument("--study", action="append", required=True, metavar="LABEL=CSV",
-                        help="a row: its label and a CSV of scripts/condition_budget.py (repeatable)")
+                        help="a row: its label and a CSV of scripts/condition_budget.py or "
+                             "scripts/condition_oracle.py (repeatable)")
     parser.add_argument("--attack", help="the attack of each CSV to show (default: each CSV's first)")
+    parser.add_argument("--run", help="the run of each CSV to show (its `run` column: 'one scene', '16 conditions', "
+                                          "...), needed where a CSV holds several")
     parser.add_argument("--title", default="the victim on the held-out conditions, per seed")
     args = parser.parse_args(argv)
     studies = []
@@ -39,6 +44,17 @@ def main(argv: list[str] | None = None) -> int:
         rows = [r for r in rows if r["attack"] == attack]
         if not rows:
             parser.error(f"--study {item!r}: no rows of attack {attack!r}")
+        runs = sorted({r["run"] for r in rows if "run" in r})
+        if args.run is not None and runs:
+            rows = [r for r in rows if r["run"] == args.run]
+            if not rows:
+                parser.error(f"--study {item!r}: no rows of run {args.run!r} (it holds {', '.join(runs)})")
+        elif len(runs) > 1:  # its runs' seeds would be read as one study's
+            parser.error(f"--study {item!r}: holds the runs {', '.join(map(repr, runs))}: give --run")
+        score = SCORES[0] if SCORES[0] in rows[0] else SCORES[1]
+        if score not in rows[0]:
+            parser.error(f"--study {item!r}: no {' or '.join(SCORES)} column")
+        rows = [{**r, "score": r[score]} for r in rows]
         studies.append((label, rows))
     conditions = sorted({r["condition"] for _, rows in studies for r in rows})
     first = studies[0][1]
@@ -48,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
     for label, rows in studies:
         per: dict[str, list[float]] = defaultdict(list)
         for r in sorted(rows, key=lambda r: int(r["seed"])):
-            per[r["condition"]].append(float(r["adversarial"]))
+            per[r["condition"]].append(float(r["score"]))
         table.append((label, per))
     print("| study | " + " | ".join(conditions) + " | mean of the conditions |")
     print("|---|" + "---|" * (len(conditions) + 1))
@@ -84,7 +100,8 @@ def _chart(args: argparse.Namespace, conditions: list[str], table: list) -> None
     ax.set_title(f"{args.title} (colour: the worst seed; green: ≤ {GOAL:g} for every seed)", fontsize=8)
     bar = fig.colorbar(image, ax=ax, fraction=0.03, pad=0.02, ticks=bounds)
     bar.ax.tick_params(labelsize=6)
-    command = "made by: scripts/held_out_heatmap.py " + " ".join(f"--study '{s}'" for s in args.study)
+    command = "made by: scripts/held_out_heatmap.py " + (f"--run '{args.run}' " if args.run else "") + \
+        " ".join(f"--study '{s}'" for s in args.study)
     lines = textwrap.wrap(command, 190)
     fig.text(0.01, 0.01, "\n".join(lines), fontsize=4.5, va="bottom")
     fig.tight_layout(rect=(0, 0.025 * len(lines), 1, 1))

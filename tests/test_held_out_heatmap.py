@@ -48,3 +48,37 @@ def test_a_missing_csv_or_attack_is_one_line_and_writes_nothing(tmp_path):
     res = _heatmap("--out", str(tmp_path / "h.png"), "--study", f"one={a}", "--attack", "apgd")
     assert res.returncode == 2 and "no rows of attack 'apgd'" in res.stderr
     assert not (tmp_path / "h.png").exists()
+
+
+def test_an_oracles_csv_reads_its_oracle_column(tmp_path):
+    """scripts/condition_oracle.py writes `oracle` where condition_budget.py writes `adversarial`."""
+    oracle = tmp_path / "oracle.csv"
+    with open(oracle, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=["victim", "condition", "attack", "eps", "steps", "seed", "frames",
+                                               "benign", "oracle", "run_wall_s"])
+        writer.writeheader()
+        for condition, score in (("night", 0.5), ("street", 0.25)):
+            writer.writerow({"victim": "v", "condition": condition, "attack": "apgd", "eps": 16, "steps": 200,
+                             "seed": 0, "frames": 24, "benign": 1, "oracle": score, "run_wall_s": 1})
+    a = _csv(tmp_path / "a.csv", {"night": [1.0, 0.75], "street": [1.0, 1.0]}, attack="apgd")
+    res = _heatmap("--out", str(tmp_path / "h.png"), "--study", f"attacked elsewhere={a}",
+                   "--study", f"oracle={oracle}")
+    assert res.returncode == 0, res.stderr
+    lines = res.stdout.splitlines()
+    assert lines[4] == "| oracle | 0.50 | 0.25 | 0.38 |"
+    assert lines[3] == "| attacked elsewhere | 1.00 / 0.75 | 1.00 / 1.00 | 0.94 ± 0.09 |"
+
+
+def test_a_csv_of_several_runs_needs_run(tmp_path):
+    """condition_budget.py writes one scene and 16 conditions into one CSV: read as one study, each
+    condition's cell held both runs' seeds."""
+    both = tmp_path / "both.csv"
+    one = _csv(tmp_path / "one.csv", {"night": [0.5]})
+    many = _csv(tmp_path / "many.csv", {"night": [0.0]})
+    lines = one.read_text().splitlines() + many.read_text().replace("64 conditions", "16 conditions").splitlines()[1:]
+    both.write_text("\n".join(lines) + "\n")
+    res = _heatmap("--out", str(tmp_path / "h.png"), "--study", f"x={both}")
+    assert res.returncode == 2 and "give --run" in res.stderr, res.stderr
+    res = _heatmap("--out", str(tmp_path / "h.png"), "--study", f"x={both}", "--run", "16 conditions")
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.splitlines()[3] == "| x | 0.00 | 0.00 |"
