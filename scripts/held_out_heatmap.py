@@ -51,8 +51,8 @@ def main(argv: list[str] | None = None) -> int:
                 parser.error(f"--study {item!r}: no rows of run {args.run!r} (it holds {', '.join(runs)})")
         elif len(runs) > 1:  # its runs' seeds would be read as one study's
             parser.error(f"--study {item!r}: holds the runs {', '.join(map(repr, runs))}: give --run")
-        score = SCORES[0] if SCORES[0] in rows[0] else SCORES[1]
-        if score not in rows[0]:
+        score = next((column for column in SCORES if column in rows[0]), None)
+        if score is None:
             parser.error(f"--study {item!r}: no {' or '.join(SCORES)} column")
         rows = [{**r, "score": r[score]} for r in rows]
         studies.append((label, rows))
