@@ -3,7 +3,8 @@
 # backend, Chromium and its driver for the dashboard's browser tests, a virtual
 # environment in .venv, the CPU build of torch 2.13.0 and the project with its
 # test extras, and Blender (bpy 5.0.1) in .venv-blender for the `blender`
-# simulator. Safe to run again.
+# simulator, and the real COCO detector's weights and photographs (deploy/fetch_models.py)
+# with the TF.js runtime its parity test compares against. Safe to run again.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -35,6 +36,16 @@ PY=${PYTHON:-python3}
 # The CPU build first: anything that later asks for torch finds it satisfied.
 .venv/bin/python -m pip install -q "torch==2.13.0"
 .venv/bin/python -m pip install -q -e ".[test,postgres]"
+
+# Real COCO detectors (coco:centernet) and the photographs of their parity test, at pinned versions with
+# checksums, into the model cache ($XDG_CACHE_HOME/undream); nothing is downloaded at run time.
+.venv/bin/python deploy/fetch_models.py
+# The official TF.js runtime (CPU backend, pure JavaScript), only for the parity test of undream's loader.
+if command -v npm >/dev/null; then
+    (cd deploy/tfjs && [ -d node_modules/@tensorflow/tfjs-converter ] || npm ci --silent --no-audit --no-fund)
+else
+    echo "setup: npm not found: the TF.js parity test (tests/test_coco_victim.py) will skip"
+fi
 
 # The `blender` simulator (Cycles) runs in its own environment and process: bpy 5.0.1 is built
 # for Python 3.11 and needs numpy < 2, while undream runs on numpy 2 (undream/sim/blender.py).

@@ -87,7 +87,8 @@ class ContextCache:
         key = (config.victim, config.device, task)
         if key in self._victims:
             return self._victims.touch(key)
-        victim = load_victim(config.victim, device=config.device, task=task, offline=self.local.hf_offline)
+        victim = load_victim(config.victim, device=config.device, task=task, offline=self.local.hf_offline,
+                             cache_home=self.local.cache_home)
         self.built["victims"] += 1
         return self._victims.put(key, victim)
 

@@ -189,7 +189,8 @@ def evaluate(textures: Mapping[str, Texture], scenes: Sequence[Path], victims: S
     from undream.engine.patch import judge_splits, texture_predictions
     from undream.victims import load_victim
 
-    loaded = {name: load_victim(name) for name in victims}  # an unknown victim fails before any render
+    # an unknown victim fails before any render
+    loaded = {name: load_victim(name, cache_home=local.cache_home) for name in victims}
     rows = []
     with tempfile.TemporaryDirectory(prefix="undream-evaluate-") as tmp:
         dirs = [_scene_dir(Path(scene), Path(tmp), local) for scene in scenes]

@@ -12,6 +12,8 @@ with the results), and never one that holds the run's own scene or spec.
 from __future__ import annotations
 
 import json
+import os
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -96,7 +98,8 @@ def _preflight(config: RunConfig, base_dir: Path, local: LocalSettings) -> Check
         seq = _sequence(scene_source(config, base_dir), local.memory_limit)
     check_frames(config, seq)
     estimate = run_estimate(seq, config, limit=local.memory_limit)
-    victim = load_victim(config.victim, device=config.device, task=task_of(config), offline=local.hf_offline)
+    victim = load_victim(config.victim, device=config.device, task=task_of(config), offline=local.hf_offline,
+                         cache_home=local.cache_home)
     class_ids(config, seq, victim)
     return Checked(victim, seq, estimate)
 
@@ -191,11 +194,13 @@ def check_output_files(outputs: tuple[tuple[str, Path | None], ...], inputs: tup
     naming the option, nothing written.
 
     ``outputs`` are (option, path) pairs, None paths skipped. Each must be a file name in a folder
-    that exists and can be written, and no two may name the same file. A file that exists is replaced
-    only when it is none of ``inputs`` (the texture, the scenes, the data; None entries and names that
-    are no path, a farm run's id, are skipped), lies in none of the folders among them, and lies in no
-    scene directory or output folder of ``undream run``: minutes of renders are not lost to a path
-    that cannot be written, and no input or earlier result is overwritten by a swapped argument.
+    that exists and can be written, and no two may name the same file. A name that exists must be a
+    regular file (a FIFO, a device, a socket or a symbolic link is never replaced by one). It is
+    replaced only when it is none of ``inputs`` (the texture, the scenes, the victims, the data, the
+    settings file; None entries and names that are no path, a farm run's id or ``bundled:NAME``,
+    are skipped), lies in none of the folders among them, and lies in no scene directory or output
+    folder of ``undream run``: minutes of renders are not lost to a path that cannot be written, and
+    no input or earlier result is overwritten by a swapped argument.
     """
     given = [Path(p).resolve() for p in inputs if p is not None and Path(p).exists()]
     seen: dict[Path, str] = {}
@@ -206,21 +211,36 @@ def check_output_files(outputs: tuple[tuple[str, Path | None], ...], inputs: tup
         if target in seen:
             raise SpecError(f"{option} {path}: {seen[target]} names the same file; give each output its own")
         seen[target] = option
-        if target.is_dir():
-            raise SpecError(f"{option} {path}: is a folder; give a file name")
-        if not target.parent.is_dir():
-            raise SpecError(f"{option} {path}: its folder {target.parent} does not exist")
-        check_writable_target(target.parent, option)
-        if not target.exists():
-            continue
-        for source in given:
-            if target == source or source in target.parents:
-                where = "is" if target == source else f"lies in {source},"
-                raise SpecError(f"{option} {path}: {where} this command's input; choose another file")
-        owner = next((d for d in target.parents if is_scene(d) or is_run_output(d)), None)
-        if owner is not None:
-            kind = "the scene directory" if is_scene(owner) else "the output folder of `undream run`"
-            raise SpecError(f"{option} {path}: would replace a file of {kind} {owner}; choose another file")
+        _check_output_file(option, Path(path), given)
+
+
+_NOT_REGULAR = ((stat.S_ISLNK, "a symbolic link"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
+                (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+                (stat.S_ISSOCK, "a socket"))
+
+
+def _check_output_file(option: str, path: Path, given: list[Path]) -> None:
+    """One output file of :func:`check_output_files`; ``given``: the inputs that exist, resolved."""
+    target = path.resolve()
+    if target.is_dir():
+        raise SpecError(f"{option} {path}: is a folder; give a file name")
+    mode = path.lstat().st_mode if os.path.lexists(path) else None
+    kind = None if mode is None else next((what for test, what in _NOT_REGULAR if test(mode)), None)
+    if kind is not None:
+        raise SpecError(f"{option} {path}: is {kind}, not a regular file; it is never replaced, choose another file")
+    if not target.parent.is_dir():
+        raise SpecError(f"{option} {path}: its folder {target.parent} does not exist")
+    check_writable_target(target.parent, option)
+    if mode is None:
+        return
+    for source in given:
+        if target == source or source in target.parents:
+            where = "is" if target == source else f"lies in {source},"
+            raise SpecError(f"{option} {path}: {where} this command's input; choose another file")
+    owner = next((d for d in target.parents if is_scene(d) or is_run_output(d)), None)
+    if owner is not None:
+        kind = "the scene directory" if is_scene(owner) else "the output folder of `undream run`"
+        raise SpecError(f"{option} {path}: would replace a file of {kind} {owner}; choose another file")
 
 
 def live_owner(out: Path) -> str | None:

@@ -21,7 +21,7 @@ EXAMPLES = sorted((ROOT / "examples").glob("*.yaml")) + sorted((ROOT / "examples
 # `pytest -m "not slow"` leaves them out for the inner loop; CI runs everything.
 SLOW_MODULES = {
     "test_farm_integration.py", "test_output_folders.py", "test_deploy_topology.py", "test_stale_runs.py",
-    "test_farm_cli.py", "test_run_output_rules.py", "test_secrets.py", "test_sim_blender.py",
+    "test_coco_victim.py", "test_farm_cli.py", "test_run_output_rules.py", "test_secrets.py", "test_sim_blender.py",
     "test_scene_cache.py", "test_input_rules.py", "test_settings_edge.py", "test_farm_trust.py",
     "test_fuzz_inputs.py", "test_cli_errors.py", "test_patch_baseline.py", "test_dashboard_browser.py",
     "test_eot.py", "test_blender_import.py", "test_init.py", "test_holdout.py", "test_motion.py",

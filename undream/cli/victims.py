@@ -104,7 +104,8 @@ def evaluate_cmd(victim: str, data: Path, json_out: Path | None) -> None:
 
     check_output_files((("--json", json_out),), inputs=(data, Path(victim)))
     ds = load_dataset(data)  # the cheaper check first
-    result = evaluate(load_victim(victim, offline=local_settings(render=False).hf_offline), ds)
+    local = local_settings(render=False)
+    result = evaluate(load_victim(victim, offline=local.hf_offline, cache_home=local.cache_home), ds)
     text = json.dumps(result, indent=2)
     click.echo(text)
     if json_out is not None:

@@ -102,7 +102,8 @@ def build_context(config: RunConfig, scene_dir: Path, *, victim: "Victim | None"
     seq = load_sequence(scene_dir / "sequence.json")
     task = task_of(config)
     if victim is None:
-        victim = load_victim(config.victim, device=config.device, task=task, offline=local.hf_offline)
+        victim = load_victim(config.victim, device=config.device, task=task, offline=local.hf_offline,
+                             cache_home=local.cache_home)
     label, target = class_ids(config, seq, victim)
     targets = [Target(label=label, target_label=target,
                       box=mask_box(read_mask(scene_dir, f.index)) if task == "detection" else None)

@@ -18,6 +18,9 @@ A spec is one of
   ``undream_yolo``: :mod:`undream.victims.yolo_load`);
 - the path of a YOLOv8/YOLO11 weights file (``*.pt``), loaded through
   ``ultralytics`` when it is installed (refused in one line otherwise);
+- ``coco:<name>``: a real COCO detector no one here trained, read from its
+  TF.js graph in the model cache (``coco:centernet``; :mod:`undream.victims.coco`),
+  fetched there by ``deploy/setup.sh``;
 - ``hf:<id or path>`` or just ``<id or path>``: a Hugging Face hub id (found
   in the local cache, or over the network where allowed) or the path of a
   ``save_pretrained`` folder.
@@ -30,6 +33,7 @@ from pathlib import Path
 import torch
 
 from undream.errors import VictimError
+from undream.settings import LocalSettings
 from undream.victims.base import TASKS, Victim
 from undream.victims import yolo_load
 from undream.victims.yolo import is_yolo_folder
@@ -100,12 +104,14 @@ def check_device(device: str | torch.device) -> torch.device:
 
 
 def load_victim(spec: str, device: str | torch.device = "cpu", task: str | None = None,
-                offline: bool = False) -> Victim:
+                offline: bool = False, cache_home: str | None = None) -> Victim:
     """Load the victim named by ``spec`` (see the module docstring) on ``device``.
 
     ``task`` (``classification`` or ``detection``), when given, must be one the
     model can do; by default the model's own task is used. ``offline``: never
-    ask the Hugging Face hub (the edge passes ``HF_HUB_OFFLINE``).
+    ask the Hugging Face hub (the edge passes ``HF_HUB_OFFLINE``). ``cache_home``:
+    the cache root whose ``undream/models`` holds fetched foreign models (the
+    edge passes ``LocalSettings.cache_home``; None: ``~/.cache``).
     """
     if not isinstance(spec, str) or not spec.strip():
         raise VictimError(f"victim: must be a hub id, a folder or bundled:<name>, got {spec!r}")
@@ -114,6 +120,10 @@ def load_victim(spec: str, device: str | torch.device = "cpu", task: str | None 
     check_device(device)
     if spec.startswith("bundled:"):
         return _load_bundled(spec[len("bundled:"):], task, device)
+    if spec.startswith("coco:"):
+        from undream.victims.coco import load_coco_victim
+        home = cache_home if cache_home is not None else LocalSettings().cache_home
+        return load_coco_victim(spec[len("coco:"):], Path(home) / "undream", device, task)
     if spec.startswith("hf:"):
         from undream.victims.hf import load_hf_victim
         return load_hf_victim(spec[len("hf:"):], task, device, offline)

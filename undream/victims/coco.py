@@ -1,0 +1,194 @@
+"""Real COCO detectors no one here trained, loaded from their TF.js graphs.
+
+``coco:centernet`` is MobileNetV3-CenterNet (upstream
+610265158/mobilenetv3_centernet), trained on COCO's 80 classes, as shipped in
+the npm package ``@vladmandic/human`` (MIT): ``models/centernet.json`` and
+``centernet.bin``. ``deploy/setup.sh`` fetches them at a pinned version with
+checksums into the model cache (:func:`models_dir`); nothing is downloaded at
+run time. The graph runs in torch through :mod:`undream.victims.tfjs`.
+
+The model takes ``1×512×512×3`` RGB in 0..255 (the package resizes any image
+to 512² by plain bilinear resize, as the victim's preprocessing does here) and
+gives, at a quarter of the resolution (128×128 cells):
+
+- ``tower_0/keypoints``: per cell, 80 class scores (sigmoid applied),
+- ``tower_0/wh``: per cell, the distances in input pixels from the cell's point
+  ``(4·col, 4·row)`` to the box's left, top, right and bottom.
+
+Decoded into :class:`~undream.victims.dense.DenseOutput` candidates (one per
+cell), the :class:`~undream.victims.dense.DenseDetector` losses apply
+(``vanish``, ``mislabel``, ``box`` on the candidates before NMS); predictions
+keep CenterNet's peaks (a class score at the maximum of its 3×3 neighbourhood),
+then the score threshold and class-aware NMS. Its scores run low: the default
+threshold is 0.3.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from undream.errors import VictimError
+from undream.victims.base import DetPrediction
+from undream.victims.dense import LOG_EPS, DenseDetector, DenseOutput
+from undream.victims.nms import select_detections
+from undream.victims.preprocess import PreprocessConfig
+from undream.victims.tfjs import GraphModule, read_graph_model
+
+COCO_LABELS = (
+    "person", "bicycle", "car", "motorcycle", "airplane", "bus", "train", "truck", "boat", "traffic light",
+    "fire hydrant", "stop sign", "parking meter", "bench", "bird", "cat", "dog", "horse", "sheep", "cow",
+    "elephant", "bear", "zebra", "giraffe", "backpack", "umbrella", "handbag", "tie", "suitcase", "frisbee",
+    "skis", "snowboard", "sports ball", "kite", "baseball bat", "baseball glove", "skateboard", "surfboard",
+    "tennis racket", "bottle", "wine glass", "cup", "fork", "knife", "spoon", "bowl", "banana", "apple",
+    "sandwich", "orange", "broccoli", "carrot", "hot dog", "pizza", "donut", "cake", "chair", "couch",
+    "potted plant", "bed", "dining table", "toilet", "tv", "laptop", "mouse", "remote", "keyboard",
+    "cell phone", "microwave", "oven", "toaster", "sink", "refrigerator", "book", "clock", "vase",
+    "scissors", "teddy bear", "hair drier", "toothbrush",
+)
+
+
+@dataclass(frozen=True)
+class CocoModel:
+    """A real COCO detector undream can load: its ``files`` (in the model cache
+    folder ``folder``), the graph's ``input``, its score and box ``outputs``,
+    the square ``input_size``, the ``stride`` of its cells, the ``package`` it
+    comes from and its ``licence``."""
+
+    name: str
+    folder: str
+    model_json: str
+    input: str
+    scores: str
+    boxes: str
+    input_size: int
+    stride: int
+    package: str
+    licence: str
+
+
+MODELS = {
+    "centernet": CocoModel("centernet", "centernet", "centernet.json", "tower_0/images", "tower_0/keypoints",
+                           "tower_0/wh", 512, 4, "@vladmandic/human@3.3.6", "MIT"),
+}
+
+
+def models_dir(cache_dir: str | Path) -> Path:
+    """Where setup puts fetched foreign models: ``CACHE_DIR/models`` (``cache_dir``
+    is the settings' ``cache_dir``, by default ``$XDG_CACHE_HOME/undream``)."""
+    return Path(cache_dir) / "models"
+
+
+def model_path(name: str, cache_dir: str | Path) -> Path:
+    """The ``model.json`` of ``coco:NAME`` in the cache; a one-line error for an unknown name."""
+    if name not in MODELS:
+        raise VictimError(f"victim 'coco:{name}': unknown; valid names are "
+                          f"{', '.join('coco:' + n for n in MODELS)}")
+    m = MODELS[name]
+    return models_dir(cache_dir) / m.folder / m.model_json
+
+
+class CenterNetModule(nn.Module):
+    """The CenterNet graph as a torch module: ``B×3×S×S`` RGB in 0..255 (S the
+    model's input size) → ``(scores B×S/4×S/4×80, ltrb B×S/4×S/4×4)``."""
+
+    def __init__(self, graph: GraphModule, spec: CocoModel) -> None:
+        super().__init__()
+        self.graph = graph
+        self.spec = spec
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        out = self.graph(x.permute(0, 2, 3, 1))
+        return out[self.spec.scores], out[self.spec.boxes]
+
+
+def decode_centernet(scores: torch.Tensor, ltrb: torch.Tensor, stride: int
+                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """CenterNet's cells as dense candidates: boxes ``B×N×4`` xyxy (pixels of the
+    model input), log scores ``B×N×C`` and points ``N×2`` (x, y pixels), cells
+    row-major. The point of cell (row, col) is ``(stride·col, stride·row)``."""
+    b, h, w, c = scores.shape
+    ys, xs = torch.meshgrid(torch.arange(h, device=scores.device), torch.arange(w, device=scores.device),
+                            indexing="ij")
+    points = torch.stack((xs.reshape(-1), ys.reshape(-1)), 1).to(ltrb.dtype) * stride
+    d = ltrb.reshape(b, h * w, 4)
+    boxes = torch.cat((points[None] - d[..., :2], points[None] + d[..., 2:]), -1)
+    return boxes, scores.reshape(b, h * w, c).clamp(min=LOG_EPS).log(), points
+
+
+class CenterNetDetector(DenseDetector):
+    """A CenterNet graph as a :class:`DenseDetector` (see the module docstring)."""
+
+    def __init__(self, module: CenterNetModule, name: str, device: str | torch.device = "cpu",
+                 score_threshold: float = 0.3, iou_threshold: float = 0.5, max_detections: int = 100) -> None:
+        size = module.spec.input_size
+        preprocess = PreprocessConfig(size=(size, size), std=(1 / 255, 1 / 255, 1 / 255))
+        super().__init__(module, COCO_LABELS, preprocess, name=name, device=device,
+                         strides=(module.spec.stride,), score_threshold=score_threshold,
+                         iou_threshold=iou_threshold, max_detections=max_detections)
+
+    def forward_raw(self, images: torch.Tensor) -> DenseOutput:  # type: ignore[override]
+        """Decoded candidates for sRGB [0, 1] images (differentiable)."""
+        x = self.preprocess(images)
+        scores, ltrb = self.module(x)
+        boxes, log_probs, points = decode_centernet(scores, ltrb, self.strides[0])
+        return DenseOutput(boxes, log_probs, (x.shape[-2], x.shape[-1]), points)
+
+    def _predictions_from(self, raw: DenseOutput, images: torch.Tensor,  # type: ignore[override]
+                          threshold: float | None = None) -> list[DetPrediction]:
+        thr = self.score_threshold if threshold is None else float(threshold)
+        h, w = images.shape[-2:]
+        scale = torch.tensor([w, h, w, h], dtype=torch.float32)
+        boxes = raw.boxes_xyxy.float().cpu() * scale
+        probs = _peaks(raw.log_probs.float().exp().cpu(), raw.size, self.strides[0])
+        return [DetPrediction(*select_detections(b, p, thr, self.iou_threshold, self.max_detections))
+                for b, p in zip(boxes, probs)]
+
+
+def _peaks(probs: torch.Tensor, size: tuple[int, int], stride: int) -> torch.Tensor:
+    """``probs`` ``B×N×C`` with every score that is not the maximum of its 3×3
+    neighbourhood (in its class's heatmap) set to 0: CenterNet's peak filter."""
+    b, n, c = probs.shape
+    h, w = size[0] // stride, size[1] // stride
+    maps = probs.reshape(b, h, w, c).permute(0, 3, 1, 2)
+    keep = maps == F.max_pool2d(maps, 3, 1, 1)
+    return (maps * keep).permute(0, 2, 3, 1).reshape(b, n, c)
+
+
+def load_coco_victim(name: str, cache_dir: str | Path, device: str | torch.device = "cpu",
+                     task: str | None = None) -> CenterNetDetector:
+    """``coco:NAME`` from the model cache under ``cache_dir`` as a victim; one-line
+    errors for an unknown name, a missing model (run ``deploy/setup.sh``), a
+    file of another shape or an op the loader does not know."""
+    path = model_path(name, cache_dir)
+    if task not in (None, "detection"):
+        raise VictimError(f"victim 'coco:{name}': is a detector, cannot do {task}")
+    if not path.is_file():
+        raise VictimError(f"victim 'coco:{name}': its weights are not in the model cache (expected {path}); "
+                          f"run ./deploy/setup.sh, which fetches {MODELS[name].package} from the npm registry")
+    spec = MODELS[name]
+    graph = GraphModule(read_graph_model(path), [spec.scores, spec.boxes], spec.input)
+    _check_shapes(graph, spec, str(path))
+    return CenterNetDetector(CenterNetModule(graph, spec), f"coco:{name}", device)
+
+
+def _check_shapes(graph: GraphModule, spec: CocoModel, where: str) -> None:
+    """Run the graph once on zeros: its outputs must be the 80 COCO scores and 4 distances per cell."""
+    s = spec.input_size
+    try:
+        with torch.no_grad():
+            out = graph(torch.zeros(1, s, s, 3))
+    except (RuntimeError, IndexError, ValueError) as err:
+        first = (str(err).strip().splitlines() or [type(err).__name__])[0]
+        raise VictimError(f"victim 'coco:{spec.name}': {where} does not run as {spec.name} ({first}): "
+                          f"weights of another shape or another model") from None
+    cells = s // spec.stride
+    want = {spec.scores: (1, cells, cells, len(COCO_LABELS)), spec.boxes: (1, cells, cells, 4)}
+    got: dict[str, Any] = {k: tuple(v.shape) for k, v in out.items()}
+    if got != want:
+        raise VictimError(f"victim 'coco:{spec.name}': {where} gives outputs {got}, expected {want}: "
+                          f"another model")
