@@ -234,12 +234,14 @@ def collect(store: "Store", contexts: Contexts, run_id: str, phase: str, k: int,
     A job without a result is run again (never averaged away); a job that
     gave up counts against the run's failure budget and is queued again, or
     fails the run past the budget. Returns what it did: ``stale`` (the run
-    moved on, was cancelled, or another callback acted), ``failed``,
-    ``retrying``, ``rerun``, ``stepped``, ``final`` or ``done``.
+    moved on, was cancelled, or another callback acted), ``replanned`` (the
+    run had moved on but the next phase's jobs were never recorded: a callback
+    whose step committed and whose planning failed, retried; :func:`catch_up`),
+    ``failed``, ``retrying``, ``rerun``, ``stepped``, ``final`` or ``done``.
     """
     run = store.get_run(run_id)
     if not _current(run, phase, k):
-        return "stale"
+        return "replanned" if catch_up(store, run_id, dispatch) else "stale"
     options = FarmOptions.of(run)
     frames = expected(run, phase, k)
     jobs = {j.frame: j for j in store.jobs(run_id, k, phase)}
@@ -276,20 +278,16 @@ def _step(store: "Store", run: "RunSnapshot", k: int, dispatch: Dispatch) -> str
             return "stale"
     except MissingResults:  # a job was re-queued between our look and reduce's: its callback follows
         return "stale"
-    run = store.get_run(run.id)
-    if k + 1 < run.run_config.attack.steps:
-        plan(store, run, "attack", k + 1, dispatch)
-    elif store.transition(run.id, ("running",), "evaluating"):
-        plan(store, store.get_run(run.id), "pre", k + 1, dispatch)
+    catch_up(store, run.id, dispatch)  # what a retry of this callback would do if planning fails now
     drop_gradients(store, run.id, k)  # after the next jobs are out (killed before: garbage finish() sweeps)
     return "stepped"
 
 
 def _final(store: "Store", run: "RunSnapshot", k: int, dispatch: Dispatch) -> str:
-    if store.final_texture(run.id) is not None:  # another callback picked it (resume plans the rest)
-        return "stale"
+    if store.has_final_texture(run.id):  # picked by another callback, or by this one before its planning failed
+        return "replanned" if catch_up(store, run.id, dispatch) else "stale"
     store.put_final_texture(run.id, select_final(store, attacks.make_attack(run.run_config.attack), run.id, k))
-    plan(store, run, "adversarial", k, dispatch)
+    catch_up(store, run.id, dispatch)
     return "final"
 
 
@@ -304,6 +302,41 @@ def finish(store: "Store", contexts: Contexts, run_id: str, k: int) -> str:
     return "done" if store.transition(run_id, ("evaluating",), "done") else "stale"
 
 
+def current_phase(store: "Store", run: "RunSnapshot") -> str:
+    """The phase a started run is in, from what the store says: ``attack`` while steps remain,
+    then ``pre`` until the final texture is picked, then ``adversarial``."""
+    if run.iteration < run.run_config.attack.steps:
+        return "attack"
+    return "adversarial" if store.has_final_texture(run.id) else "pre"
+
+
+def catch_up(store: "Store", run_id: str, dispatch: Dispatch) -> bool:
+    """Plan the run's current phase if none of its jobs is recorded yet; True if this call did.
+
+    The step (or the final pick) commits before the next phase's jobs are
+    recorded and sent: a callback whose planning failed after that (the
+    database or the broker lost a moment) is retried, finds the run past its
+    phase, and plans here what it could not. Every closing callback plans
+    through this too, so the jobs are recorded once (:meth:`Store.claim_jobs`:
+    only the caller that records them sends them) however many callbacks race.
+    A run that finished its steps but is still ``running`` moves to ``evaluating`` first.
+    """
+    run = store.get_run(run_id)
+    if run.status not in ("running", "evaluating") or run.attack_state_ref is None:
+        return False
+    if run.status == "running" and run.iteration >= run.run_config.attack.steps:
+        store.transition(run_id, ("running",), "evaluating")
+        run = store.get_run(run_id)
+    phase = current_phase(store, run)
+    frames = expected(run, phase, run.iteration)
+    status = "running" if phase == "attack" else "evaluating"
+    if not store.claim_jobs(run_id, run.iteration, frames, phase, (status,)):
+        return False
+    parts = batches(frames, FarmOptions.of(run).frames_per_task)
+    dispatch.frames(run_id, phase, run.iteration, served_last(run_id, parts) if phase == "attack" else parts)
+    return True
+
+
 # -- control ----------------------------------------------------------------------------
 
 
@@ -313,14 +346,21 @@ def cancel(store: "Store", run_id: str) -> bool:
                             error="cancelled by the user")
 
 
-def resume_sweep(store: "Store", sweep_id: str, dispatch: Dispatch) -> list[str]:
+def resume_sweep(store: "Store", sweep_id: str, dispatch: Dispatch) -> tuple[list[str], list[str]]:
     """Send the start of every run of the sweep that is still queued (its start never sent, lost
-    with the broker, or waiting in it: a second start is harmless, see :func:`start`); returns
-    their ids. Runs that started, ended or were cancelled are left alone."""
-    run_ids = [run.id for run in store.runs(status="queued", sweep_id=sweep_id)]
-    for run_id in run_ids:
+    with the broker, or waiting in it: a second start is harmless, see :func:`start`), and the
+    current work of every farm run of it that is running or evaluating (:func:`resume`: after a
+    restarted, empty broker they have nothing in flight; a run still at work does the rest of its
+    phase twice at most). Returns (the queued runs' ids, the running or evaluating runs' ids).
+    Runs that ended, failed or were cancelled, and runs a process drives itself, are left alone."""
+    queued = [run.id for run in store.runs(status="queued", sweep_id=sweep_id)]
+    for run_id in queued:
         dispatch.start(run_id)
-    return run_ids
+    active = [run.id for status in ("running", "evaluating") for run in store.runs(status=status, sweep_id=sweep_id)
+              if run.owner is None]
+    for run_id in active:
+        resume(store, run_id, dispatch)
+    return queued, active
 
 
 def resume(store: "Store", run_id: str, dispatch: Dispatch) -> str:
@@ -344,13 +384,10 @@ def resume(store: "Store", run_id: str, dispatch: Dispatch) -> str:
         dispatch.start(run_id)
         return "start"
     store.transition(run_id, ("queued",), "running")
-    steps = run.run_config.attack.steps
     run = store.get_run(run_id)
-    if run.iteration < steps:
-        phase = "attack"
-    else:
+    phase = current_phase(store, run)
+    if phase != "attack":
         store.transition(run_id, ("running",), "evaluating")
-        phase = "adversarial" if store.final_texture(run_id) is not None else "pre"
     run = store.get_run(run_id)
     frames = expected(run, phase, run.iteration)
     if phase == "attack":  # a gradient the machine's power cut took (written without fsync): computed again

@@ -196,4 +196,4 @@ def test_an_interrupted_sweep_records_nothing_and_a_half_sent_one_is_resumed(far
     # run 0's second start plans iteration 0 again (duplicate work, one step: see stages.start)
     assert dispatch.planned == Counter({(runs[0].id, "attack", 0): 2, **{(r.id, "attack", 0): 1 for r in runs[1:]}})
     assert [r.status for r in farm.store.runs(sweep_id=sweep_id)] == ["running"] * 3
-    assert cli("resume", "seeds").stdout.strip() == f"resumed sweep {sweep_id}: 0 queued run(s) sent"
+    assert cli("resume", "seeds").stdout.strip() == f"resumed sweep {sweep_id}: 0 queued run(s) sent, 3 running run(s) resumed"

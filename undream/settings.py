@@ -96,8 +96,10 @@ class Settings:
     max_attempts: int = 3  # attempts per frame job (retries included), then the job fails
     failure_budget: int = 2  # failed frame jobs a run survives (each re-queued), then it fails
     store_retries: int = 10  # retries of a task whose database or blob folder failed, then its run fails
-    visibility_timeout: int = 3600  # s; a job unacknowledged this long is delivered again
+    visibility_timeout: int = 3600  # s; a job unacknowledged this long is delivered again (> the longest task)
     restore_interval: int = 10  # s between sweeps that re-deliver jobs of lost workers
+    heal_after: int = 600  # s a farm run may make no progress before workers send its work again (0: never)
+    heal_interval: int = 60  # s between the workers' checks for such runs (one worker checks at a time)
     scene_cache: int = 2  # scene directories whose Mitsuba scenes a worker process keeps loaded
     connect_timeout: float = 5.0  # s to reach the broker before giving up (CLI commands)
     dashboard_token: str | None = field(default=None, repr=False)  # cancel/resume need it; None: none
@@ -125,7 +127,8 @@ class Settings:
         for name, least in (("concurrency", 1), ("torch_threads", 1), ("farm_slots", 1),
                             ("max_attempts", 1), ("failure_budget", 0), ("store_retries", 0),
                             ("visibility_timeout", 1),
-                            ("restore_interval", 1), ("scene_cache", 1), ("transport_cache_mb", 0)):
+                            ("restore_interval", 1), ("scene_cache", 1), ("transport_cache_mb", 0),
+                            ("heal_after", 0), ("heal_interval", 1)):
             _check_int(name, getattr(self, name), least)
         for name in ("drjit_threads", "frames_per_task"):
             if getattr(self, name) is not None:
@@ -163,7 +166,7 @@ def _check_int(name: str, value: Any, least: int) -> None:
 _FIELDS = {f.name: f for f in fields(Settings)}
 _INTS = {"concurrency", "drjit_threads", "torch_threads", "frames_per_task", "farm_slots",
          "max_attempts", "failure_budget", "store_retries", "visibility_timeout", "restore_interval",
-         "scene_cache", "transport_cache_mb"}
+         "scene_cache", "transport_cache_mb", "heal_after", "heal_interval"}
 _OPTIONAL = {"result_backend", "database_url", "drjit_threads", "frames_per_task", "dashboard_token",
              "s3_endpoint_url", "s3_region", "s3_access_key_id", "s3_secret_access_key"}
 # The usual AWS variables, read where no UNDREAM_S3_* variable sets the setting (first one set wins).

@@ -64,7 +64,8 @@ def create_celery_app(settings: "Settings", local: "LocalSettings | None" = None
         task_default_queue=FRAMES_QUEUE,
         task_routes={"undream.frames": {"queue": FRAMES_QUEUE},
                      "undream.start": {"queue": CONTROL_QUEUE},
-                     "undream.collect": {"queue": CONTROL_QUEUE}},
+                     "undream.collect": {"queue": CONTROL_QUEUE},
+                     "undream.heal": {"queue": CONTROL_QUEUE}},
         worker_send_task_events=True, task_send_sent_event=True,  # task events: Flower can watch the farm
         # A child's start (workers.runtime.init_process: Mitsuba, torch, the victims' code warmed up)
         # takes seconds, more on a loaded machine; Celery's default 4 s killed children in a loop.

@@ -26,6 +26,7 @@ import threading
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Callable, Mapping
 
+from scheduler.heal import StallRule, stalled
 from scheduler.options import FarmOptions
 from undream.redact import redact_text
 from undream.store import mask_url
@@ -118,14 +119,26 @@ def _stalled_first(row: dict[str, Any]) -> tuple[float, str]:
     return -row["stalled_s"], row["run_id"]
 
 
+def _stalled(store: "Store", rule: "StallRule | None", now: dt.datetime, shown: set[str],
+             limit: int) -> list[dict[str, Any]]:
+    """The farm's stalled runs (:mod:`scheduler.heal`'s rule) not already shown as waiting or failing."""
+    if rule is None:
+        return []
+    return [{**_base(run, now), "state": "stalled", "reason": why}
+            for run, why in stalled(store, rule, now, limit + len(shown)) if run.id not in shown][:limit]
+
+
 def stuck_runs(store: "Store", consumers: Callable[[], Consumers], now: dt.datetime | None = None,
-               limit: int = LIMIT) -> dict[str, Any]:
+               limit: int = LIMIT, rule: "StallRule | None" = None) -> dict[str, Any]:
     """The runs that cannot make progress, as plain data: ``waiting`` and ``failing`` (at most
     ``limit`` each, stalled longest first), their totals ``n_waiting`` (None while the live queues
     are unknown) and ``n_failing``, ``active`` (farm runs queued, running or evaluating), ``queues``
     (queue → live workers; None: unknown, or not asked) and ``broker_error``. ``consumers`` is
     called (the broker asked: ``asked``) only when a farm run is active; the runs waiting are read
-    only when a queue has no live worker. A fixed number of queries, whatever the number of runs."""
+    only when a queue has no live worker. ``rule`` given: also ``stalled``, the runs that rule calls
+    stalled (:func:`scheduler.heal.stall_reason`: live workers, yet no progress) that are neither
+    waiting nor failing, quiet longest first, at most ``limit``. A fixed number of queries,
+    whatever the number of runs."""
     now = now or dt.datetime.now(dt.timezone.utc)
     active = store.active_farm_runs()
     live = consumers() if active else Consumers(None)
@@ -136,6 +149,9 @@ def stuck_runs(store: "Store", consumers: Callable[[], Consumers], now: dt.datet
                 "reason": f"no live worker on queue {queue_of(run)}"} for run in stalled]
     failing = sorted((_failing(run, err, now) for run, err in store.failing_runs()), key=_stalled_first)
     queues = None if live.queues is None else {q: list(w) for q, w in live.queues.items()}
+    shown = {row["run_id"] for row in waiting + failing}
+    idle = _stalled(store, rule, now, shown, limit) if active else []
     return {"active": active, "asked": bool(active), "queues": queues, "broker_error": live.reason,
             "n_waiting": sum(counts.get(kind, 0) for kind in kinds) if live.known or not active else None,
-            "n_failing": len(failing), "waiting": waiting, "failing": failing[:limit], "now": now.isoformat()}
+            "n_failing": len(failing), "waiting": waiting, "failing": failing[:limit], "stalled": idle,
+            "now": now.isoformat()}

@@ -8,6 +8,7 @@ import sys
 from typing import TYPE_CHECKING, Any, Callable
 
 from workers.app import QUEUES, create_celery_app
+from workers.healer import start_healer
 from workers.presence import announce
 from workers.runtime import drjit_threads_for, init_process
 
@@ -49,6 +50,7 @@ def run_worker(settings: "Settings", loglevel: str = "INFO", hostname: str | Non
         log.info("undream worker ready: %d process(es), %d Dr.Jit thread(s) each, parent without %s",
                  settings.concurrency, drjit_threads_for(settings), ", ".join(HEAVY))
         withdraw.append(announce(settings, node, QUEUES))  # `undream status` sees it live from now
+        withdraw.append(start_healer(app, settings, node))  # stalled runs sent again, one worker at a time
 
     def _shutdown(**_: Any) -> None:
         for stop in withdraw:

@@ -2,7 +2,8 @@
 
 ``undream.start`` (run_id), ``undream.frames`` (run_id, phase, k, frames: a
 batch of frame positions) and ``undream.collect`` (run_id, phase, k: the
-chord's callback). Arrays never travel: jobs read and write the blob store.
+chord's callback); and ``undream.heal`` (the sending worker's name: one heal
+pass over the farm's stalled runs, :mod:`workers.healer`). Arrays never travel: jobs read and write the blob store.
 A batch whose jobs failed with attempts left is retried by Celery (the
 attempts are counted in the store, which caps them); a store that cannot be
 reached is retried with back-off (``store_retries`` times); any other error
@@ -15,7 +16,10 @@ from __future__ import annotations
 import logging
 from typing import TYPE_CHECKING, Any, Callable
 
+from scheduler.heal import StallRule
+from scheduler.heal import heal as heal_pass
 from undream.errors import StoreError
+from workers.healer import HEAL_TASK
 from workers.runtime import runtime
 
 if TYPE_CHECKING:
@@ -97,6 +101,13 @@ def register_tasks(app: "Celery") -> None:
         if summary["retry"]:
             raise self.retry(countdown=RETRY_DELAY_S, max_retries=None)
         return summary
+
+    @app.task(name=HEAL_TASK, bind=True, shared=False, acks_late=True, ignore_result=True)
+    def heal(self: "Task", by: str) -> dict[str, Any]:
+        """One heal pass (:mod:`workers.healer`): the farm's stalled runs' current work sent again."""
+        rt = runtime(app)
+        rule = StallRule.of(app.undream_settings)  # type: ignore[attr-defined]
+        return {"healed": heal_pass(rt.store, rt.dispatch, rule, by=f"undream worker {by}")}
 
     @app.task(name="undream.collect", **common)
     def collect(self: "Task", run_id: str, phase: str, k: int) -> dict[str, Any]:

@@ -30,6 +30,7 @@ if TYPE_CHECKING:
     from undream.store import Store
 
 TABLE_ROWS = 100  # runs `undream results` shows in its table unless --limit says otherwise
+EVENTS_SHOWN = 10  # a run's latest events `undream status RUN` shows (heals: scheduler.heal)
 
 
 def settings_options(fn: Callable[..., Any]) -> Callable[..., Any]:
@@ -202,6 +203,10 @@ def status_cmd(run: str | None, out: Path | None, limit: int, show_all: bool, st
     phase, k, rows = job_rows(store, snap)
     click.echo(f"\n{phase} jobs, k={k}:")
     click.echo(_table(rows))
+    events = store.events(snap.id, limit=EVENTS_SHOWN)
+    if events:
+        click.echo("\nevents:")
+        click.echo("\n".join(f"{e.time:%Y-%m-%d %H:%M:%S}  {e.by}  {e.line}" for e in events))
 
 
 def _by_state(counts: dict[str, int]) -> str:
@@ -221,9 +226,10 @@ def _tally(shown: int, total: int, counts: dict[str, int], state: str | None) ->
 
 def _echo_stuck(store: "Store", cfg: "Settings") -> None:
     """The runs that cannot make progress (:func:`workers.health.stuck_runs`), after the table."""
+    from scheduler.heal import StallRule
     from workers.health import probe, stuck_runs
 
-    report = stuck_runs(store, lambda: probe(cfg))
+    report = stuck_runs(store, lambda: probe(cfg), rule=StallRule.of(cfg))
     if not report["asked"]:
         return
     if report["queues"] is None:
@@ -234,13 +240,14 @@ def _echo_stuck(store: "Store", cfg: "Settings") -> None:
     rows = [{"run": r["run_id"][:8], "name": r["run"], "state": r["state"], "since": r["since"][11:19],
              "stalled": _duration(r["stalled_s"]), "reason": r["reason"] + (f" ({r['job']}, attempt {r['attempts']} of {r['max_attempts']}; "
                                       f"failures {r['failures']} of {r['failure_budget']})" if r["state"] == "failing" else "")}
-            for r in report["waiting"] + report["failing"]]
+            for r in report["waiting"] + report["failing"] + report["stalled"]]
     if not rows:
         click.echo("stuck: none" if report["n_waiting"] is not None else "stuck: none failing; waiting unknown")
         return
-    click.echo(f"stuck: {_count(report['n_waiting'])} waiting, {report['n_failing']} failing")
+    stalled = f", {len(report['stalled'])} stalled" if report["stalled"] else ""
+    click.echo(f"stuck: {_count(report['n_waiting'])} waiting, {report['n_failing']} failing{stalled}")
     click.echo(_table(rows))
-    hidden = (report["n_waiting"] or 0) + report["n_failing"] - len(rows)
+    hidden = (report["n_waiting"] or 0) + report["n_failing"] + len(report["stalled"]) - len(rows)
     if hidden > 0:
         click.echo(f"… {hidden} more, stalled less long")
 
@@ -296,7 +303,8 @@ def resume_cmd(run: str, settings: Callable[..., "Settings"]) -> None:
     """Send RUN's current work to the farm again, from what the store says (after any crash).
 
     RUN may be a sweep (its id, the id's first characters, or its name): every run of it still
-    queued has its start sent again (a start sent twice plans the run once)."""
+    queued has its start sent again (a start sent twice plans the run once), and every run of it
+    running or evaluating its current work (after a restarted broker)."""
     from scheduler.lease import expire_stale
     from scheduler.stages import resume
 
@@ -326,9 +334,11 @@ def _resume_sweep(store: "Store", ref: str, app: "Celery", not_a_run: StoreError
         sweep = store.find_sweep(ref)
     except StoreError:
         raise StoreError(f"{not_a_run}; no sweep has that id or name either") from None
-    sent: list[str] = []
-    _send(f"sweep {sweep.id}", sweep.id, lambda: sent.extend(resume_sweep(store, sweep.id, _dispatch(app))))
-    click.echo(f"resumed sweep {sweep.id}: {len(sent)} queued run(s) sent")
+    sent: list[tuple[list[str], list[str]]] = []
+    _send(f"sweep {sweep.id}", sweep.id, lambda: sent.append(resume_sweep(store, sweep.id, _dispatch(app))))
+    (queued, active), = sent
+    more = f", {len(active)} running run(s) resumed" if active else ""
+    click.echo(f"resumed sweep {sweep.id}: {len(queued)} queued run(s) sent{more}")
 
 
 @click.command("sweep")

@@ -69,6 +69,7 @@ class RunHealth(NamedTuple):
     unfinished: int
     errored: int
     last_job: dt.datetime | None
+    started: int = 0  # of ``unfinished``, the jobs started (a worker holds them, or held them and died)
 
 
 class JobError(NamedTuple):
@@ -140,6 +141,7 @@ class ActivityTables:
         query = (select(fj.c.run_id,
                         func.sum(case((fj.c.status.in_(UNFINISHED), 1), else_=0)).label("unfinished"),
                         func.sum(case((errored, 1), else_=0)).label("errored"),
+                        func.sum(case((fj.c.status == "started", 1), else_=0)).label("started_jobs"),
                         func.max(fj.c.started).label("started"), func.max(fj.c.finished).label("finished"))
                  .join(r, r.c.id == fj.c.run_id).where(r.c.status.in_(ACTIVE_STATUSES), fj.c.k == r.c.iteration))
         if run_ids is not None:
@@ -179,10 +181,27 @@ class ActivityTables:
             chunk = list(run_ids[i:i + IN_CHUNK])
             jobs = self._progress(s, chunk)
             query = (select(r.c.id, r.c.name, r.c.status, r.c.iteration, r.c.updated, r.c.failures, r.c.farm_json,
-                            r.c.owner, jobs.c.unfinished, jobs.c.errored, jobs.c.started, jobs.c.finished)
+                            r.c.owner, jobs.c.unfinished, jobs.c.errored, jobs.c.started, jobs.c.finished,
+                            jobs.c.started_jobs)
                      .outerjoin(jobs, jobs.c.run_id == r.c.id).where(r.c.id.in_(chunk)))
             out.update({row.id: row for row in s.execute(query)})
         return out
+
+    def quiet_runs(self, before: dt.datetime, limit: int) -> list[RunHealth]:
+        """The farm's active runs (not driven by their own process) in which nothing happened since
+        ``before`` (UTC): the row unchanged, and no job of the current iteration started or finished
+        since; at most ``limit``, quiet longest first, with their current jobs' progress. Two
+        queries, whatever the number of runs (the stall rule of :mod:`scheduler.heal` decides which
+        of them are stalled)."""
+        fj, r = FrameJob.__table__, Run.__table__
+        recent = (select(fj.c.id).where(fj.c.run_id == r.c.id, fj.c.k == r.c.iteration,
+                                        or_(fj.c.started >= before, fj.c.finished >= before)).exists())
+        query = (select(r.c.id).where(r.c.status.in_(ACTIVE_STATUSES), r.c.owner.is_(None), r.c.updated < before,
+                                      ~recent).order_by(r.c.updated, r.c.id).limit(limit))
+        with self._tx("quiet_runs", write=False) as s:
+            ids = [row[0] for row in s.execute(query)]
+            rows = self._with_progress(s, ids)
+        return [_health(rows[run_id]) for run_id in ids]
 
     def failing_runs(self) -> list[tuple[RunHealth, JobError]]:
         """The active runs whose current iteration has a job whose last attempt failed and that has
@@ -207,4 +226,4 @@ class ActivityTables:
 def _health(row: Any) -> RunHealth:
     return RunHealth(row.id, row.name, row.status, row.iteration, _utc(row.updated),  # type: ignore[arg-type]
                      row.failures or 0, loads(row.farm_json) or {}, row.owner, int(row.unfinished or 0),
-                     int(row.errored or 0), _latest(row.started, row.finished))
+                     int(row.errored or 0), _latest(row.started, row.finished), int(row.started_jobs or 0))

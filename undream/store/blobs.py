@@ -95,6 +95,11 @@ def grad_prefix(run_id: str, k: int) -> str:
     return f"runs/{run_id}/grad" if k is None else f"runs/{run_id}/grad/{k:06d}"
 
 
+def event_prefix(run_id: str) -> str:
+    """Prefix of the run's event lines (:mod:`undream.store.events`)."""
+    return f"runs/{run_id}/events"
+
+
 def scene_key(digest: str) -> str:
     """Key of a packed scene directory whose tar file has SHA-256 ``digest``."""
     return f"scenes/{digest}.tar"

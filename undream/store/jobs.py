@@ -194,6 +194,28 @@ class JobTables:
             checked = dict.fromkeys(self._frames(s, run_id, frames, unique=False))
             self._upsert_jobs(s, [_row(run_id, phase, k, f, {"status": "queued"}) for f in checked], None)
 
+    def claim_jobs(self, run_id: str, k: int, frames: Iterable[int], phase: str,
+                   statuses: Sequence[str]) -> bool:
+        """Record frames ``frames`` of ``phase`` at ``k`` as queued, if the run is still at iteration
+        ``k`` in one of ``statuses`` and has no job of ``phase`` at ``k`` yet: True for the one caller
+        that recorded them (it dispatches them), False with nothing written otherwise. The run's row
+        is locked first (PostgreSQL; SQLite writers are serialised), so two callers racing to plan
+        the same phase cannot both win."""
+        k, phase = integer("k", k, 0), _phase(phase)
+        table = FrameJob.__table__
+        with self._tx("claim_jobs", write=True) as s:
+            run = s.execute(select(Run.status, Run.iteration).where(Run.id == run_id).with_for_update()).first()
+            if run is None:
+                raise StoreError(f"run {run_id!r}: not found")
+            if run.status not in statuses or run.iteration != k:
+                return False
+            if s.scalar(select(table.c.id).where(table.c.run_id == run_id, table.c.phase == phase,
+                                                 table.c.k == k).limit(1)) is not None:
+                return False
+            checked = dict.fromkeys(self._frames(s, run_id, frames, unique=False))
+            self._upsert_jobs(s, [_row(run_id, phase, k, f, {"status": "queued"}) for f in checked], None)
+            return True
+
     def jobs_started(self, run_id: str, k: int, frames: Iterable[int], phase: str = "attack",
                      worker: str | None = None) -> None:
         """A worker (``host:pid``) starts the jobs ``frames`` of iteration ``k``: each gets status

@@ -36,6 +36,7 @@ from sqlalchemy.orm import Session
 from undream import interrupts
 from undream.errors import StoreError
 from undream.store.activity import ActivityTables
+from undream.store.events import EventMethods
 from undream.store.blobs import (
     BlobStore, array_digest, array_key, attack_state_key, final_texture_key, grad_prefix, run_prefix, seen_key,
     texture_blob_key,
@@ -83,7 +84,7 @@ def _state_doc(blobs: BlobStore, run_id: str, field: str, state: Any,
     return doc
 
 
-class Store(JobTables, LeaseMethods, ListMethods, ActivityTables):
+class Store(JobTables, LeaseMethods, ListMethods, ActivityTables, EventMethods):
     """Run state in a SQL database plus a blob folder; see :func:`undream.store.open_store`."""
 
     def __init__(self, engine: Engine, blobs: BlobStore) -> None:

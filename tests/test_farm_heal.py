@@ -1,0 +1,261 @@
+"""The farm heals its runs (issue 41, "Reliability"): a step whose planning failed is planned by the
+callback's retry; `undream status` names stalled runs and why; a stalled run's current work is sent
+again with an event line saying so; and workers do it by themselves.
+
+In-process with a real store (SQLite, and PostgreSQL where it runs) for the stages' decisions; the
+periodic heal runs through Redis and a real `undream worker` subprocess.
+"""
+from __future__ import annotations
+
+import datetime as dt
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from conftest import service_missing
+from farm_support import (
+    Farm, farm_inputs, free_db, fresh_postgres, make_scene, make_victim, redis_up, release_db, run_config,
+    wait_for, write_yaml,
+)
+from scheduler import stages
+from scheduler.heal import StallRule, heal, stall_reason, stalled
+from scheduler.local import LocalDispatch, drain
+from undream.errors import StoreError
+from undream.settings import load_settings
+from undream.spec.run import RunConfig
+from undream.store import open_store
+from undream.store.activity import RunHealth
+
+LOST = "queue_jobs: database error at 'postgresql://u:***@db/x': server closed the connection unexpectedly"
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory, mi):
+    root = tmp_path_factory.mktemp("farm_heal")
+    return {"victim": make_victim(root / "victim"), "scene": make_scene(root / "scene", n_frames=3)}
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def database(request):
+    """The run database's URL: SQLite in the blob folder (None), or a fresh PostgreSQL database."""
+    if request.param == "sqlite":
+        yield None
+        return
+    url, drop = fresh_postgres()
+    yield url
+    drop()
+
+
+def _run(tiny, tmp_path: Path, url: str | None, name: str = "heal"):
+    """A recorded run of 3 steps over the 3-frame scene; returns (store, run id, contexts)."""
+    from undream.engine.context import build_context
+
+    store = open_store(url, tmp_path / f"blobs-{name}")
+    config = RunConfig.from_json(run_config(tiny["scene"], tiny["victim"], name=name))
+    ctx = build_context(config, tiny["scene"])
+    options = stages.FarmOptions(frames_per_task=2, max_attempts=2, failure_budget=1)
+    return store, stages.create(store, config, 3, options, out_dir=str(tmp_path / f"out-{name}")), lambda _: ctx
+
+
+def _reference(tiny, tmp_path: Path) -> np.ndarray:
+    """The final texture of the same run with nothing lost."""
+    store, run_id, contexts = _run(tiny, tmp_path, None, "reference")
+    dispatch = LocalDispatch()
+    dispatch.start(run_id)
+    drain(store, contexts, dispatch)
+    return store.final_texture(run_id)
+
+
+# The callback whose planning fails, per phase planned: (phase, k) of the callback; (phase, k) planned
+FAILS = {"attack": (("attack", 0), ("attack", 1)), "pre": (("attack", 2), ("pre", 3)),
+         "adversarial": (("pre", 3), ("adversarial", 3))}
+
+
+@pytest.mark.parametrize("planned", list(FAILS))
+def test_a_callback_whose_planning_failed_after_its_step_plans_when_retried(tiny, tmp_path, database, planned,
+                                                                             monkeypatch):
+    """Chaos soak, issue 41: the database dropped between the step (committed) and recording the next
+    iteration's jobs; the retried callback found the run past its iteration, said "stale", and the run
+    stayed `running` with no job. Now the retry plans what is missing, once."""
+    store, run_id, contexts = _run(tiny, tmp_path, database)
+    (cb_phase, cb_k), (phase, k) = FAILS[planned]
+    claim, failed = store.claim_jobs, []
+
+    def drops_once(run, at, frames, ph, statuses):
+        if (ph, at) == (phase, k) and not failed:
+            failed.append(ph)
+            raise StoreError(LOST)
+        return claim(run, at, frames, ph, statuses)
+
+    monkeypatch.setattr(store, "claim_jobs", drops_once)
+    dispatch = LocalDispatch()
+    dispatch.start(run_id)
+    with pytest.raises(StoreError, match="server closed the connection"):
+        drain(store, contexts, dispatch)
+    run = store.get_run(run_id)
+    assert (run.status, run.iteration) == ("running" if planned == "attack" else "evaluating", k)
+    assert store.jobs(run_id, k, phase) == [] and not dispatch.queue  # the hang: nothing recorded, nothing sent
+
+    assert stages.collect(store, contexts, run_id, cb_phase, cb_k, dispatch) == "replanned"  # Celery's retry
+    assert [(item[2], item[3], sorted(sum(item[4], []))) for item in dispatch.queue] == [(phase, k, [0, 1, 2])]
+    assert {j.status for j in store.jobs(run_id, k, phase)} == {"queued"}
+    assert stages.collect(store, contexts, run_id, cb_phase, cb_k, dispatch) == "stale"  # a duplicate: nothing twice
+    assert len(dispatch.queue) == 1
+    drain(store, contexts, dispatch)
+    assert store.get_run(run_id).status == "done"
+    assert [r.k for r in store.iterations(run_id)] == [0, 1, 2]
+    np.testing.assert_array_equal(store.final_texture(run_id), _reference(tiny, tmp_path))
+
+
+def test_two_callbacks_of_one_iteration_queue_the_next_once(tiny, tmp_path):
+    store, run_id, contexts = _run(tiny, tmp_path, None)
+    dispatch = LocalDispatch()
+    stages.start(store, contexts, run_id, dispatch)
+    _, _, phase, k, parts = dispatch.queue.popleft()
+    for part in parts:
+        stages.run_batch(store, contexts, run_id, phase, k, part)
+    assert stages.collect(store, contexts, run_id, "attack", 0, dispatch) == "stepped"
+    assert stages.collect(store, contexts, run_id, "attack", 0, dispatch) == "stale"
+    assert [item[:4] for item in dispatch.queue] == [("frames", run_id, "attack", 1)]
+
+
+# -- the stall rule ------------------------------------------------------------------------------
+
+NOW = dt.datetime(2026, 11, 28, 20, 0, tzinfo=dt.timezone.utc)
+RULE = StallRule(after_s=600, started_s=600 + 3600)
+
+
+def _health(status: str = "running", quiet_s: float = 900, unfinished: int = 0, started: int = 0) -> RunHealth:
+    then = NOW - dt.timedelta(seconds=quiet_s)
+    return RunHealth("r1", "r", status, 4, then, 0, {}, None, unfinished, 0, then if unfinished else None, started)
+
+
+def test_the_stall_rule_says_why_and_leaves_long_jobs_and_recent_runs_alone():
+    assert stall_reason(_health("queued"), NOW, RULE) == "queued, its start not run for 15 min"
+    assert stall_reason(_health(), NOW, RULE) == \
+        "no job queued or started at k=4 for 15 min (its callback lost, or it found nothing to do)"
+    assert stall_reason(_health(unfinished=3), NOW, RULE) == \
+        "3 job(s) queued at k=4, none started for 15 min (their messages lost)"
+    assert stall_reason(_health(unfinished=3, started=1), NOW, RULE) is None  # a long job: the broker's
+    assert stall_reason(_health(unfinished=3, started=1, quiet_s=4300), NOW, RULE) == \
+        "1 job(s) started at k=4, nothing finished for 71 min (the broker lost them)"
+    assert stall_reason(_health(quiet_s=599), NOW, RULE) is None
+    assert stall_reason(_health(), NOW, StallRule(0, 0)) is None  # heal_after 0: never
+
+
+def _stalled_farm(blobs: Path) -> dict[str, str]:
+    """Runs recorded without Mitsuba: one running with no job (``nojob``), one with jobs queued and
+    none started (``lost``), one with a job started (``busy``) and one its own process drives (``local``)."""
+    with open_store(None, blobs) as store:
+        ids = {}
+        for name in ("nojob", "lost", "busy", "local"):
+            config = RunConfig.from_json({"scene": "s", "name": name, "attack": {"name": "pgd", "steps": 2}})
+            ids[name] = store.create_run(config.name, config.to_json(), 3, 0)
+            store.transition(ids[name], ("queued",), "running")
+        for name in ("lost", "busy", "local"):
+            store.queue_jobs(ids[name], 0, [0, 1, 2])
+        store.job_started(ids["busy"], 0, 1, worker="node:1")
+        assert store.claim(ids["local"], "node:2")
+    return ids
+
+
+def test_status_names_the_stalled_runs_while_every_queue_has_a_live_worker(tmp_path):
+    """Chaos soak, issue 41: `undream status` said "stuck: none" for runs with nothing in flight,
+    because every queue had a live worker."""
+    from workers.presence import announce
+    from workers.queues import QUEUES
+
+    if (reason := redis_up()) is not None:
+        service_missing(reason)
+    ids = _stalled_farm(tmp_path)
+    db = free_db()
+    env = {"UNDREAM_BLOB_URL": str(tmp_path), "UNDREAM_BROKER_URL": f"redis://127.0.0.1:6379/{db}",
+           "UNDREAM_HEAL_AFTER": "1"}
+    withdraw = announce(load_settings(env=env), "w1@host", QUEUES)
+    try:
+        time.sleep(1.2)
+        from undream.cli import main
+
+        res = CliRunner().invoke(main, ["status"], env=env, catch_exceptions=False)
+    finally:
+        withdraw()
+        release_db(db)
+    assert res.exit_code == 0, res.output
+    assert "stuck: 0 waiting, 0 failing, 2 stalled" in res.output, res.output
+    stuck = res.output.split("stuck:")[1]
+    assert ids["nojob"][:8] in stuck and "no job queued or started at k=0" in stuck
+    assert ids["lost"][:8] in stuck and "3 job(s) queued at k=0, none started" in stuck
+    assert ids["busy"][:8] not in stuck and ids["local"][:8] not in stuck
+
+
+def test_a_stalled_run_is_healed_once_with_an_event_and_finishes(tiny, tmp_path):
+    """The iteration's jobs ran; its callback was lost (a restarted broker). The heal sends the work
+    without a result (none) and the callback; the run finishes as if nothing happened."""
+    store, run_id, contexts = _run(tiny, tmp_path, None)
+    dispatch = LocalDispatch()
+    stages.start(store, contexts, run_id, dispatch)
+    _, _, phase, k, parts = dispatch.queue.popleft()
+    for part in parts:
+        stages.run_batch(store, contexts, run_id, phase, k, part)  # then the callback is lost
+    rule = StallRule(after_s=0.5, started_s=10)
+    assert stalled(store, rule) == []  # not quiet for long enough yet
+    time.sleep(0.6)
+    healed = heal(store, dispatch, rule, by="node:7")
+    assert healed == [{"run_id": run_id, "sent": "attack",
+                       "reason": healed[0]["reason"]}] and "no job queued or started at k=0" in healed[0]["reason"]
+    assert list(dispatch.queue) == [("frames", run_id, "attack", 0, [])]  # the callback alone: every job succeeded
+    (event,) = store.events(run_id)
+    assert event.by == "node:7" and event.line.startswith("healed: no job queued or started at k=0")
+    assert event.line.endswith("sent again: its attack jobs without a result, then their callback")
+    assert heal(store, dispatch, rule, by="node:7") == []  # healed: quiet again only after heal_after
+    drain(store, contexts, dispatch)
+    assert store.get_run(run_id).status == "done"
+    np.testing.assert_array_equal(store.final_texture(run_id), _reference(tiny, tmp_path))
+
+
+# -- workers heal by themselves ------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def farm_tiny(tmp_path_factory, mi):
+    return farm_inputs(tmp_path_factory, "farm_heal_int", 4)
+
+
+@pytest.mark.slow
+def test_a_worker_heals_a_run_whose_broker_lost_everything(farm_tiny):
+    """Chaos soak, issue 41: the worker is SIGKILLed mid-run and the broker's database emptied (a
+    restarted Redis without persistence): the run stays `running` with nothing in flight. A new
+    worker, left alone, finds it stalled, sends its current work again with an event line saying
+    so, and the run ends with the undisturbed run's texture."""
+    from scheduler.local import run_local
+
+    farm = Farm(farm_tiny["root"] / "heal", heal_after=4, heal_interval=1)
+    farm.root.mkdir()
+    cfg = run_config(farm_tiny["scene"], farm_tiny["victim"], name="healed", steps=6, sim_spp=128, grad_spp=16)
+    try:
+        first = farm.start_worker()
+        run_id = farm.submit(write_yaml(farm.root / "healed.yaml", cfg))
+        wait_for(lambda: farm.store.get_run(run_id).iteration >= 1, 90, "the run to step", interval=0.02)
+        farm.kill_worker(first)
+        from farm_support import redis_client
+
+        redis_client(farm.db).flushdb()  # the broker's queues, unacked jobs and chord counters: gone
+        at_kill = farm.store.get_run(run_id)
+        assert at_kill.status in ("running", "evaluating") and at_kill.iteration < 6
+        farm.start_worker()
+        run = farm.wait_status(run_id, timeout=150)
+        events = farm.store.events(run_id)
+        assert events and all(e.line.startswith("healed: ") and e.by.startswith("undream worker ") for e in events)
+        assert [r.k for r in farm.store.iterations(run_id)] == list(range(6)) and run.failures == 0
+        run_local(RunConfig.from_json(cfg), farm.root / "reference", progress=False)
+        out = Path(run.out_dir) if run.out_dir else farm.blobs / "outputs" / f"{run.name}-{run_id[:8]}"
+        np.testing.assert_array_equal(np.load(out / "texture_final.npy"),
+                                      np.load(farm.root / "reference" / "texture_final.npy"))
+        res = farm.cli("status", run_id)
+        assert res.returncode == 0 and "events:" in res.stdout and "healed: " in res.stdout, res.stdout
+    finally:
+        farm.stop()
