@@ -13,21 +13,25 @@ grepped for it: zero hits, while the run itself worked.
 """
 from __future__ import annotations
 
+import json
+import os
 import re
 import subprocess
 import sys
+import uuid
 from pathlib import Path
 
 import pytest
 
-from farm_support import ROOT, Farm, farm_inputs, fresh_postgres, run_config, write_yaml
+from conftest import s3_bucket, service_missing
+from farm_support import ROOT, Farm, farm_inputs, fresh_postgres, redis_up, run_config, write_yaml
 
 PLANTED = "s3cr3t-PLANTED-7f3a9"
 
 
-def _planted(url: str) -> str:
-    """``url`` (postgresql+psycopg://postgres@host/db) with the planted password."""
-    return re.sub(r"://([^:@/]+)@", rf"://\1:{PLANTED}@", url, count=1)
+def _planted(url: str, password: str = PLANTED) -> str:
+    """``url`` (postgresql+psycopg://postgres@host/db) with the planted ``password``."""
+    return re.sub(r"://([^:@/]+)@", lambda m: f"://{m[1]}:{password}@", url, count=1)
 
 
 def _hits(folder: Path) -> list[str]:
@@ -96,6 +100,116 @@ def test_an_unreachable_database_is_one_line_without_its_password(tmp_path):
         res = _cli(*args)
         assert res.returncode == 2, res.stderr
         assert len(res.stderr.strip().splitlines()) == 1 and PLANTED not in res.stderr + res.stdout
+
+
+# A password as SQLAlchemy takes it unencoded: '/' and ':' (issue 41: the redaction stopped at '/').
+SLASHED = "ab/PLANTED:x/9"
+
+
+def _pieces(password: str) -> list[str]:
+    """``password`` and each of its runs between URL punctuation, four characters or more."""
+    return [password] + [p for p in re.split(r"[/:@?#]", password) if len(p) >= 4]
+
+
+def test_a_password_with_slashes_and_colons_is_kept_in_the_store(inputs, tmp_path):
+    """Issue 41: ``postgresql://u:ab/cd@host/db`` (a working URL: SQLAlchemy reads the password
+    ``ab/cd``) was not redacted: metadata.json, the report, the dashboard's run page and
+    /api/runs/<id> showed it. A local run on such a URL, its report and every dashboard page of
+    the run keep every piece of it in the store."""
+    from undream.dashboard.app import create_app
+    from undream.settings import load_settings
+
+    url, drop = fresh_postgres()
+    database = _planted(url, SLASHED)
+    try:
+        cfg = write_yaml(tmp_path / "run.yaml", run_config(inputs["scene"], inputs["victim"], steps=1,
+                                                           store=database))
+        out, report = tmp_path / "out", tmp_path / "report"
+        run = _cli("run", str(cfg), "--out", str(out), "--no-progress")
+        assert run.returncode == 0, run.stderr[-3000:]
+        rep = _cli("report", str(out), "--out", str(report), "--database", database)
+        assert rep.returncode == 0, rep.stderr
+        assert "postgres:***@127.0.0.1" in (out / "metadata.json").read_text()
+        client = create_app(load_settings(env={"UNDREAM_DATABASE_URL": database,
+                                               "UNDREAM_BLOB_URL": str(tmp_path / "blobs")})).test_client()
+        run_id = json.loads((out / "metadata.json").read_text())["run_id"]
+        pages = _every_page(client.application, run_id, "0")
+        assert f"/api/runs/{run_id}" in pages and len(pages) >= 10, pages
+        texts = {page: client.get(page, headers={"Host": "localhost"}).get_data(as_text=True) for page in pages}
+        assert "postgres:***@127.0.0.1" in texts[f"/api/runs/{run_id}"]
+        texts.update({str(p): p.read_text(errors="replace") for d in (out, report) for p in d.rglob("*")
+                      if p.is_file() and p.suffix in (".json", ".html", ".csv", ".txt", ".log")})
+        texts["stdout+stderr"] = run.stdout + run.stderr + rep.stdout + rep.stderr
+        leaks = sorted((where, piece) for where, text in texts.items() for piece in _pieces(SLASHED) if piece in text)
+        assert leaks == [], leaks
+    finally:
+        drop()
+
+
+@pytest.mark.parametrize("password", ["p@ss:PLANTED-1", "PLANTED-2@x@y", ":PLANTED-3@"])
+def test_a_broker_password_holding_at_signs_is_one_redacted_line(password, tmp_path):
+    """Redis and kombu read a broker password up to the host's '@' (``redis://:p@ss@host``): the
+    unreachable broker's error line shows none of it."""
+    res = _cli("worker", "--broker", f"redis://:{password}@127.0.0.1:1/0", "--database",
+               f"sqlite:///{tmp_path}/farm.db", "--blobs", str(tmp_path / "blobs"))
+    lines = res.stderr.strip().splitlines()
+    assert res.returncode == 2 and len(lines) == 1 and "redis://:***@127.0.0.1:1/0" in lines[0], res.stderr
+    assert not [p for p in _pieces(password) if p in res.stderr + res.stdout], res.stderr
+
+
+# `undream worker`, with Celery's loop replaced by what its log sees: Celery's logging set up at the
+# worker's --loglevel (as `celery worker` does), then a blob written and read through the farm's S3
+# store (as a task does). Every request signature botocore computes is recorded to grep the log for.
+_WORKER = """
+import sys
+import botocore.auth, celery
+
+signatures = []
+_sign = botocore.auth.SigV4Auth.signature
+
+def signature(self, string_to_sign, request):
+    signatures.append(_sign(self, string_to_sign, request))
+    return signatures[-1]
+
+def worker_main(self, argv):
+    from undream.store import open_farm_store
+    level = next(a.split("=", 1)[1] for a in argv if a.startswith("--loglevel="))
+    self.log.setup(loglevel=level, logfile=sys.argv[1], redirect_stdouts=False)
+    with open_farm_store(self.undream_settings) as store:
+        store.blobs.put_bytes("probe/blob", b"x")
+        store.blobs.get_bytes("probe/blob")
+    with open(sys.argv[2], "w") as f:
+        f.write("\\n".join(signatures))
+
+botocore.auth.SigV4Auth.signature = signature
+celery.Celery.worker_main = worker_main
+from undream.cli import main
+main(sys.argv[3:], prog_name="undream")
+"""
+
+
+def test_a_debug_worker_on_s3_blobs_logs_no_key_signature_or_authorization(s3_server, tmp_path):
+    """Issue 41: ``undream worker --loglevel DEBUG`` with ``s3://`` blobs wrote botocore's request
+    dumps (``Authorization: AWS4-HMAC-SHA256 Credential=<key id>/…, Signature=<hex>``, the
+    ``Signature:`` line of the signer) to the log. The log still holds those DEBUG lines, masked."""
+    reason = redis_up()  # the worker's first check: the broker answers
+    if reason:
+        service_missing(reason)
+    bucket = s3_bucket(s3_server, f"debug-{uuid.uuid4().hex[:8]}")
+    log, signed = tmp_path / "worker.log", tmp_path / "signatures"
+    env = {**os.environ, "UNDREAM_S3_ENDPOINT_URL": s3_server["endpoint"], "UNDREAM_S3_REGION": "us-east-1",
+           "UNDREAM_S3_ACCESS_KEY_ID": s3_server["key_id"], "UNDREAM_S3_SECRET_ACCESS_KEY": s3_server["secret"]}
+    res = subprocess.run([sys.executable, "-c", _WORKER, str(log), str(signed), "worker", "--loglevel", "DEBUG",
+                          "--broker", "redis://127.0.0.1:6379/0", "--database", f"sqlite:///{tmp_path}/farm.db",
+                          "--blobs", f"s3://{bucket}/blobs"], capture_output=True, text=True, cwd=ROOT, env=env,
+                         timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    text = log.read_text() + res.stdout + res.stderr
+    signatures = signed.read_text().split()
+    assert signatures and "Sending http request" in text, text[-3000:]  # the DEBUG dumps are there
+    assert "'Authorization': b'***'" in text and "Signature:\n***" in text, text[-3000:]
+    secrets = [s3_server["key_id"], s3_server["secret"], *signatures]
+    assert [s for s in secrets if s in text] == []
 
 
 def test_a_farm_run_and_every_dashboard_page_keep_the_password_in_the_store(inputs, database, tmp_path):

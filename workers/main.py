@@ -7,6 +7,7 @@ import socket
 import sys
 from typing import TYPE_CHECKING, Any, Callable
 
+from undream.redact import install_log_redaction
 from workers.app import QUEUES, create_celery_app
 from workers.healer import start_healer
 from workers.presence import announce
@@ -33,9 +34,13 @@ def worker_argv(settings: "Settings", loglevel: str = "INFO", hostname: str | No
 
 
 def run_worker(settings: "Settings", loglevel: str = "INFO", hostname: str | None = None) -> None:
-    """Run a worker until it is stopped (blocks)."""
+    """Run a worker until it is stopped (blocks). Every log record of the worker and of its child
+    processes is redacted, at every level (:func:`undream.redact.install_log_redaction`): at
+    ``--loglevel DEBUG`` botocore dumps each S3 request, and its ``Authorization`` header,
+    signature, access key id and this worker's S3 keys are ``***`` in the log."""
     from celery import signals
 
+    install_log_redaction((settings.s3_access_key_id, settings.s3_secret_access_key))
     app = create_celery_app(settings)
     node = node_name(hostname)
     withdraw: list[Callable[[], None]] = []

@@ -17,7 +17,7 @@ from undream.cli.errors import one_line_errors
 from undream.cli.farm import _run_store, _store, settings_options
 from undream.cli.options import out_option
 from undream.errors import SpecError, StoreError
-from undream.redact import redact_text
+from undream.redact import redact
 
 if TYPE_CHECKING:
     from undream.report import Target
@@ -70,7 +70,7 @@ def _command(target: str, out: Path) -> str:
     """The command line as given (settings flags included, their secrets redacted), for the captions."""
     params = click.get_current_context().params
     flags = [part for name, flag in SETTINGS_FLAGS if params.get(name) is not None
-             for part in (flag, redact_text(str(params[name])))]
+             for part in (flag, str(redact(str(params[name]))))]
     return shlex.join(["undream", "report", target, "--out", str(out), *flags])
 
 

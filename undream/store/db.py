@@ -22,7 +22,6 @@ fork, never before.
 """
 from __future__ import annotations
 
-import re
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -32,6 +31,7 @@ from sqlalchemy.exc import ArgumentError, NoSuchModuleError, SQLAlchemyError
 from sqlalchemy.pool import StaticPool
 
 from undream.errors import StoreError
+from undream.redact import redact
 from undream.store.blob_db import DatabaseBackend
 from undream.store.blob_s3 import S3Backend  # imports boto3 only when it makes a client
 from undream.store.blobs import DATABASE, BlobOptions, BlobStore, BlobURL, parse_blob_url
@@ -49,11 +49,10 @@ _CREATE_LOCK = 0x756E6472  # PostgreSQL advisory lock id held while creating tab
 
 
 def mask_url(url: str) -> str:
-    """``url`` with its password replaced by ``***``, parseable or not."""
-    try:
-        return make_url(url).render_as_string(hide_password=True)
-    except (ArgumentError, ValueError):
-        return re.sub(r"(://[^:/@]*:)[^@]*@", r"\1***@", url)
+    """``url`` with its password replaced by ``***``, parseable or not, whatever characters the
+    password holds (:func:`undream.redact.redact`: not SQLAlchemy's reading alone, which shows the
+    ``ss`` of ``redis://:p@ss@host`` as part of the host)."""
+    return str(redact(url))
 
 
 def _parse(url: str) -> URL:
