@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import shutil
+import stat
 from pathlib import Path
 
 import numpy as np
@@ -143,6 +145,56 @@ def test_an_output_file_never_replaces_an_input_or_a_result(inputs, tmp_path, ca
     if kept is not None:
         assert kept.read_bytes() == before
     assert not (tmp_path / "rows").exists()
+
+
+@pytest.mark.parametrize("case", ["victim folder", "settings", "settings variable", "fifo", "device", "symlink",
+                                  "victim of the run"])
+def test_an_output_file_never_replaces_a_victim_file_the_settings_or_a_special_file(inputs, tmp_path, case):
+    """Issue 41: ``--json myvictim/config.json --victim ./myvictim`` overwrote the victim's config,
+    ``--json``/``--csv`` naming the ``--settings`` file overwrote it, and a FIFO or a device was
+    replaced by a regular file. Each is refused in one line before any render and left as it was."""
+
+    base, scene = inputs["base"], inputs["scene"]
+    victim = tmp_path / "myvictim"
+    shutil.copytree(inputs["victim"], victim)
+    settings = tmp_path / "settings.yaml"
+    settings.write_text(f"blob_url: {tmp_path / 'blobs'}\n")
+    texture, extra, env = str(base / "texture.npy"), ["--victim", str(victim)], {}
+    if case == "victim folder":
+        target, needle = victim / "config.json", f"lies in {victim}, this command's input"
+    elif case in ("settings", "settings variable"):
+        target, needle = settings, "is this command's input"
+        extra += ["--settings", str(settings)] if case == "settings" else []
+        env = {} if case == "settings" else {"UNDREAM_SETTINGS": str(settings)}
+    elif case == "fifo":
+        target, needle = tmp_path / "rows.fifo", "is a FIFO (named pipe), not a regular file"
+        os.mkfifo(target)
+    elif case == "device":  # a node of its own (never /dev/null: a regression run as root would replace it)
+        target, needle = tmp_path / "null", "is a character device, not a regular file"
+        try:
+            os.mknod(target, stat.S_IFCHR | 0o666, os.makedev(1, 3))
+        except PermissionError:
+            pytest.skip("no permission to make a device node (mknod) here")
+    elif case == "symlink":
+        target, needle = tmp_path / "latest.json", "is a symbolic link, not a regular file"
+        (tmp_path / "rows.json").write_text("an earlier evaluation\n")
+        target.symlink_to(tmp_path / "rows.json")
+    else:  # TEXTURE is a run folder whose config names ./myvictim: judged by it, so it is an input
+        run = tmp_path / "run"
+        run.mkdir()
+        np.save(run / "texture_final.npy", np.load(base / "texture.npy"))
+        (run / "metadata.json").write_text(json.dumps({"undream_output": "run", "config": {"victim": str(victim)}}))
+        texture, extra, target = str(run), [], victim / "preprocessor_config.json"
+        needle = f"lies in {victim}, this command's input"
+    kind = os.lstat(target).st_mode
+    before = None if case in ("fifo", "device") else target.read_bytes()
+    option = "--csv" if case == "settings variable" else "--json"
+    res = _evaluate(texture, str(scene), *extra, "--spp", "1", option, str(target), env=env)
+    lines = [line for line in res.output.strip().splitlines() if line and not line.startswith("victim:")]
+    assert res.exit_code == 2 and len(lines) == 1 and f"{option} {target}: " in lines[0], res.output
+    assert needle in lines[0], res.output
+    assert os.lstat(target).st_mode == kind and (before is None or target.read_bytes() == before)
+    assert "→" not in res.output  # no table: nothing was rendered
 
 
 def test_an_output_file_may_be_new_in_a_run_folder_or_replace_a_file_of_ones_own(inputs, tmp_path):

@@ -211,6 +211,13 @@ def _from_file(path: Path) -> dict[str, Any]:
     return {k: _coerce(f"{path}: {k}", k, v) for k, v in data.items()}
 
 
+def settings_file(file: str | Path | None = None, env: Mapping[str, str] | None = None) -> str | Path | None:
+    """The settings file :func:`load_settings` reads: ``file``, else ``$UNDREAM_SETTINGS`` of ``env``
+    (default ``os.environ``); None when neither names one."""
+    env = os.environ if env is None else env
+    return file or env.get(SETTINGS_ENV) or None
+
+
 def load_settings(file: str | Path | None = None, env: Mapping[str, str] | None = None,
                   **overrides: Any) -> Settings:
     """Defaults, then ``file`` (or ``$UNDREAM_SETTINGS``), then ``UNDREAM_*`` variables of
@@ -223,7 +230,7 @@ def load_settings(file: str | Path | None = None, env: Mapping[str, str] | None 
         if var is not None:
             values[name] = env[var]
             sources[name] = var
-    path = file or env.get(SETTINGS_ENV)
+    path = settings_file(file, env)
     if path:
         values.update(_from_file(Path(path)))
         sources.update({k: f"{path}: {k}" for k in values})

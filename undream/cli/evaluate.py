@@ -46,17 +46,16 @@ def evaluate_cmd(texture: Path, scenes: tuple[Path, ...], victims: tuple[str, ..
     victim, rendered by one simulator: per scene, victim and texture, on every frame and apart on the
     frames a run would attack and hold out, beside the scene's own texture."""
     from scheduler.evaluate import evaluate
-    from scheduler.preflight import check_output_files
     from undream.spec.io import atomic_write
 
-    # before the renders, not after: a path that cannot be written, or one of the inputs
-    check_output_files((("--json", json_out), ("--csv", csv_out), ("--frames-csv", frames_out)),
-                       inputs=(texture, *scenes))
+    outputs = (("--json", json_out), ("--csv", csv_out), ("--frames-csv", frames_out))
+    _check_outputs(outputs, texture, scenes, victims)  # before the renders, not after
     per_frame: list[dict[str, Any]] | None = None if frames_out is None else []
     attacked: list[str] | None = None if victims else []  # the runs' configs read only when --victim is not given
     textures = _textures(texture, settings, attacked)
     if attacked is not None:  # judged by the victim it was made against, not silently by another
         victims = tuple(attacked) or (DEFAULT_VICTIM,)
+        _check_outputs(outputs, texture, scenes, victims)  # a victim folder named by the runs' config
         source = "the one TEXTURE was attacked against" if attacked else "the default"
         click.echo(f"victim: {', '.join(victims)} ({source}; --victim to choose)", err=True)
     rows = evaluate(textures, scenes, victims, sim=sim, spp=spp, holdout=holdout, label=label,
@@ -68,6 +67,20 @@ def evaluate_cmd(texture: Path, scenes: tuple[Path, ...], victims: tuple[str, ..
         atomic_write(csv_out, _csv(rows))
     if frames_out is not None and per_frame is not None:
         atomic_write(frames_out, _csv(per_frame))
+
+
+def _check_outputs(outputs: tuple[tuple[str, Path | None], ...], texture: Path, scenes: tuple[Path, ...],
+                   victims: tuple[str, ...]) -> None:
+    """The output files' rule (:func:`scheduler.preflight.check_output_files`) with every input of
+    the command: the texture, the scenes, each victim that is a folder or file (``./myvictim``) and
+    the settings file (``--settings``, else ``$UNDREAM_SETTINGS``); one line, before any render."""
+    from scheduler.preflight import check_output_files
+    from undream.settings import settings_file
+
+    given = click.get_current_context().params.get("settings_file")  # taken by settings_options
+    named = settings_file(given)
+    check_output_files(outputs, inputs=(texture, *scenes, *map(Path, victims),
+                                        None if named is None else Path(named)))
 
 
 def _csv(rows: list[dict[str, Any]]) -> str:
