@@ -259,3 +259,71 @@ def test_a_worker_heals_a_run_whose_broker_lost_everything(farm_tiny):
         assert res.returncode == 0 and "events:" in res.stdout and "healed: " in res.stdout, res.stdout
     finally:
         farm.stop()
+
+
+# -- a worker's database ---------------------------------------------------------------------------
+
+
+def _settings(blobs: Path, database: str | None):
+    env = {"UNDREAM_BLOB_URL": str(blobs), "UNDREAM_CACHE_DIR": str(blobs.parent / "cache")}
+    return load_settings(env={**env, "UNDREAM_DATABASE_URL": database} if database else env)
+
+
+def test_a_worker_refuses_a_database_that_is_not_the_farms_and_creates_nothing(tmp_path):
+    """Chaos soak, issue 41: a worker pointed at `sqlite:///elsewhere.db` made that file and took a real
+    run's start message. Where the farm's blob store holds its runs' packed scenes, a database without
+    the farm's tables is refused, in one line, and not created; a new farm's database is made as before."""
+    from workers.startup import NotTheFarm, farm_store
+
+    blobs, elsewhere = tmp_path / "blobs", tmp_path / "elsewhere.db"
+    with farm_store(_settings(blobs, None)) as store:  # a new farm: the default SQLite file is made
+        assert store.runs() == [] and (blobs / "undream.db").is_file()
+    (blobs / "scenes").mkdir()
+    (blobs / "scenes" / f"{'0' * 64}.tar").write_bytes(b"a run's scene")
+    with pytest.raises(NotTheFarm) as refused:
+        farm_store(_settings(blobs, f"sqlite:///{elsewhere}"))
+    assert str(refused.value) == (
+        f"database_url 'sqlite:///{elsewhere}': not the farm's database (none of the farm's tables, while "
+        f"blob_url '{blobs}' holds 1 packed scene(s) of its runs); give the farm's --database "
+        "(UNDREAM_DATABASE_URL); nothing was created")
+    assert not elsewhere.exists()
+    with farm_store(_settings(blobs, None)) as store:  # the farm's own database: opened
+        assert store.runs() == []
+
+
+@pytest.mark.slow
+def test_undream_worker_on_another_database_exits_in_one_line(tmp_path):
+    if (reason := redis_up()) is not None:
+        service_missing(reason)
+    farm = Farm(tmp_path)
+    try:
+        (farm.blobs / "scenes").mkdir(parents=True)
+        (farm.blobs / "scenes" / f"{'1' * 64}.tar").write_bytes(b"a run's scene")
+        farm.env["UNDREAM_DATABASE_URL"] = f"sqlite:///{tmp_path / 'elsewhere.db'}"
+        res = farm.cli("worker", timeout=60)
+        assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+        assert "not the farm's database" in res.stderr and not (tmp_path / "elsewhere.db").exists()
+    finally:
+        farm.stop()
+
+
+def test_a_worker_waits_for_a_database_that_does_not_answer(tmp_path):
+    from workers.startup import wait_for_store
+
+    settings = _settings(tmp_path / "blobs", "postgresql://alice:s3cret@127.0.0.1:1/farm")
+    lines, waits = [], []
+
+    class Enough(Exception):
+        pass
+
+    def sleep(seconds: float) -> None:
+        waits.append(seconds)
+        if len(waits) == 7:
+            raise Enough
+
+    with pytest.raises(Enough):
+        wait_for_store(settings, lines.append, sleep)
+    assert waits == [1, 2, 4, 8, 16, 30, 30]
+    assert lines[0].startswith("undream worker: waiting for the run database: cannot reach the run database at "
+                               "'postgresql://alice:***@127.0.0.1:1/farm'") and lines[0].endswith("trying again in 1 s")
+    assert not any("s3cret" in line for line in lines)

@@ -124,11 +124,29 @@ def test_a_worker_refuses_to_start_on_a_read_only_blob_folder(farm, read_only):
     assert not list(read_only.iterdir())
 
 
-def test_a_worker_refuses_to_start_when_its_database_is_unreachable(farm):
+def test_a_worker_waits_for_its_unreachable_database_saying_so(farm):
+    """Issue 41: a worker exited when its database did not answer at start-up (a database started
+    after the workers); it now waits, as for its broker, a line at each try, its password hidden."""
+    import sys
+
+    from farm_support import ROOT, wait_for
+
     farm.env["UNDREAM_DATABASE_URL"] = "postgresql://alice:s3cret@127.0.0.1:1/farm"
-    line = _one_line(farm.cli("worker", timeout=60), "cannot open the run database at",
-                     "postgresql://alice:***@127.0.0.1:1/farm")
-    assert "s3cret" not in line
+    log = farm.root / "waiting.log"
+    farm.root.mkdir(exist_ok=True)
+    with open(log, "w") as out:
+        proc = subprocess.Popen([sys.executable, "-m", "undream.cli", "worker"], cwd=ROOT, env=farm.env,
+                                stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        wait_for(lambda: log.read_text().count("waiting for the run database") >= 2 or proc.poll() is not None,
+                 60, "two waiting lines")
+        assert proc.poll() is None, log.read_text()
+    finally:
+        proc.kill()
+        proc.wait(10)
+    text = log.read_text()
+    assert "cannot reach the run database at 'postgresql://alice:***@127.0.0.1:1/farm'" in text, text
+    assert "trying again in 1 s" in text and "trying again in 2 s" in text and "s3cret" not in text
 
 
 def test_a_run_whose_start_gives_up_is_failed_with_the_reason_in_status(farm, tiny):

@@ -157,10 +157,12 @@ def worker_cmd(concurrency: int | None, threads: int | None, loglevel: str,
                settings: Callable[..., "Settings"]) -> None:
     """Run a farm worker (a prefork Celery worker; Mitsuba only in its child processes)."""
     from workers.main import run_worker
+    from workers.startup import wait_for_store
 
     cfg = settings(concurrency=concurrency, drjit_threads=threads)
     _app(cfg)
-    with _store(cfg) as store:  # reachable; each worker process opens its own connections
+    # waited for, never another farm's; each worker process opens its own connections
+    with wait_for_store(cfg, lambda line: click.echo(line, err=True)) as store:
         store.blobs.check_writable()  # else its runs' start would retry, give up and stay queued
     run_worker(cfg, loglevel)
 
