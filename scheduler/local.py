@@ -15,7 +15,7 @@ from typing import Any
 
 from scheduler import stages
 from scheduler.options import attacked_positions
-from scheduler.preflight import (check_output_folder, is_run_output, is_scene, mark_output, preflight, scene_source,
+from scheduler.preflight import (check_output_folder, claim_output, is_run_output, is_scene, preflight, scene_source,
                                  scene_sources)
 from undream import interrupts
 from undream.engine.context import RunContext, build_context
@@ -120,12 +120,12 @@ def run_local(config: RunConfig, out: str | Path, base_dir: Path | None = None, 
             raise SpecError("--resume continues the run in --out and --force replaces it: give one of them")
         return resume_local(config, out, base_dir, progress, source, local)
     check_output_folder(out, scene_source(config, base_dir), force, inputs=(source, *scene_sources(config, base_dir)[1:]))  # cheap refusals first
+    replace = out.exists() and any(out.iterdir())  # as checked: --force and a folder `undream run` wrote
     victim = preflight(config, base_dir, source, local).victim  # nothing written or deleted before this passes
-    if out.exists() and any(out.iterdir()):
-        shutil.rmtree(out)  # check_output_folder: --force and a folder `undream run` wrote
-    out.mkdir(parents=True, exist_ok=True)
+    if replace:
+        shutil.rmtree(out)
+    claim_output(out, config)  # atomic: a run that claimed a new --out since the check keeps it whole
     try:  # until the run is recorded, a failure (a scene whose init fails, a signal) removes what it wrote
-        mark_output(out, config)
         scene_dir = resolve_scene(config, out, base_dir, local=local)
         ctx: RunContext = build_context(config, scene_dir, victim=victim, local=local)
         store = open_store(config.store, out / "store")

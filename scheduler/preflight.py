@@ -11,6 +11,7 @@ with the results), and never one that holds the run's own scene or spec.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import stat
@@ -270,7 +271,27 @@ def live_owner(out: Path) -> str | None:
     return None
 
 
-def mark_output(out: Path, config: RunConfig) -> None:
-    """Write the starting ``metadata.json`` that makes ``out`` a run's output folder."""
-    (Path(out) / METADATA).write_text(json.dumps({MARKER: "run", "status": "started",
-                                                  "config": redact(config.to_json())}, indent=1) + "\n")
+def claim_output(out: Path, config: RunConfig) -> None:
+    """Make ``out`` this run's output folder, atomically: create it (and its parents) if absent,
+    then its starting ``metadata.json`` exclusively (``O_EXCL``). Of two runs given the same new
+    ``--out``, both past :func:`check_output_folder`, one claims it and the other gets a one-line
+    SpecError and deletes nothing: the folder and its files are the winner's. A failure (a full
+    disk, a signal) while the file is written removes it, and the folder when this call made it."""
+    out = Path(out)
+    made = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        fd = os.open(out / METADATA, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+    except FileExistsError:
+        raise SpecError(f"--out {out}: another command claimed this folder after this run's checks (its "
+                        f"{METADATA} appeared); it is left as it is; choose another output folder") from None
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(json.dumps({MARKER: "run", "status": "started", "config": redact(config.to_json())},
+                               indent=1) + "\n")
+    except BaseException:
+        (out / METADATA).unlink(missing_ok=True)
+        if made:
+            with contextlib.suppress(OSError):  # not empty: another process wrote there meanwhile
+                out.rmdir()
+        raise

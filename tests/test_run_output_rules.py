@@ -8,8 +8,12 @@ from pathlib import Path
 
 import pytest
 import yaml
+from click.testing import CliRunner
 
+import scheduler.local
+from farm_support import make_scene, make_victim, run_config, write_yaml
 from scheduler.preflight import check_output_folder, is_run_output
+from undream.cli import main
 from undream.errors import SpecError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -165,3 +169,49 @@ def test_outputs_are_replaced_whole_or_not_at_all(tmp_path):
         atomic_write(target, dies)
     assert target.read_text() == '{"old": true}'
     assert sorted(p.name for p in tmp_path.iterdir()) == ["results.json"]
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """A 2-frame scene and a tiny local victim (no network, seconds to check)."""
+    base = tmp_path_factory.mktemp("tiny")
+    return {"scene": make_scene(base / "scene", n_frames=2), "victim": make_victim(base / "victim")}
+
+
+def test_two_runs_on_one_new_out_the_later_refuses_and_deletes_nothing(tiny, tmp_path, monkeypatch):
+    """Issue 41: two `undream run` on the same new --out (no --force), the second started a second
+    after the first: both checks passed while the folder did not exist, and the second then removed
+    the first's live folder. The race made deterministic: the first run claims the folder while the
+    second loads its victim (between its check and its first write). The second refuses in one line;
+    every file of the first is as it was."""
+    out = tmp_path / "out"
+    winner = {"metadata.json": json.dumps({"undream_output": "run", "status": "started"}) + "\n",
+              "store/runs.db": "the first run's store", "scene/sequence.json": "{}"}
+    real = scheduler.local.preflight
+
+    def preflight_while_the_first_run_claims(*args, **kwargs):
+        checked = real(*args, **kwargs)
+        assert not out.exists()  # this run's check saw no folder
+        for name, text in winner.items():
+            (out / name).parent.mkdir(parents=True, exist_ok=True)
+            (out / name).write_text(text)
+        return checked
+
+    monkeypatch.setattr(scheduler.local, "preflight", preflight_while_the_first_run_claims)
+    cfg = write_yaml(tmp_path / "run.yaml", run_config(tiny["scene"], tiny["victim"], steps=1))
+    res = CliRunner().invoke(main, ["run", str(cfg), "--out", str(out), "--no-progress"],
+                             env={"HF_HUB_OFFLINE": "1"})
+    lines = res.output.strip().splitlines()
+    assert res.exit_code == 2 and len(lines) == 1, res.output
+    assert f"--out {out}: another command claimed this folder" in lines[0], res.output
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file()) == sorted(winner)
+    assert all((out / name).read_text() == text for name, text in winner.items())
+
+
+def test_an_empty_out_is_claimed_by_the_one_run_that_writes_it(tiny, tmp_path):
+    """The claim leaves a lone run as it was: an existing empty --out is written without --force."""
+    out = tmp_path / "empty"
+    out.mkdir()
+    res = _run(write_yaml(tmp_path / "run.yaml", run_config(tiny["scene"], tiny["victim"], steps=1)), out, force=False)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert is_run_output(out) and (out / "results.json").is_file()
