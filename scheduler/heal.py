@@ -30,7 +30,7 @@ from __future__ import annotations
 import datetime as dt
 import logging
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Collection
 
 from undream.errors import StoreError
 
@@ -64,32 +64,44 @@ def _duration(seconds: float) -> str:
     return f"{s} s" if s < 120 else f"{s // 60} min" if s < 7200 else f"{s // 3600} h"
 
 
-def stall_reason(run: "RunHealth", now: dt.datetime, rule: StallRule) -> str | None:
-    """Why the quiet farm run ``run`` is stalled, in one line; None when it is not (a started
-    job, quiet for less than ``rule.started_s``; or quiet for less than ``rule.after_s``)."""
+def waits_for(run: "RunHealth") -> str:
+    """What the run's next work is, by the kinds of :meth:`undream.store.Store.stalled_runs`:
+    ``queued`` (its start), ``jobs`` (its current iteration's jobs) or ``callback``."""
+    if run.status == "queued":
+        return "queued"
+    return "jobs" if run.unfinished else "callback"
+
+
+def stall_reason(run: "RunHealth", now: dt.datetime, rule: StallRule, busy: Collection[str] = ()) -> str | None:
+    """Why the quiet farm run ``run`` is stalled, in one line; None when it is not: quiet for less
+    than ``rule.after_s``; a started job, quiet for less than ``rule.started_s``; or its next work
+    (:func:`waits_for`) is of a kind in ``busy``, whose queue holds messages: it may be waiting
+    behind other runs' work (a sweep's starts, a long frames queue), not lost; but not for longer
+    than ``rule.started_s``."""
     quiet = (now - (max(run.updated, run.last_job) if run.last_job else run.updated)).total_seconds()
     if rule.after_s <= 0 or quiet < rule.after_s:
         return None
     at, since = f"k={run.iteration}", _duration(quiet)
+    if run.started and quiet >= rule.started_s:
+        return f"{run.started} job(s) started at {at}, nothing finished for {since} (the broker lost them)"
+    if run.started or (waits_for(run) in busy and quiet < rule.started_s):  # a long queue, for an hour at most
+        return None
     if run.status == "queued":
         return f"queued, its start not run for {since}"
     if run.unfinished == 0:
         return f"no job queued or started at {at} for {since} (its callback lost, or it found nothing to do)"
-    if run.started == 0:
-        return f"{run.unfinished} job(s) queued at {at}, none started for {since} (their messages lost)"
-    if quiet >= rule.started_s:
-        return f"{run.started} job(s) started at {at}, nothing finished for {since} (the broker lost them)"
-    return None
+    return f"{run.unfinished} job(s) queued at {at}, none started for {since} (their messages lost)"
 
 
-def stalled(store: "Store", rule: StallRule, now: dt.datetime | None = None,
-            limit: int = HEAL_BATCH) -> list[tuple["RunHealth", str]]:
-    """The stalled farm runs (at most ``limit``, quiet longest first), each with why."""
+def stalled(store: "Store", rule: StallRule, now: dt.datetime | None = None, limit: int = HEAL_BATCH,
+            busy: Collection[str] = ()) -> list[tuple["RunHealth", str]]:
+    """The stalled farm runs (at most ``limit``, quiet longest first), each with why (``busy``:
+    see :func:`stall_reason`)."""
     if rule.after_s <= 0:
         return []
     now = now or dt.datetime.now(dt.timezone.utc)
     runs = store.quiet_runs(now - dt.timedelta(seconds=rule.after_s), limit)
-    return [(run, why) for run in runs if (why := stall_reason(run, now, rule)) is not None]
+    return [(run, why) for run in runs if (why := stall_reason(run, now, rule, busy)) is not None]
 
 
 def heal_run(store: "Store", run_id: str, dispatch: "Dispatch", why: str, by: str) -> str:
@@ -107,11 +119,12 @@ def _sent(phase: str) -> str:
 
 
 def heal(store: "Store", dispatch: "Dispatch", rule: StallRule, by: str, now: dt.datetime | None = None,
-         limit: int = HEAL_BATCH) -> list[dict[str, Any]]:
-    """One pass: heal every stalled run (at most ``limit``); returns what it did, a dict per run.
-    A run the store cannot heal now (the database away a moment) is logged and left to the next pass."""
+         limit: int = HEAL_BATCH, busy: Collection[str] = ()) -> list[dict[str, Any]]:
+    """One pass: heal every stalled run (at most ``limit``; ``busy``: see :func:`stall_reason`);
+    returns what it did, a dict per run. A run the store cannot heal now (the database away a
+    moment) is logged and left to the next pass."""
     healed = []
-    for run, why in stalled(store, rule, now, limit):
+    for run, why in stalled(store, rule, now, limit, busy):
         try:
             sent = heal_run(store, run.id, dispatch, why, by)
         except StoreError as err:

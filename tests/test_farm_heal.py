@@ -145,6 +145,12 @@ def test_the_stall_rule_says_why_and_leaves_long_jobs_and_recent_runs_alone():
         "1 job(s) started at k=4, nothing finished for 71 min (the broker lost them)"
     assert stall_reason(_health(quiet_s=599), NOW, RULE) is None
     assert stall_reason(_health(), NOW, StallRule(0, 0)) is None  # heal_after 0: never
+    # work that may be waiting behind other runs' (its queue holds messages) is not called lost, for an hour
+    assert stall_reason(_health("queued"), NOW, RULE, busy={"queued", "callback"}) is None
+    assert stall_reason(_health(), NOW, RULE, busy={"queued", "callback"}) is None
+    assert stall_reason(_health(unfinished=3), NOW, RULE, busy={"queued", "callback"}) is not None
+    assert stall_reason(_health(unfinished=3), NOW, RULE, busy={"jobs"}) is None
+    assert stall_reason(_health(unfinished=3, quiet_s=4300), NOW, RULE, busy={"jobs"}) is not None
 
 
 def _stalled_farm(blobs: Path) -> dict[str, str]:
@@ -161,6 +167,29 @@ def _stalled_farm(blobs: Path) -> dict[str, str]:
         store.job_started(ids["busy"], 0, 1, worker="node:1")
         assert store.claim(ids["local"], "node:2")
     return ids
+
+
+def test_the_backlog_of_a_queue_is_read_across_its_priorities():
+    from workers.health import busy_kinds
+    from workers.presence import PRIORITY_SEP, queue_backlog
+    from workers.queues import CONTROL_QUEUE, FRAMES_QUEUE, QUEUES
+
+    if (reason := redis_up()) is not None:
+        service_missing(reason)
+    db = free_db()
+    try:
+        settings = load_settings(env={"UNDREAM_BROKER_URL": f"redis://127.0.0.1:6379/{db}"})
+        assert queue_backlog(settings, QUEUES) == {CONTROL_QUEUE: 0, FRAMES_QUEUE: 0} and busy_kinds(settings) == set()
+        from farm_support import redis_client
+
+        redis_client(db).lpush(FRAMES_QUEUE, "a", "b")
+        redis_client(db).lpush(f"{CONTROL_QUEUE}{PRIORITY_SEP}3", "c")
+        assert queue_backlog(settings, QUEUES) == {CONTROL_QUEUE: 1, FRAMES_QUEUE: 2}
+        assert busy_kinds(settings) == {"queued", "callback", "jobs"}
+    finally:
+        release_db(db)
+    unreachable = load_settings(env={"UNDREAM_BROKER_URL": "redis://127.0.0.1:1/0", "UNDREAM_CONNECT_TIMEOUT": "1"})
+    assert busy_kinds(unreachable) == {"queued", "callback", "jobs"}  # unknown: nothing called lost
 
 
 def test_status_names_the_stalled_runs_while_every_queue_has_a_live_worker(tmp_path):

@@ -30,7 +30,7 @@ from scheduler.heal import StallRule, stalled
 from scheduler.options import FarmOptions
 from undream.redact import redact_text
 from undream.store import mask_url
-from workers.presence import live_queues
+from workers.presence import live_queues, queue_backlog
 from workers.queues import CONTROL_QUEUE, FRAMES_QUEUE
 
 if TYPE_CHECKING:
@@ -81,6 +81,17 @@ def probe(settings: "Settings") -> Consumers:
     return Consumers(None, f"Redis at {mask_url(settings.backend_url)!r} did not answer within {limit:g} s")
 
 
+def busy_kinds(settings: "Settings") -> frozenset[str]:
+    """What a run may be waiting for behind other runs' work: the kinds (:data:`WAITS_ON`) of the
+    queues that hold messages; every kind when the broker cannot be read (nothing is called
+    stalled that could be waiting). :func:`scheduler.heal.stall_reason` leaves those runs alone."""
+    try:
+        sizes = queue_backlog(settings, list(WAITS_ON))
+    except Exception:  # redis-py's ConnectionError, TimeoutError, a URL that is not Redis
+        sizes = dict.fromkeys(WAITS_ON, 1)
+    return frozenset(kind for queue, n in sizes.items() if n for kind in WAITS_ON[queue])
+
+
 def one_line(text: str, width: int = ERROR_WIDTH) -> str:
     """``text`` redacted (:func:`undream.redact.redact_text`), on one line, cut to ``width`` characters."""
     text = " ".join(redact_text(text).split())
@@ -119,25 +130,27 @@ def _stalled_first(row: dict[str, Any]) -> tuple[float, str]:
     return -row["stalled_s"], row["run_id"]
 
 
-def _stalled(store: "Store", rule: "StallRule | None", now: dt.datetime, shown: set[str],
-             limit: int) -> list[dict[str, Any]]:
+def _stalled(store: "Store", rule: "StallRule | None", busy: Callable[[], frozenset[str]], now: dt.datetime,
+             shown: set[str], limit: int) -> list[dict[str, Any]]:
     """The farm's stalled runs (:mod:`scheduler.heal`'s rule) not already shown as waiting or failing."""
     if rule is None:
         return []
-    return [{**_base(run, now), "state": "stalled", "reason": why}
-            for run, why in stalled(store, rule, now, limit + len(shown)) if run.id not in shown][:limit]
+    found = stalled(store, rule, now, limit + len(shown), busy())
+    return [{**_base(run, now), "state": "stalled", "reason": why} for run, why in found if run.id not in shown][:limit]
 
 
 def stuck_runs(store: "Store", consumers: Callable[[], Consumers], now: dt.datetime | None = None,
-               limit: int = LIMIT, rule: "StallRule | None" = None) -> dict[str, Any]:
+               limit: int = LIMIT, rule: "StallRule | None" = None,
+               busy: Callable[[], frozenset[str]] = frozenset) -> dict[str, Any]:
     """The runs that cannot make progress, as plain data: ``waiting`` and ``failing`` (at most
     ``limit`` each, stalled longest first), their totals ``n_waiting`` (None while the live queues
     are unknown) and ``n_failing``, ``active`` (farm runs queued, running or evaluating), ``queues``
     (queue → live workers; None: unknown, or not asked) and ``broker_error``. ``consumers`` is
     called (the broker asked: ``asked``) only when a farm run is active; the runs waiting are read
     only when a queue has no live worker. ``rule`` given: also ``stalled``, the runs that rule calls
-    stalled (:func:`scheduler.heal.stall_reason`: live workers, yet no progress) that are neither
-    waiting nor failing, quiet longest first, at most ``limit``. A fixed number of queries,
+    stalled (:func:`scheduler.heal.stall_reason`: live workers, yet no progress; ``busy``: what
+    may be waiting behind other work, :func:`busy_kinds`) that are neither waiting nor failing,
+    quiet longest first, at most ``limit``. A fixed number of queries,
     whatever the number of runs."""
     now = now or dt.datetime.now(dt.timezone.utc)
     active = store.active_farm_runs()
@@ -150,7 +163,7 @@ def stuck_runs(store: "Store", consumers: Callable[[], Consumers], now: dt.datet
     failing = sorted((_failing(run, err, now) for run, err in store.failing_runs()), key=_stalled_first)
     queues = None if live.queues is None else {q: list(w) for q, w in live.queues.items()}
     shown = {row["run_id"] for row in waiting + failing}
-    idle = _stalled(store, rule, now, shown, limit) if active else []
+    idle = _stalled(store, rule, busy, now, shown, limit) if active else []
     return {"active": active, "asked": bool(active), "queues": queues, "broker_error": live.reason,
             "n_waiting": sum(counts.get(kind, 0) for kind in kinds) if live.known or not active else None,
             "n_failing": len(failing), "waiting": waiting, "failing": failing[:limit], "stalled": idle,

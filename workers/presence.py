@@ -25,6 +25,8 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 PREFIX = "undream:worker:"
+# kombu's Redis transport keeps a queue as one list per priority step: the name, then name + SEP + step
+PRIORITY_SEP, PRIORITY_STEPS = "\x06\x16", (0, 3, 6, 9)
 BEAT_S = 10.0  # s between a worker's announcements
 TTL_S = 3 * BEAT_S  # s a key outlives its last announcement: a worker silent this long is not live
 
@@ -88,3 +90,20 @@ def live_queues(settings: "Settings") -> dict[str, tuple[str, ...]]:
         for queue in consumed:
             queues.setdefault(queue, []).append(node)
     return {q: tuple(sorted(nodes)) for q, nodes in sorted(queues.items())}
+
+
+def queue_backlog(settings: "Settings", queues: Sequence[str]) -> dict[str, int]:
+    """Queue → the messages waiting on it in the broker's Redis (every priority's list, one round
+    trip); raises redis-py's errors when Redis cannot be reached."""
+    client = redis.Redis.from_url(settings.broker_url, socket_connect_timeout=settings.connect_timeout,
+                                  socket_timeout=settings.connect_timeout)
+    try:
+        with client.pipeline() as pipe:
+            for queue in queues:
+                for step in PRIORITY_STEPS:
+                    pipe.llen(f"{queue}{PRIORITY_SEP}{step}" if step else queue)
+            sizes = pipe.execute()
+    finally:
+        client.close()
+    n = len(PRIORITY_STEPS)
+    return {queue: int(sum(sizes[i * n:(i + 1) * n])) for i, queue in enumerate(queues)}

@@ -20,6 +20,7 @@ from scheduler.heal import StallRule
 from scheduler.heal import heal as heal_pass
 from undream.errors import StoreError
 from workers.healer import HEAL_TASK
+from workers.health import busy_kinds
 from workers.runtime import runtime
 
 if TYPE_CHECKING:
@@ -105,9 +106,10 @@ def register_tasks(app: "Celery") -> None:
     @app.task(name=HEAL_TASK, bind=True, shared=False, acks_late=True, ignore_result=True)
     def heal(self: "Task", by: str) -> dict[str, Any]:
         """One heal pass (:mod:`workers.healer`): the farm's stalled runs' current work sent again."""
-        rt = runtime(app)
-        rule = StallRule.of(app.undream_settings)  # type: ignore[attr-defined]
-        return {"healed": heal_pass(rt.store, rt.dispatch, rule, by=f"undream worker {by}")}
+        rt, settings = runtime(app), app.undream_settings  # type: ignore[attr-defined]
+        healed = heal_pass(rt.store, rt.dispatch, StallRule.of(settings), by=f"undream worker {by}",
+                           busy=busy_kinds(settings))
+        return {"healed": healed}
 
     @app.task(name="undream.collect", **common)
     def collect(self: "Task", run_id: str, phase: str, k: int) -> dict[str, Any]:
