@@ -14,7 +14,8 @@ no job of its current iteration started or finished since:
   so the broker lost its copy (a restarted, empty Redis).
 
 A run holding a started job, quiet for less than that, is a long job at
-work and is left alone. :func:`heal_run` sends a stalled run's current work
+work and is left alone; so, for as long, is a run whose next work goes to
+a queue that holds messages (``busy``: it may be waiting its turn). :func:`heal_run` sends a stalled run's current work
 again through :func:`scheduler.stages.resume`'s code path (its jobs without
 a result, then the phase's callback; a queued run's start) and records an
 event line on the run saying why and what it sent; the event moves the
