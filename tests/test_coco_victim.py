@@ -186,3 +186,18 @@ def test_run_check_refuses_a_class_coco_does_not_have(model_json: Path, tmp_path
     lines = [ln for ln in done.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and "trash can" in lines[0] and "label" in lines[0], done.stderr
     assert not out.exists()
+
+
+def test_stop_sign_plate_is_cocos_stop_sign_by_default(model_json: Path) -> None:
+    """The example stop sign (the plate as the object, the pole an actor) needs no label: the
+    built-in part takes the whole's class, and stop_sign reads as COCO's 'stop sign'."""
+    from undream.engine.context import class_ids
+    from undream.spec.run import RunConfig
+
+    from undream.scene.sources import sequence_from_file
+
+    seq = sequence_from_file(REPO / "examples" / "stop_sign_street.yaml")
+    config = RunConfig.from_json({"name": "s", "scene": "x", "victim": "coco:centernet", "loss": "vanish",
+                                  "attack": {"name": "pgd", "eps": 16, "steps": 1}})
+    victim = load_victim("coco:centernet", cache_home=CACHE_HOME)
+    assert class_ids(config, seq, victim) == (COCO_LABELS.index("stop sign"), None)

@@ -43,19 +43,30 @@ class RunContext:
         return [f.index for f in self.sequence.frames]
 
 
+# Built-ins that are a part of an object whose class they take by default (the plate of a stop sign).
+PART_OF = {"stop_sign_plate": "stop_sign"}
+
+
 def class_id(victim: Any, name: str, field: str) -> int:
-    """The victim's class id of ``name`` (case-insensitive); errors name the field and the classes."""
-    labels = [str(x).lower() for x in victim.labels]
-    if name.lower() not in labels:
+    """The victim's class id of ``name`` (case-insensitive, ``_`` read as a space: the built-in
+    ``stop_sign`` is COCO's ``stop sign``); errors name the field and the classes."""
+    labels = [_class_key(x) for x in victim.labels]
+    if _class_key(name) not in labels:
         shown = ", ".join(victim.labels[:20]) + (" ..." if len(victim.labels) > 20 else "")
         raise VictimError(f"{field}: {name!r} is not one of {victim.name}'s classes ({shown})")
-    return labels.index(name.lower())
+    return labels.index(_class_key(name))
+
+
+def _class_key(name: Any) -> str:
+    return " ".join(str(name).lower().replace("_", " ").split())
 
 
 def class_ids(config: RunConfig, seq: Sequence, victim: Any) -> tuple[int, int | None]:
-    """The victim's class ids of the object (``label``, default: the built-in asset's name) and of
+    """The victim's class ids of the object (``label``, default: the built-in asset's name, or for a
+    part the whole's, :data:`PART_OF`) and of
     ``target_label``; errors name the field, and a target equal to the object's own class is one."""
-    label = class_id(victim, config.label or seq.asset.builtin or seq.asset.name, "label")
+    own = seq.asset.builtin
+    label = class_id(victim, config.label or PART_OF.get(own or "", own) or seq.asset.name, "label")
     if not config.target_label:
         return label, None
     target = class_id(victim, config.target_label, "target_label")

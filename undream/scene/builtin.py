@@ -354,6 +354,26 @@ def stop_sign() -> Mesh:
     front at z = 0.051). The front face is the main chart, upright (planar,
     top of the texture at the top of the sign); the back is upright too.
     """
+    plate, pole = _sign_parts()
+    return _atlas([*plate, *pole])
+
+
+def stop_sign_plate() -> Mesh:
+    """:func:`stop_sign` without its pole: the plate alone (x ±0.375, y 1.375–2.125, z 0.031–0.051),
+    its front face the main chart. With :func:`sign_pole` as an actor, the object's mask and box
+    are the sign's, as a COCO "stop sign" box is."""
+    plate, _ = _sign_parts()
+    return _atlas(plate)
+
+
+def sign_pole() -> Mesh:
+    """The stop sign's pole alone: Ø 6 cm, 2.1 m tall, centred on the y axis."""
+    _, pole = _sign_parts()
+    return _atlas(pole)
+
+
+def _sign_parts() -> tuple[list[_Chart], list[_Chart]]:
+    """The stop sign's plate charts (front, back, edge band) and its pole's."""
     across, y0, z_back, z_front = 0.75, 1.75, 0.031, 0.051
     circ = (across / 2) / math.cos(math.pi / 8)  # circumradius
     face = _disk(circ, 8, phase=math.pi / 8)
@@ -364,8 +384,7 @@ def stop_sign() -> Mesh:
     zf, zb = np.array([0, 0, z_front]), np.array([0, 0, z_back])
     band = _strip([(pts[k] + zf, pts[k + 1] + zf, pts[k + 1] + zb, pts[k] + zb) for k in range(8)], 0.5)
     pole = _free(_frustum(0.03, 0.03, 0.0, 2.1, 20, weights=(0.5, 0.05, 0.05)))
-    return _atlas([_Chart(front, (2 * circ, 2 * circ), 8.0), _Chart(back, (2 * circ, 2 * circ), 1.0),
-                   band, *pole])
+    return [_Chart(front, (2 * circ, 2 * circ), 8.0), _Chart(back, (2 * circ, 2 * circ), 1.0), band], pole
 
 
 def _rot_x(deg: float) -> np.ndarray:
@@ -397,8 +416,8 @@ def pedestrian(phase: float = 0.0, stride_deg: float = 25.0) -> Mesh:
 
 
 BUILTINS: dict[str, Callable[[], Mesh]] = {
-    "car": car, "pedestrian": pedestrian, "sphere": sphere, "stop_sign": stop_sign,
-    "traffic_cone": traffic_cone, "trash_bin": trash_bin, "umbrella": umbrella,
+    "car": car, "pedestrian": pedestrian, "sign_pole": sign_pole, "sphere": sphere, "stop_sign": stop_sign,
+    "stop_sign_plate": stop_sign_plate, "traffic_cone": traffic_cone, "trash_bin": trash_bin, "umbrella": umbrella,
 }
 
 
