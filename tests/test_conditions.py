@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from PIL import Image
 
 from conftest import service_missing
 from farm_support import Farm, make_scene, make_victim, redis_up, run_config, write_yaml
@@ -227,6 +228,21 @@ def test_a_grid_needs_a_spec_file(tmp_path, inputs):
     cfg["scene"] = str(scene)
     res = _undream("run", write_yaml(tmp_path / "run.yaml", cfg), "--out", tmp_path / "out", "--no-progress")
     assert res.returncode != 0 and "conditions.grid: needs scene to be a YAML spec file" in res.stderr
+
+
+def test_a_grid_over_a_spec_whose_texture_is_an_image_finds_it_beside_the_spec(tmp_path, inputs):
+    """The spec names its starting texture relative to its own folder; the grid's conditions must
+    find it there, not beside the run config or the working directory."""
+    spec_dir = tmp_path / "specs"
+    (spec_dir / "textures").mkdir(parents=True)
+    Image.new("RGB", (16, 8), (180, 20, 30)).save(spec_dir / "textures" / "start.png")
+    spec = yaml.safe_load(inputs["spec"].read_text())
+    spec["object"]["asset"]["texture"]["init"] = "textures/start.png"
+    cfg = _config(inputs, "image_start")
+    cfg["scene"] = str(write_yaml(spec_dir / "ball.yaml", spec))
+    res = _undream("run", write_yaml(tmp_path / "run.yaml", cfg), "--out", tmp_path / "out", "--check")
+    assert res.returncode == 0, res.stderr
+    assert not (tmp_path / "out").exists()
 
 
 def test_a_multi_condition_run_on_the_farm_ends_on_the_local_runs_texture(inputs, local_run):

@@ -85,7 +85,8 @@ def grid_sequences(spec_file: Path, grid: Mapping[str, tuple[Any, ...]],
         for key, value in point.items():
             _set(data, key, plain_grid_value(value), where)
         try:
-            out.append((name, sequence_from_trajectory(data, base_dir=spec_file.parent)))
+            seq = sequence_from_trajectory(data, base_dir=spec_file.parent)
+            out.append((name, _anchored(seq, spec_file.parent)))
         except UndreamError as err:
             raise type(err)(f"{where} ({name}): {spec_file}: {err}") from None
     return out
