@@ -1,10 +1,12 @@
 """undream's TF.js-graph reader on tiny hand-written graphs: known answers for
-TensorFlow's SAME padding and legacy bilinear resize, float16 weights, and bad
+TensorFlow's SAME padding and legacy bilinear resize, float16 weights, the ops of
+ONNX conversions (Transpose, Pad/PadV2, SplitV/Split, SparseToDense), and bad
 graphs refused in one line."""
 from __future__ import annotations
 
 import base64
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -110,3 +112,70 @@ def test_not_a_graph_model(tmp_path: Path) -> None:
     (tmp_path / "model.json").write_text(json.dumps({"modelTopology": {"class_name": "Sequential"}}))
     with pytest.raises(VictimError, match="not a TF.js graph model"):
         read_graph_model(tmp_path)
+
+
+def _graph(tmp_path: Path, nodes: list[dict], weights: dict[str, np.ndarray], outputs: list[str]) -> GraphModule:
+    return GraphModule(read_graph_model(write_model(tmp_path, [PLACEHOLDER, *nodes], weights)), outputs)
+
+
+def test_transpose_known_answer(tmp_path: Path) -> None:
+    """NCHW → NHWC, as ONNX conversions do around each convolution."""
+    node = {"name": "y", "op": "Transpose", "input": ["x", "perm"], "attr": {}}
+    g = _graph(tmp_path, [node], {"perm": np.array([0, 2, 3, 1], np.int32)}, ["y"])
+    x = torch.arange(24.0).reshape(1, 2, 3, 4)
+    got = g(x)["y"]
+    assert got.shape == (1, 3, 4, 2) and got[0, 2, 1].tolist() == [9.0, 21.0]
+
+
+def test_pad_and_padv2_known_answer(tmp_path: Path) -> None:
+    """Pad fills with 0; PadV2 with its value (-inf before a VALID max pool); pairs are (before, after)."""
+    pad = {"name": "p", "op": "Pad", "input": ["x", "pads"], "attr": {}}
+    pad2 = {"name": "q", "op": "PadV2", "input": ["x", "pads", "v"], "attr": {}}
+    g = _graph(tmp_path, [pad, pad2], {"pads": np.array([[0, 0], [1, 2]], np.int32),
+                                       "v": np.array(-np.inf, np.float32)}, ["p", "q"])
+    out = g(torch.tensor([[1.0, 2.0]]))
+    assert out["p"].tolist() == [[0.0, 1.0, 2.0, 0.0, 0.0]]
+    assert out["q"].tolist() == [[-math.inf, 1.0, 2.0, -math.inf, -math.inf]]
+
+
+def test_pad_of_another_rank_is_one_line(tmp_path: Path) -> None:
+    pad = {"name": "p", "op": "Pad", "input": ["x", "pads"], "attr": {}}
+    g = _graph(tmp_path, [pad], {"pads": np.array([[1, 1]], np.int32)}, ["p"])
+    with pytest.raises(VictimError, match=r"node 'p' \(Pad\): paddings \[\[1, 1\]\] do not fit") as err:
+        g(torch.zeros(2, 2))
+    assert "\n" not in str(err.value)
+
+
+def test_splitv_outputs_by_index_and_the_rest(tmp_path: Path) -> None:
+    """SplitV with a -1 size (the rest); ``name:1`` is its second output, as TF.js names it."""
+    split = {"name": "s", "op": "SplitV", "input": ["x", "sizes", "axis"], "attr": {"num_split": {"i": "2"}}}
+    g = _graph(tmp_path, [split], {"sizes": np.array([1, -1], np.int32), "axis": np.array(1, np.int32)},
+               ["s", "s:1"])
+    out = g(torch.arange(8.0).reshape(2, 4))
+    assert out["s"].tolist() == [[0.0], [4.0]]
+    assert out["s:1"].tolist() == [[1.0, 2.0, 3.0], [5.0, 6.0, 7.0]]
+
+
+def test_split_into_equal_pieces(tmp_path: Path) -> None:
+    split = {"name": "s", "op": "Split", "input": ["axis", "x"], "attr": {"num_split": {"i": "2"}}}
+    g = _graph(tmp_path, [split], {"axis": np.array(-1, np.int32)}, ["s", "s:1"])
+    out = g(torch.arange(4.0).reshape(1, 4))
+    assert out["s"].tolist() == [[0.0, 1.0]] and out["s:1"].tolist() == [[2.0, 3.0]]
+    three = {"name": "t", "op": "Split", "input": ["axis", "x"], "attr": {"num_split": {"i": "3"}}}
+    g3 = _graph(tmp_path / "3", [three], {"axis": np.array(1, np.int32)}, ["t"])
+    with pytest.raises(VictimError, match=r"node 't' \(Split\): axis 1 of length 4 does not split into 3"):
+        g3(torch.zeros(1, 4))
+
+
+def test_sparse_to_dense_known_answer(tmp_path: Path) -> None:
+    """No indices: every element the default (NanoDet's [0, 0, 0] added to a reshape target);
+    N×rank indices take their values."""
+    empty = {"name": "e", "op": "SparseToDense", "input": ["i0", "shape", "v0", "d"], "attr": {}}
+    some = {"name": "f", "op": "SparseToDense", "input": ["i2", "shape2", "v2", "d"], "attr": {}}
+    g = _graph(tmp_path, [empty, some], {
+        "i0": np.zeros((0, 1), np.int32), "shape": np.array([3], np.int32), "v0": np.zeros((0,), np.int32),
+        "d": np.array(7, np.int32), "i2": np.array([[0, 1], [1, 0]], np.int32),
+        "shape2": np.array([2, 2], np.int32), "v2": np.array([5, 6], np.int32)}, ["e", "f"])
+    out = g(torch.zeros(1))
+    assert out["e"].tolist() == [7, 7, 7]
+    assert out["f"].tolist() == [[7, 5], [6, 7]]

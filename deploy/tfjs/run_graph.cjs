@@ -6,7 +6,8 @@
 //   node run_graph.cjs SPEC.json
 //
 // SPEC.json: {"model": "path/model.json", "input": "placeholder name",
-//             "shape": [1, H, W, C], "inputs": ["a.f32", ...],
+//             "shape": [1, H, W, C] (or the graph's own layout, e.g.
+//             [1, C, H, W] for NanoDet), "inputs": ["a.f32", ...],
 //             "outputs": ["name", ...], "out_dir": "folder"}
 // Each input file is raw little-endian float32 of `shape`; for input i and
 // output j the file out_dir/i_j.f32 is written (float32), and

@@ -7,8 +7,10 @@ quantisation); the shards are raw little-endian bytes. tf2onnx and onnx2torch
 need a TensorFlow SavedModel, not this format, so undream reads the graph
 itself and runs it op by op in torch (:class:`GraphModule`), differentiably.
 
-Tensors keep TensorFlow's layout: images are ``N×H×W×C`` (NHWC) as the graph
-expects; convolutions run on a channels-last view, so no copy is made.
+Tensors keep the graph's own layout: images are ``N×H×W×C`` (NHWC) for most
+graphs, ``N×C×H×W`` for ONNX conversions (NanoDet), whose explicit Transpose
+nodes bring them to NHWC around each convolution; convolutions run on a
+channels-last view, so no copy is made.
 Supported ops: :data:`OPS`. An op outside it, a weight file of another size
 than its manifest says, or a constant with no weight is one
 :class:`~undream.errors.VictimError` line naming it, raised when the module is
@@ -298,6 +300,54 @@ def _top_k(g: "GraphModule", node: Node, args: list[Any]) -> tuple[torch.Tensor,
     return values, indices.int()
 
 
+def _pad(g: "GraphModule", node: Node, args: list[Any]) -> torch.Tensor:
+    """Pad / PadV2: ``args[1]`` is ``rank×2`` (before, after) per axis; the value is
+    ``args[2]`` (PadV2, e.g. -inf before a max pool) or 0."""
+    pairs = [[int(v) for v in pair] for pair in args[1].tolist()]
+    if len(pairs) != args[0].ndim or any(v < 0 for pair in pairs for v in pair):
+        raise VictimError(f"TF.js node {node.name!r} ({node.op}): paddings {pairs} do not fit a tensor of "
+                          f"shape {tuple(args[0].shape)} (one non-negative (before, after) pair per axis)")
+    value = float(args[2]) if len(args) > 2 else 0.0
+    return F.pad(args[0], [v for pair in reversed(pairs) for v in pair], value=value)
+
+
+def _split_v(g: "GraphModule", node: Node, args: list[Any]) -> tuple[torch.Tensor, ...]:
+    """SplitV: ``x`` cut along ``args[2]`` into pieces of the sizes ``args[1]`` (one may
+    be -1: the rest); a tuple, one output per piece (``name:i``)."""
+    x, sizes = args[0], [int(s) for s in args[1].reshape(-1).tolist()]
+    axis = int(args[2]) % x.ndim
+    if sizes.count(-1) == 1:
+        sizes[sizes.index(-1)] = x.shape[axis] - sum(sizes) - 1
+    if sum(sizes) != x.shape[axis] or min(sizes) < 0:
+        raise VictimError(f"TF.js node {node.name!r} (SplitV): sizes {sizes} do not split axis {axis} of "
+                          f"length {x.shape[axis]}")
+    return tuple(torch.split(x, sizes, axis))
+
+
+def _split(g: "GraphModule", node: Node, args: list[Any]) -> tuple[torch.Tensor, ...]:
+    """Split: ``args[1]`` cut along axis ``args[0]`` into ``num_split`` equal pieces (a tuple)."""
+    x, n = args[1], int(node.get("num_split", 1))
+    axis = int(args[0]) % x.ndim
+    if n < 1 or x.shape[axis] % n:
+        raise VictimError(f"TF.js node {node.name!r} (Split): axis {axis} of length {x.shape[axis]} does not "
+                          f"split into {n} equal pieces")
+    return tuple(torch.split(x, x.shape[axis] // n, axis))
+
+
+def _sparse_to_dense(g: "GraphModule", node: Node, args: list[Any]) -> torch.Tensor:
+    """SparseToDense: a tensor of shape ``args[1]`` holding ``args[3]`` (the default)
+    except at ``args[0]`` (``N×rank``, ``N`` or a scalar index), which take ``args[2]``
+    (one value per index, or one for all)."""
+    indices, values, default = args[0].long(), args[2], args[3]
+    shape = [int(s) for s in args[1].reshape(-1).tolist()]
+    indices = indices.reshape(-1, 1) if indices.ndim < 2 else indices
+    if indices.shape[1] != len(shape):
+        raise VictimError(f"TF.js node {node.name!r} (SparseToDense): indices of shape {tuple(indices.shape)} "
+                          f"do not index an output of shape {shape}")
+    out = default.to(values.dtype).expand(shape).clone()
+    return out.index_put(tuple(indices.t()), values.expand(indices.shape[0]))
+
+
 def _cast(g: "GraphModule", node: Node, args: list[Any]) -> torch.Tensor:
     dst = node.get("DstT")
     if dst not in TORCH_DTYPES:
@@ -333,6 +383,10 @@ OPS: dict[str, Op] = {
     "ConcatV2": lambda g, node, args: torch.cat(args[:-1], int(args[-1])),
     "ResizeBilinear": _resize_bilinear,
     "Reshape": lambda g, node, args: args[0].reshape([int(v) for v in args[1].tolist()]),
+    "Transpose": lambda g, node, args: args[0].permute([int(v) for v in args[1].tolist()]),
+    "Pad": _pad, "PadV2": _pad,
+    "SplitV": _split_v, "Split": _split,
+    "SparseToDense": _sparse_to_dense,
     "ExpandDims": lambda g, node, args: args[0].unsqueeze(int(args[1])),
     "Cast": _cast,
     "StridedSlice": _strided_slice,
@@ -345,7 +399,8 @@ SOURCES = ("Placeholder", "Const")
 class GraphModule(nn.Module):
     """A TF.js graph as a torch module computing ``outputs`` from its one input.
 
-    ``forward(x)``: ``x`` in the graph's layout (images ``N×H×W×C``, float32) →
+    ``forward(x)``: ``x`` in the graph's layout (images ``N×H×W×C``, or ``N×C×H×W``
+    where the graph's signature says so; float32) →
     a dict output name → tensor. Constants are buffers (``.to(device)`` moves
     them); convolution filters are kept in torch's layout. Every op needed for
     ``outputs`` is checked against :data:`OPS` here, before anything runs.
