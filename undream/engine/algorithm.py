@@ -32,7 +32,7 @@ from undream.attacks import average_frames, frame_batch
 from undream.color import linear_to_srgb, to_uint8
 from undream.engine.context import RunContext
 from undream.engine import job
-from undream.engine.job import FrameResult, class_score, frame_seed, ground_truth
+from undream.engine.job import FrameResult, class_score, frame_seed, ground_truth, top_detections
 from undream.metrics import accuracy, average_precision, correct, is_detected
 from undream.render.differentiable import texture_gradient
 from undream.render.loading import read_texture_srgb
@@ -175,7 +175,11 @@ def ground_truths(ctx: RunContext) -> list[Any]:
 
 def judge(ctx: RunContext, preds: list[Any], positions: list[int] | None = None) -> dict[str, Any]:
     """Per-frame correctness and the overall measure (accuracy, or AP@0.5 of the object's class)
-    over the frames at ``positions`` (default all; ``preds`` holds one prediction per frame)."""
+    over the frames at ``positions`` (default all; ``preds`` holds one prediction per frame).
+
+    A detector's per-frame row also holds ``boxes`` (:func:`undream.engine.job.top_detections`: at most
+    the five highest-scoring kept detections) and ``truth_box`` (the object's mask box, x1/y1 exclusive,
+    frame pixels; None where it is unseen)."""
     keep = list(range(len(preds))) if positions is None else list(positions)
     frames, preds = [ctx.sequence.frames[i] for i in keep], [preds[i] for i in keep]
     label = ctx.targets[0].label
@@ -187,7 +191,9 @@ def judge(ctx: RunContext, preds: list[Any], positions: list[int] | None = None)
         return {"metric": "accuracy", "value": accuracy(preds, label) if preds else None, "per_frame": rows}
     truths = [ground_truth(ctx.targets[i]) for i in keep]
     rows = [{"frame": f.index, "detected": bool(is_detected(p, gt, label)), "n_detections": int(len(p.scores)),
-             "score": round(float(p.scores.max()), 4) if len(p.scores) else 0.0}
-            for f, p, gt in zip(frames, preds, truths)]
+             "score": round(float(p.scores.max()), 4) if len(p.scores) else 0.0,
+             "boxes": top_detections(p, ctx.victim.labels),
+             "truth_box": [round(float(v), 1) for v in ctx.targets[i].box] if ctx.targets[i].box else None}
+            for i, f, p, gt in zip(keep, frames, preds, truths)]
     value = average_precision(preds, truths, label) if preds else None
     return {"metric": "ap50", "value": value, "per_frame": rows}

@@ -15,6 +15,9 @@ from undream.render.differentiable import srgb_encode_grad
 from undream.render.jitter import draw_conditions
 
 
+MAX_BOXES = 5  # detections per frame kept in results.json (the highest-scoring)
+
+
 def frame_seed(run_seed: int, iteration: int, frame: int) -> int:
     """A render seed unique to (run, iteration, frame); ``seed + 1`` is its ``seed_grad``."""
     return (run_seed * 1_000_003 + iteration * 10_007 + frame * 2) % (2**31 - 2)
@@ -45,6 +48,19 @@ def class_score(pred: Any) -> float | None:
     (``probs``) or a stored one (``score``); None when a stored one has none."""
     score = pred.probs[int(pred.label)] if hasattr(pred, "probs") else getattr(pred, "score", None)
     return None if score is None else round(float(score), 4)
+
+
+def top_detections(pred: Any, labels: Sequence[str], n: int = MAX_BOXES) -> list[dict[str, Any]]:
+    """A detector's kept detections (after its score threshold and NMS, as ``pred`` holds them) as
+    small JSON: the ``n`` highest-scoring, each ``{"box": [x0, y0, x1, y1], "score", "label"}`` with the
+    box in frame pixels (0.1 px), the score 0–1 (4 decimals) and the label the class name."""
+    scores = np.asarray(pred.scores, np.float64).reshape(-1)
+    boxes = np.asarray(pred.boxes, np.float64).reshape(-1, 4)
+    ids = np.asarray(pred.labels, np.int64).reshape(-1)
+    order = np.argsort(-scores, kind="stable")[:n]
+    return [{"box": [round(float(v), 1) for v in boxes[i]], "score": round(float(scores[i]), 4),
+             "label": labels[int(ids[i])] if 0 <= ids[i] < len(labels) else str(int(ids[i]))}
+            for i in order]
 
 
 def ground_truth(target: Any) -> Any:

@@ -20,16 +20,31 @@ if TYPE_CHECKING:
     from undream.store import JobSnapshot, RunSnapshot, Store
 
 SPLITS = ("attacked", "held_out")
+MAX_BOXES = 5  # a detector's boxes drawn per picture (results.json keeps as many)
 PHASES = {"benign": "pre", "adversarial": "adversarial"}  # side → the evaluation jobs' phase
+
+
+Box = tuple[float, float, float, float]  # x0, y0, x1, y1 in frame pixels
+
+
+@dataclass(frozen=True)
+class Detection:
+    """One box a detector kept: frame pixels, its score (0–1) and class name (None: not recorded)."""
+
+    box: Box
+    score: float
+    label: str | None
 
 
 @dataclass(frozen=True)
 class Side:
-    """One evaluation of a frame: its render, the results.json per-frame row and a detector's boxes."""
+    """One evaluation of a frame: its render, the results.json per-frame row, a detector's boxes (at
+    most :data:`MAX_BOXES`, highest score first) and the object's true box (None: unseen or unknown)."""
 
     image: np.ndarray  # H×W×3 uint8 sRGB
-    row: dict[str, Any]  # {"prediction", "class", "score", "correct"} or {"detected", "n_detections", "score"}
-    boxes: list[list[float]] = field(default_factory=list)  # (x0, y0, x1, y1) in frame pixels
+    row: dict[str, Any]  # {"prediction", "class", "score", "correct"} or {"detected", "n_detections", "score", ...}
+    boxes: list[Detection] = field(default_factory=list)
+    truth: Box | None = None
 
 
 @dataclass(frozen=True)
@@ -103,8 +118,24 @@ def _side(store: "Store", job: "JobSnapshot", row: dict[str, Any]) -> Side:
     if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
         raise StoreError(f"run {job.run_id}: frame {job.frame}: expected an H×W×3 uint8 image, "
                          f"got {image.dtype} {image.shape}")
-    boxes = ((job.result or {}).get("prediction") or {}).get("boxes") or []
-    return Side(image, row, [[float(v) for v in box] for box in boxes])
+    truth = row.get("truth_box")
+    return Side(image, row, detections(row, (job.result or {}).get("prediction") or {}),
+                None if not truth else _box(truth))
+
+
+def _box(values: Any) -> Box:
+    x0, y0, x1, y1 = (float(v) for v in values)
+    return x0, y0, x1, y1
+
+
+def detections(row: dict[str, Any], prediction: dict[str, Any]) -> list[Detection]:
+    """A frame's boxes: the results.json row's ``boxes`` (class names, after the victim's threshold and
+    NMS); for results written before rows held them, the stored prediction's (no class names)."""
+    if "boxes" in row:
+        return [Detection(_box(d["box"]), float(d["score"]), d.get("label")) for d in row["boxes"] or []]
+    boxes, scores = prediction.get("boxes") or [], prediction.get("scores") or []
+    dets = [Detection(_box(b), float(s), None) for b, s in zip(boxes, scores)]
+    return sorted(dets, key=lambda d: -d.score)[:MAX_BOXES]
 
 
 def frames_of(store: "Store", run: "RunSnapshot", results: dict[str, Any]) -> list[FrameData]:

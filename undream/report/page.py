@@ -139,7 +139,9 @@ def run_body(data: RunData, headline: list[dict[str, Any]], unseen: str, command
                f"One row per frame: benign texture (left), adversarial texture (right), enlarged by a whole "
                f"factor (nearest neighbour). {_legend()} Under each picture the victim's prediction: ✓ / green "
                "still the object's class (or detected), ✗ / red not; p is the victim's confidence in the "
-               "class it predicted (a detector: its best box score).", command),
+               "class it predicted (a detector: its best box score). A detector's boxes (its five best): the "
+               "object's class in green, other classes in magenta, each with its class and score; the "
+               "object's true box dashed.", command),
         "<h2>Loss per iteration</h2>",
         figure("loss.png", "attack loss per iteration",
                f"Mean {escape(loss)} loss over the frames of each attack step (maximised by the attack); "

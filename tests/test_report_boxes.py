@@ -1,0 +1,156 @@
+"""A detector's boxes, from results.json to the report: a real tiny `undream run` against bundled:yolo
+(3 frames of 48 px, one attack step) and `undream report` of it, both through the command line.
+
+results.json's per-frame rows hold the detector's kept boxes (at most 5, frame pixels, class names)
+and the object's true box; the contact sheet draws them, and a run recorded before rows held boxes
+still makes a report.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from PIL import Image
+
+from farm_support import make_scene, run_config, write_yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+SIZE = 48  # px, every frame
+SIDES = ("benign", "adversarial")
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory) -> dict:
+    root = tmp_path_factory.mktemp("boxes")
+    scene = make_scene(root / "scene", n_frames=3, size=SIZE)
+    cfg = run_config(scene, "bundled:yolo", name="yolo", steps=1, loss="vanish", holdout="none")
+    out = root / "out"
+    res = subprocess.run([sys.executable, "-m", "undream.cli", "run", str(write_yaml(root / "run.yaml", cfg)),
+                          "--out", str(out), "--no-progress"], capture_output=True, text=True, cwd=ROOT,
+                         env={**os.environ, "HF_HUB_OFFLINE": "1"})
+    assert res.returncode == 0, res.stderr
+    return {"root": root, "out": out, "results": json.loads((out / "results.json").read_text())}
+
+
+def _report(target: Path, out: Path) -> np.ndarray:
+    from undream.cli import main
+
+    res = CliRunner().invoke(main, ["report", str(target), "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    return np.asarray(Image.open(out / "contact_sheet.png").convert("RGB"))
+
+
+def _data(folder: Path, work: Path):
+    """The report's data of the run in ``folder`` (as `undream report FOLDER` reads it)."""
+    from undream.report.data import load_run
+    from undream.report.seen import SeenFinder
+    from undream.store import open_store
+
+    store = open_store(None, folder / "store")
+    finder = SeenFinder(store, work)
+    try:
+        return store, load_run(store, store.runs()[-1], lambda r, t0: finder(r, t0, folder))
+    finally:
+        finder.close()
+
+
+def _perimeter(box, origin: tuple[int, int], factor: int) -> tuple[np.ndarray, np.ndarray]:
+    """Sheet pixel coordinates (ys, xs) of the outline of ``box`` (frame pixels) as the sheet draws it."""
+    x0, y0 = round(origin[0] + box[0] * factor), round(origin[1] + box[1] * factor)
+    x1, y1 = round(origin[0] + box[2] * factor) - 1, round(origin[1] + box[3] * factor) - 1
+    xs, ys = np.arange(x0, x1 + 1), np.arange(y0, y1 + 1)
+    return (np.concatenate([np.full_like(xs, y0), np.full_like(xs, y1), ys, ys]),
+            np.concatenate([xs, xs, np.full_like(ys, x0), np.full_like(ys, x1)]))
+
+
+def test_results_json_rows_carry_the_detectors_boxes_in_frame_pixels(run):
+    from undream.store import open_store
+    from undream.victims import load_victim
+
+    results, labels = run["results"], load_victim("bundled:yolo").labels
+    store = open_store(None, run["out"] / "store")
+    (record,) = store.runs()
+    n_boxes, biggest = 0, 0.0
+    for side, phase in zip(SIDES, ("pre", "adversarial")):
+        stored = [j.result["prediction"] for j in store.jobs(record.id, None, phase)]
+        for row, pred in zip(results[side]["per_frame"], stored):
+            boxes = row["boxes"]
+            assert len(boxes) == min(5, row["n_detections"]) == min(5, len(pred["scores"]))
+            scores = [b["score"] for b in boxes]
+            assert scores == sorted(scores, reverse=True) and (not boxes or scores[0] == row["score"])
+            for b, box, score, label in zip(boxes, pred["boxes"], pred["scores"], pred["labels"]):
+                assert b["box"] == pytest.approx(box, abs=0.051) and b["score"] == pytest.approx(score, abs=1e-4)
+                assert b["label"] == labels[label]
+                x0, y0, x1, y1 = b["box"]
+                assert -SIZE / 4 <= x0 < x1 <= SIZE * 1.25 and -SIZE / 4 <= y0 < y1 <= SIZE * 1.25
+                biggest = max(biggest, x1, y1)
+            x0, y0, x1, y1 = row["truth_box"]
+            assert 0 <= x0 < x1 <= SIZE and 0 <= y0 < y1 <= SIZE and x1 - x0 > 4
+            n_boxes += len(boxes)
+    assert n_boxes > 0, "the detector found nothing: the test would show no box"
+    assert biggest > SIZE / 2  # frame pixels (a box may reach past the frame), not fractions of it
+
+
+def test_the_contact_sheet_draws_each_box_in_its_class_colour(run, tmp_path):
+    from undream.report.boxes import OBJECT_RGB, OTHER_RGB
+    from undream.report.draw import enlarge
+    from undream.report.sheet import contact_sheet
+
+    sheet = _report(run["out"], tmp_path / "rep")
+    _, data = _data(run["out"], tmp_path / "work")
+    _, layout = contact_sheet(data)
+    assert data.label == run["results"]["label"] == "sphere"
+    drawn = set()
+    for frame, row in zip(data.frames, layout.rows):
+        raw = {"benign": Image.open(run["out"] / "frames_benign" / f"frame_{frame.index:04d}.png"),
+               "adversarial": Image.open(run["out"] / "frames_adversarial" / f"frame_{frame.index:04d}.png")}
+        for name, side, box in (("benign", frame.benign, row.benign), ("adversarial", frame.adversarial,
+                                                                        row.adversarial)):
+            x0, y0, x1, y1 = box
+            picture = sheet[y0:y1, x0:x1]
+            plain = enlarge(np.asarray(raw[name].convert("RGB")), layout.factor)
+            assert picture.shape == plain.shape
+            assert side.truth is not None and len(side.boxes) == len(run["results"][name]["per_frame"][
+                data.frames.index(frame)]["boxes"])
+            if not side.boxes:
+                continue
+            assert not np.array_equal(picture, plain)  # the boxes are drawn on the frame
+            best = side.boxes[0]
+            colour = OBJECT_RGB if best.label == "sphere" else OTHER_RGB
+            ys, xs = _perimeter(best.box, (x0, y0), layout.factor)
+            on_edge = np.all(sheet[ys, xs] == colour, axis=1).mean()
+            in_frame = np.all(plain.reshape(-1, 3) == colour, axis=1).mean()
+            assert on_edge > 0.5 and in_frame < 0.01, (name, frame.index, on_edge, in_frame)
+            drawn.add(colour)
+            ys, xs = _perimeter(side.truth, (x0, y0), layout.factor)  # dashed black and white
+            bw = np.all(sheet[ys, xs] == 0, axis=1) | np.all(sheet[ys, xs] == 255, axis=1)
+            assert bw.mean() > 0.3, (name, frame.index, bw.mean())
+    assert drawn, "no picture had a box"
+
+
+def test_a_run_recorded_before_rows_held_boxes_still_makes_a_report(run, tmp_path):
+    from undream.report.boxes import UNNAMED_RGB
+
+    old = tmp_path / "old"
+    shutil.copytree(run["out"], old)
+    store, _ = _data(old, tmp_path / "work0")
+    (record,) = store.runs()
+    results = json.loads(json.dumps(record.results))
+    for side in SIDES:
+        for row in results[side]["per_frame"]:
+            del row["boxes"], row["truth_box"]
+    store.set_results(record.id, results)
+    (old / "results.json").write_text(json.dumps(results, indent=1) + "\n")
+    sheet = _report(old, tmp_path / "rep")
+    _, data = _data(old, tmp_path / "work1")
+    sides = [s for f in data.frames for s in (f.benign, f.adversarial)]
+    assert all(s.truth is None and all(d.label is None for d in s.boxes) for s in sides)
+    assert any(s.boxes for s in sides)  # the stored predictions' boxes, drawn without class names
+    assert np.all(sheet == UNNAMED_RGB, axis=2).sum() > 100
