@@ -46,6 +46,7 @@ from condition_suite import mean_sd, run_once, victim_slug
 
 ROOT = Path(__file__).resolve().parents[1]
 ONE_SCENE = ROOT / "examples" / "runs" / "bin_orbit_pgd.yaml"
+HELD_OUT = ROOT / "examples" / "conditions"
 MULTI = ROOT / "examples" / "runs" / "bin_orbit_conditions.yaml"
 JUDGE_SPP = 32  # the run configs' eval_spp: the held-out conditions are judged as the runs judge themselves
 RUN_EVAL_SPP = 4  # each run's own evaluation (384 frames twice for 16 conditions) is not used here
@@ -60,6 +61,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--attacks", nargs="+", default=["pgd", "apgd"])
     parser.add_argument("--steps", type=int, default=100)
     parser.add_argument("--multi", type=Path, default=MULTI, help="the multi-condition run config")
+    parser.add_argument("--held-out", type=Path, default=HELD_OUT,
+                        help="the folder of the held-out conditions' spec files (default examples/conditions)")
     parser.add_argument("--multi-only", action="store_true",
                         help="run the multi-condition config only (the one-scene column is --multi's default's)")
     parser.add_argument("--frame-weights", choices=("mean", "unit"),
@@ -102,7 +105,9 @@ def main(argv: list[str] | None = None) -> int:
     multi["conditions"]["scenes"] = [str((args.multi.parent / s).resolve()) for s in scenes]
     composed = conditions_sequence(RunConfig.from_json({**multi, "victim": args.victim, "loss": loss}), ROOT)
     args.out.mkdir(parents=True, exist_ok=True)
-    specs = sorted((ROOT / "examples" / "conditions").glob("*.yaml"))
+    specs = sorted(args.held_out.glob("*.yaml"))
+    if not specs:
+        raise SystemExit(f"--held-out {args.held_out}: holds no spec files (*.yaml)")
     held_out = {p.stem: _init_once(p, args.out / "scenes" / p.stem) for p in specs}
     kinds = {"one scene": ONE_SCENE, f"{len(composed.conditions)} conditions": args.multi}
     bases = {"one scene": yaml.safe_load(ONE_SCENE.read_text())}
@@ -174,7 +179,8 @@ def _write(args: argparse.Namespace, slug: str, kinds: list[str], rows: list[dic
     benign = statistics.fmean(r["benign"] for r in rows if r["run"] == kinds[0]
                               and r["seed"] == args.seeds[0] and r["attack"] == args.attacks[0]
                               and r["eps"] == args.eps[0])
-    print(f"\n{args.victim}: {metric} on the 8 held-out conditions (mean over conditions; mean ± standard "
+    n_held = len({r["condition"] for r in rows})
+    print(f"\n{args.victim}: {metric} on the {n_held} held-out conditions (mean over conditions; mean ± standard "
           f"deviation over seeds {args.seeds}), {args.steps} steps; the benign texture: {benign:.2f}")
     print("| attack | ε | " + " | ".join(kinds) + " |")
     print("|---|---|" + "---|" * len(kinds))
@@ -208,7 +214,7 @@ def _chart(args: argparse.Namespace, slug: str, kinds: list[str], metric: str, b
     ax.axhline(benign, color="#888", linestyle="--", linewidth=1, label="benign texture")
     ax.set_xticks(range(len(groups)), [f"{attack} ε={eps:g}" for attack, eps in groups], fontsize=7)
     ax.set_ylim(0, 1)
-    ax.set_ylabel(f"{metric}, mean of 8 held-out conditions", fontsize=8)
+    ax.set_ylabel(f"{metric}, mean of the held-out conditions", fontsize=8)
     ax.set_title(f"{args.victim}: textures on held-out conditions, {args.steps} steps, seeds {args.seeds}",
                  fontsize=8)
     ax.legend(fontsize=7)
@@ -216,6 +222,7 @@ def _chart(args: argparse.Namespace, slug: str, kinds: list[str], metric: str, b
                f"{' '.join(map(str, args.seeds))} --eps {' '.join(f'{e:g}' for e in args.eps)} --attacks "
                f"{' '.join(args.attacks)} --steps {args.steps}"
                + ("" if args.multi.resolve() == MULTI else f" --multi {_shown(args.multi)}")
+               + ("" if args.held_out.resolve() == HELD_OUT else f" --held-out {_shown(args.held_out)}")
                + (f" --frame-weights {args.frame_weights}" if args.frame_weights else "")
                + (f" --loss {args.loss}" if args.loss else "")
                + (f" --step-decay {args.step_decay}" if args.step_decay else "")
