@@ -36,9 +36,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from undream.errors import VictimError
-from undream.victims.base import DetPrediction
 from undream.victims.dense import LOG_EPS, DenseDetector, DenseOutput
-from undream.victims.nms import select_detections
 from undream.victims.preprocess import PreprocessConfig
 from undream.victims.tfjs import GraphModule, read_graph_model
 
@@ -146,15 +144,9 @@ class CenterNetDetector(DenseDetector):
         boxes, log_probs, points = decode_centernet(scores, ltrb, self.strides[0])
         return DenseOutput(boxes, log_probs, (x.shape[-2], x.shape[-1]), points)
 
-    def _predictions_from(self, raw: DenseOutput, images: torch.Tensor,  # type: ignore[override]
-                          threshold: float | None = None) -> list[DetPrediction]:
-        thr = self.score_threshold if threshold is None else float(threshold)
-        h, w = images.shape[-2:]
-        scale = torch.tensor([w, h, w, h], dtype=torch.float32)
-        boxes = raw.boxes_xyxy.float().cpu() * scale
-        probs = _peaks(raw.log_probs.float().exp().cpu(), raw.size, self.strides[0])
-        return [DetPrediction(*select_detections(b, p, thr, self.iou_threshold, self.max_detections))
-                for b, p in zip(boxes, probs)]
+    def _candidate_probs(self, raw: DenseOutput) -> torch.Tensor:
+        """The class probabilities with every score off its heat map's 3×3 peak set to 0."""
+        return _peaks(super()._candidate_probs(raw), raw.size, self.strides[0])
 
 
 def _peaks(probs: torch.Tensor, size: tuple[int, int], stride: int) -> torch.Tensor:

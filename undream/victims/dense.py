@@ -144,9 +144,14 @@ class DenseDetector(Detector):
         h, w = images.shape[-2:]
         scale = torch.tensor([w, h, w, h], dtype=torch.float32)
         boxes = raw.boxes_xyxy.float().cpu() * scale
-        probs = raw.log_probs.float().exp().cpu()
+        probs = self._candidate_probs(raw)
         return [DetPrediction(*select_detections(b, p, thr, self.iou_threshold, self.max_detections))
                 for b, p in zip(boxes, probs)]
+
+    def _candidate_probs(self, raw: DenseOutput) -> torch.Tensor:
+        """``B×N×C`` class probabilities (CPU) of the candidates predictions may keep; a subclass may
+        zero some (CenterNet keeps the peaks of its heat maps)."""
+        return raw.log_probs.float().exp().cpu()
 
     def _object_weights(self, raw: Any, labels: torch.Tensor,
                         true_boxes: torch.Tensor | None) -> torch.Tensor:
