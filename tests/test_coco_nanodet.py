@@ -95,6 +95,19 @@ def test_finds_objects_in_real_photographs(victim, name: str, cls: str, least: f
                                           zip(pred.scores, pred.labels)]
 
 
+def test_a_batch_is_each_image_alone(victim) -> None:
+    """The graph holds one image (its reshapes are [1, 80, -1]); a batch of two gives each
+    image's own candidates, as undream's evaluation batches frames."""
+    x = torch.cat((photo("person", 320), photo("horses", 320)))
+    with torch.no_grad():
+        both = victim.forward_raw(x)
+        alone = [victim.forward_raw(x[i:i + 1]) for i in range(2)]
+    assert both.log_probs.shape == (2, 52 ** 2 + 26 ** 2 + 13 ** 2, len(COCO_LABELS))
+    for i in range(2):
+        assert torch.allclose(both.log_probs[i], alone[i].log_probs[0], atol=1e-6)
+        assert torch.allclose(both.boxes[i], alone[i].boxes[0], atol=1e-4)
+
+
 def test_predictions_box_the_object_in_input_pixels(victim) -> None:
     """The woman's box is in the photograph's pixels (not the 416² model input's) and fits her."""
     x = photo("person")

@@ -44,15 +44,19 @@ CLASSES = 80
 
 class NanoDetModule(nn.Module):
     """The NanoDet graph as a torch module: ``B×3×416×416`` RGB in 0..1 → per level
-    (finest first) ``(scores B×N×80, distributions B×N×44)``."""
+    (finest first) ``(scores B×N×80, distributions B×N×44)``.
+
+    The graph holds one image: its reshapes to ``[1, 80, -1]`` would fold a batch
+    into the cells, so each image runs alone and the results are stacked."""
 
     def __init__(self, graph: GraphModule) -> None:
         super().__init__()
         self.graph = graph
 
     def forward(self, x: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
-        out = self.graph(x)
-        return [(out[scores], out[dist]) for _, scores, dist in LEVELS]
+        outs = [self.graph(x[i:i + 1]) for i in range(x.shape[0])]
+        return [(torch.cat([o[scores] for o in outs]), torch.cat([o[dist] for o in outs]))
+                for _, scores, dist in LEVELS]
 
 
 def level_points(cells: int, stride: int, device: torch.device | None = None) -> torch.Tensor:
