@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 
 from undream.errors import VictimError
-from undream.victims.tfjs import GraphModule, read_graph_model
+from undream.victims.tfjs import GraphModule, check_outputs, read_graph_model
 
 
 def _s(text: str) -> dict:
@@ -179,3 +179,12 @@ def test_sparse_to_dense_known_answer(tmp_path: Path) -> None:
     out = g(torch.zeros(1))
     assert out["e"].tolist() == [7, 7, 7]
     assert out["f"].tolist() == [[7, 5], [6, 7]]
+
+
+def test_outputs_of_another_shape_name_another_model(tmp_path: Path) -> None:
+    relu = {"name": "y", "op": "Relu", "input": ["x"], "attr": {}}
+    g = GraphModule(read_graph_model(write_model(tmp_path, [PLACEHOLDER, relu], {})), ["y"])
+    check_outputs(g, torch.zeros(1, 4, 4, 3), {"y": (1, 4, 4, 3)}, "coco:m", "M", "m.json")
+    with pytest.raises(VictimError, match=r"^victim 'coco:m': m\.json gives outputs \{'y': \(1, 4, 4, 3\)\}, "
+                                          r"expected \{'y': \(1, 4, 4, 80\)\}: another model$"):
+        check_outputs(g, torch.zeros(1, 4, 4, 3), {"y": (1, 4, 4, 80)}, "coco:m", "M", "m.json")

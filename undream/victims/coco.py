@@ -29,7 +29,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -38,7 +37,8 @@ from torch import nn
 from undream.errors import VictimError
 from undream.victims.dense import LOG_EPS, DenseDetector, DenseOutput
 from undream.victims.preprocess import PreprocessConfig
-from undream.victims.tfjs import GraphModule, read_graph_model
+from undream.victims.tfjs import GraphModule, check_outputs, read_graph_model
+from undream.victims.yolo import ltrb_boxes
 
 COCO_LABELS = (
     "person", "bicycle", "car", "motorcycle", "airplane", "bus", "train", "truck", "boat", "traffic light",
@@ -121,8 +121,7 @@ def decode_centernet(scores: torch.Tensor, ltrb: torch.Tensor, stride: int
     ys, xs = torch.meshgrid(torch.arange(h, device=scores.device), torch.arange(w, device=scores.device),
                             indexing="ij")
     points = torch.stack((xs.reshape(-1), ys.reshape(-1)), 1).to(ltrb.dtype) * stride
-    d = ltrb.reshape(b, h * w, 4)
-    boxes = torch.cat((points[None] - d[..., :2], points[None] + d[..., 2:]), -1)
+    boxes = ltrb_boxes(ltrb.reshape(b, h * w, 4), points)
     return boxes, scores.reshape(b, h * w, c).clamp(min=LOG_EPS).log(), points
 
 
@@ -175,23 +174,7 @@ def load_coco_victim(name: str, cache_dir: str | Path, device: str | torch.devic
         from undream.victims.nanodet import build_nanodet
         return build_nanodet(read_graph_model(path), COCO_LABELS, f"coco:{name}", device)
     graph = GraphModule(read_graph_model(path), [spec.scores, spec.boxes], spec.input)
-    _check_shapes(graph, spec, str(path))
-    return CenterNetDetector(CenterNetModule(graph, spec), f"coco:{name}", device)
-
-
-def _check_shapes(graph: GraphModule, spec: CocoModel, where: str) -> None:
-    """Run the graph once on zeros: its outputs must be the 80 COCO scores and 4 distances per cell."""
-    s = spec.input_size
-    try:
-        with torch.no_grad():
-            out = graph(torch.zeros(1, s, s, 3))
-    except (RuntimeError, IndexError, ValueError) as err:
-        first = (str(err).strip().splitlines() or [type(err).__name__])[0]
-        raise VictimError(f"victim 'coco:{spec.name}': {where} does not run as {spec.name} ({first}): "
-                          f"weights of another shape or another model") from None
-    cells = s // spec.stride
+    s, cells = spec.input_size, spec.input_size // spec.stride
     want = {spec.scores: (1, cells, cells, len(COCO_LABELS)), spec.boxes: (1, cells, cells, 4)}
-    got: dict[str, Any] = {k: tuple(v.shape) for k, v in out.items()}
-    if got != want:
-        raise VictimError(f"victim 'coco:{spec.name}': {where} gives outputs {got}, expected {want}: "
-                          f"another model")
+    check_outputs(graph, torch.zeros(1, s, s, 3), want, f"coco:{name}", spec.name, str(path))
+    return CenterNetDetector(CenterNetModule(graph, spec), f"coco:{name}", device)

@@ -22,16 +22,14 @@ also drops every ``toilet``. Neither is done here.)
 """
 from __future__ import annotations
 
-from typing import Any
-
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from undream.errors import VictimError
 from undream.victims.dense import LOG_EPS, DenseDetector, DenseOutput
 from undream.victims.preprocess import PreprocessConfig
-from undream.victims.tfjs import GraphModel, GraphModule
+from undream.victims.tfjs import GraphModel, GraphModule, check_outputs
+from undream.victims.yolo import ltrb_boxes
 
 # (stride, class scores output, box distribution output), finest level first.
 LEVELS = ((8, "Identity:0", "Identity_3:0"), (16, "Identity_1:0", "Identity_4:0"),
@@ -85,7 +83,7 @@ def decode_nanodet(levels: list[tuple[torch.Tensor, torch.Tensor]], strides: tup
     for (scores, dist), stride in zip(levels, strides):
         pts = level_points(round(scores.shape[1] ** 0.5), stride, scores.device)
         d = distances(dist, stride)
-        boxes.append(torch.cat((pts[None] - d[..., :2], pts[None] + d[..., 2:]), -1))
+        boxes.append(ltrb_boxes(d, pts))
         logs.append(scores.clamp(min=LOG_EPS).log())
         points.append(pts)
     return torch.cat(boxes, 1), torch.cat(logs, 1), torch.cat(points, 0)
@@ -115,23 +113,14 @@ def build_nanodet(model: GraphModel, labels: tuple[str, ...], name: str, device:
     """The victim ``name`` from NanoDet's parsed graph; one-line errors for an op the
     loader does not know or a graph whose outputs are not NanoDet's."""
     graph = GraphModule(model, [o for _, scores, dist in LEVELS for o in (scores, dist)], INPUT)
-    check_outputs(graph, name, model.source)
+    check_outputs(graph, torch.zeros(1, 3, INPUT_SIZE, INPUT_SIZE), _want(), name, "NanoDet", model.source)
     return NanoDetDetector(NanoDetModule(graph), labels, name, device)
 
 
-def check_outputs(graph: GraphModule, name: str, where: str) -> None:
-    """Run the graph once on zeros: each level must give 80 scores and 44 bin logits per cell."""
-    try:
-        with torch.no_grad():
-            out = graph(torch.zeros(1, 3, INPUT_SIZE, INPUT_SIZE))
-    except (RuntimeError, IndexError, ValueError) as err:
-        first = (str(err).strip().splitlines() or [type(err).__name__])[0]
-        raise VictimError(f"victim {name!r}: {where} does not run as NanoDet ({first}): "
-                          f"weights of another shape or another model") from None
-    want: dict[str, Any] = {}
+def _want() -> dict[str, tuple[int, ...]]:
+    """Each level's output shapes: 80 scores and 44 bin logits per cell."""
+    want: dict[str, tuple[int, ...]] = {}
     for stride, scores, dist in LEVELS:
         n = (INPUT_SIZE // stride) ** 2
         want[scores], want[dist] = (1, n, CLASSES), (1, n, 4 * (REG_MAX + 1))
-    got = {k: tuple(v.shape) for k, v in out.items()}
-    if got != want:
-        raise VictimError(f"victim {name!r}: {where} gives outputs {got}, expected {want}: another model")
+    return want

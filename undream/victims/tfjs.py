@@ -457,6 +457,23 @@ class GraphModule(nn.Module):
         return {o: _output(values[o.partition(":")[0]], int(o.partition(":")[2] or 0)) for o in self.output_names}
 
 
+def check_outputs(graph: GraphModule, x: torch.Tensor, want: dict[str, tuple[int, ...]], victim: str,
+                  model: str, where: str) -> None:
+    """Run ``graph`` once on ``x`` (zeros of its input's shape): its outputs must have the shapes
+    ``want`` (output name → shape); else one :class:`VictimError` line saying that ``where`` (the
+    file of ``victim``) does not hold ``model``: weights of another shape or another model."""
+    try:
+        with torch.no_grad():
+            out = graph(x)
+    except (RuntimeError, IndexError, ValueError) as err:
+        first = (str(err).strip().splitlines() or [type(err).__name__])[0]
+        raise VictimError(f"victim {victim!r}: {where} does not run as {model} ({first}): weights of another "
+                          f"shape or another model") from None
+    got = {k: tuple(v.shape) for k, v in out.items()}
+    if got != want:
+        raise VictimError(f"victim {victim!r}: {where} gives outputs {got}, expected {want}: another model")
+
+
 def _output(value: Any, index: int) -> Any:
     return value[index] if isinstance(value, tuple) else value
 

@@ -144,10 +144,15 @@ def anchor_points(h: int, w: int, strides: Sequence[int] = STRIDES,
     return torch.cat(points).float(), torch.cat(steps)
 
 
+def ltrb_boxes(distances: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """xyxy boxes ``B×N×4`` from distances ``B×N×4`` (pixels) to the left, top, right and
+    bottom sides of each point ``N×2`` (x, y pixels)."""
+    return torch.cat((points[None] - distances[..., :2], points[None] + distances[..., 2:]), -1)
+
+
 def decode_ltrb(ltrb: torch.Tensor, points: torch.Tensor, strides: torch.Tensor) -> torch.Tensor:
     """xyxy boxes ``B×N×4`` from distances ``B×N×4`` (in strides) to the sides of each point."""
-    d = ltrb * strides[None, :, None]
-    return torch.cat((points[None] - d[..., :2], points[None] + d[..., 2:]), -1)
+    return ltrb_boxes(ltrb * strides[None, :, None], points)
 
 
 class YoloNet(nn.Module):
