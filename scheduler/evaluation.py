@@ -28,6 +28,7 @@ from undream.color import to_uint8
 from undream.errors import StoreError
 
 if TYPE_CHECKING:
+    from scheduler.benign import BenignCache
     from undream.engine.context import RunContext
     from undream.store import Store
 
@@ -44,30 +45,62 @@ def prediction_from_json(task: str, data: dict[str, Any]) -> Any:
 
 
 def eval_jobs(store: "Store", ctx: "RunContext", run_id: str, phase: str, k: int, positions: list[int],
-              textures: dict[str, np.ndarray]) -> None:
+              textures: dict[str, np.ndarray], benign: "BenignCache | None" = None) -> None:
     """Evaluation jobs of frames ``positions`` in ``phase`` (see the module docstring); k = the steps.
 
     Each frame is rendered, the victim judges them once per batch of frames, and the results
     are recorded in one transaction. ``textures``: ``benign`` (and ``last`` when the attack's final
     pick reads the last texture's loss, :attr:`undream.attacks.base.Attack.needs_final_loss`) for
     ``pre``, ``final`` for ``adversarial`` (sRGB H×W×3; the caller reads them once per batch).
+    ``benign``: the cache of the ``pre`` phase's benign frames (:mod:`scheduler.benign`): read
+    when it holds the whole batch, written when it does not; each job's result says which
+    (``benign_cache``: the key and ``hit``). None: rendered and judged here, as always.
     """
-    from undream.engine.algorithm import eval_losses, eval_predictions, eval_render
+    from undream.engine.algorithm import eval_losses
     from undream.store import EvalResult
 
     store.jobs_started(run_id, k, positions, phase, worker=worker_name())
     t0 = time.perf_counter()
-    texture = textures["benign" if phase == "pre" else "final"]
-    images = [eval_render(ctx, p, texture) for p in positions]
-    results: list[dict[str, Any]] = [{"prediction": pred.to_dict()} for pred in eval_predictions(ctx, images)]
+    results, images = _judged_frames(ctx, positions, textures["benign" if phase == "pre" else "final"],
+                                      benign if phase == "pre" else None)
     if phase == "pre" and "last" in textures:
         losses = eval_losses(ctx, positions, [eval_render(ctx, p, textures["last"]) for p in positions])
         for result, loss in zip(results, losses):
             result["loss"] = loss
     share = (time.perf_counter() - t0) / len(positions)
-    store.evals_succeeded(run_id, k, phase, [EvalResult(frame=p, result=r, image=to_uint8(im),
-                                                        timings={"total": share})
+    store.evals_succeeded(run_id, k, phase, [EvalResult(frame=p, result=r, image=im, timings={"total": share})
                                              for p, r, im in zip(positions, results, images)])
+
+
+def eval_render(ctx: "RunContext", position: int, texture: np.ndarray) -> np.ndarray:
+    """:func:`undream.engine.algorithm.eval_render` (looked up at each call: tests count the renders)."""
+    from undream.engine import algorithm
+
+    return algorithm.eval_render(ctx, position, texture)
+
+
+def _judged_frames(ctx: "RunContext", positions: list[int], texture: np.ndarray,
+                   benign: "BenignCache | None") -> tuple[list[dict[str, Any]], list[np.ndarray]]:
+    """Each frame's result (``prediction``) and image (H×W×3 uint8 sRGB) with ``texture``: from the
+    cache ``benign`` when it holds the whole batch, else rendered and judged (and kept in ``benign``)."""
+    from scheduler.benign import CachedFrame
+    from undream.engine.algorithm import eval_predictions
+
+    kept = benign.get(positions) if benign is not None else None
+    if kept is None:
+        rendered = [eval_render(ctx, p, texture) for p in positions]
+        kept = [CachedFrame(to_uint8(im), pred.to_dict())
+                for im, pred in zip(rendered, eval_predictions(ctx, rendered))]
+        if benign is not None:
+            benign.put(positions, kept)
+        hit = False
+    else:
+        hit = True
+    results: list[dict[str, Any]] = [{"prediction": f.prediction} for f in kept]
+    if benign is not None:
+        for result in results:
+            result["benign_cache"] = {"key": benign.key, "hit": hit}
+    return results, [f.image for f in kept]
 
 
 def eval_textures(store: "Store", run_id: str, phase: str, k: int,

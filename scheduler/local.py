@@ -71,12 +71,13 @@ class LocalDispatch:
 
 
 def drain(store: Any, contexts: stages.Contexts, dispatch: LocalDispatch,
-          on_collect: Any = None) -> None:
+          on_collect: Any = None, benign: Any = None) -> None:
     """Run everything queued, and what it queues, until nothing is left.
 
     A batch whose jobs failed with attempts left runs again at once; each
     phase's callback follows its jobs. ``on_collect(run_id, phase, k, outcome)``
-    is called after each callback.
+    is called after each callback. ``benign``: the blob store that keeps benign
+    evaluations (:func:`benign_blobs`; None: the run store's).
     """
     while dispatch.queue:
         interrupts.check()  # a stop whose exception was dropped (raised in a __del__) ends the run here
@@ -87,7 +88,7 @@ def drain(store: Any, contexts: stages.Contexts, dispatch: LocalDispatch,
         _, run_id, phase, k, batches = item
         for batch in batches:
             interrupts.check()
-            while stages.run_batch(store, contexts, run_id, phase, k, batch)["retry"]:
+            while stages.run_batch(store, contexts, run_id, phase, k, batch, benign=benign)["retry"]:
                 pass
         outcome = stages.collect(store, contexts, run_id, phase, k, dispatch)
         if on_collect is not None:
@@ -131,12 +132,22 @@ def run_local(config: RunConfig, out: str | Path, base_dir: Path | None = None, 
         store = open_store(config.store, out / "store")
         n = len(ctx.sequence.frames)
         options = stages.FarmOptions(frames_per_task=n, **LOCAL_OPTIONS,
-                                     attacked=attacked_positions(config, ctx.sequence))
+                                     attacked=attacked_positions(config, ctx.sequence),
+                                     benign_cache=local.benign_cache)
         run_id = stages.create(store, config, n, options, out_dir=str(out))
     except BaseException:
         shutil.rmtree(out, ignore_errors=True)
         raise
-    return _drive(store, ctx, run_id, progress, lambda dispatch: dispatch.start(run_id))
+    return _drive(store, ctx, run_id, progress, lambda dispatch: dispatch.start(run_id),
+                  benign=benign_blobs(local))
+
+
+def benign_blobs(local: LocalSettings) -> Any:
+    """Where ``undream run`` keeps benign evaluations for later runs (:mod:`scheduler.benign`): the
+    folder ``<cache_home>/undream`` (keys ``benign/<key>/...``), shared by every run of this user."""
+    from undream.store import BlobStore
+
+    return BlobStore(Path(local.cache_home) / "undream")
 
 
 def check_run(config: RunConfig, out: str | Path, base_dir: Path | None = None,
@@ -174,7 +185,7 @@ def resume_local(config: RunConfig, out: Path, base_dir: Path, progress: bool = 
     ctx = build_context(config, resolve_scene(config, out, base_dir, reuse=True, local=local), victim=victim,
                         local=local)
     return _drive(store, ctx, run.id, progress, lambda dispatch: stages.resume(store, run.id, dispatch),
-                  done=run.iteration)
+                  done=run.iteration, benign=benign_blobs(local))
 
 
 def _recorded_run(store: Any, config: RunConfig, out: Path) -> Any:
@@ -192,7 +203,7 @@ def _recorded_run(store: Any, config: RunConfig, out: Path) -> Any:
 
 
 def _drive(store: Any, ctx: RunContext, run_id: str, progress: bool,
-           first: Any, done: int = 0) -> dict[str, Any]:
+           first: Any, done: int = 0, benign: Any = None) -> dict[str, Any]:
     """Hold the run's lease and drain its stages from ``first(dispatch)``; the run's results.
 
     A failure while the lease is held marks the run failed with the error; a
@@ -214,7 +225,7 @@ def _drive(store: Any, ctx: RunContext, run_id: str, progress: bool,
 
         try:
             first(dispatch)
-            drain(store, lambda _: ctx, dispatch, on_collect)
+            drain(store, lambda _: ctx, dispatch, on_collect, benign)
         except BaseException as exc:
             error = f"{type(exc).__name__}: {' '.join(str(exc).split())}"
             store.transition(run_id, ("queued", "running", "evaluating"), "failed", error=error)

@@ -27,6 +27,9 @@ class FarmOptions:
     # A multi-condition run's attacked frame positions (its split needs the sequence's conditions,
     # which a reader of the run does not load); None: split_frames of the run's holdout.
     attacked: tuple[int, ...] | None = None
+    # Read the benign evaluation from the blob store when a run with the same key computed it
+    # (scheduler.benign), and keep it there when not.
+    benign_cache: bool = True
 
     @classmethod
     def of(cls, run: "RunSnapshot") -> "FarmOptions":
@@ -40,7 +43,7 @@ class FarmOptions:
         attacked = len(config.split(sequence).attacked)
         per_iteration = min(config.attack.frames_per_step or attacked, attacked)
         return cls(settings.frames_per_task_for(per_iteration), settings.max_attempts, settings.failure_budget,
-                   attacked_positions(config, sequence))
+                   attacked_positions(config, sequence), settings.benign_cache)
 
     def to_json(self) -> dict[str, Any]:
         d = asdict(self)
@@ -48,6 +51,8 @@ class FarmOptions:
             del d["attacked"]  # a run of one scene: as before multi-condition runs
         else:
             d["attacked"] = list(self.attacked)
+        if self.benign_cache:
+            del d["benign_cache"]  # on: as runs stored before the cache existed read
         return d
 
 

@@ -49,8 +49,9 @@ def results(store: "Store", ctx: "RunContext", run: "RunSnapshot", k: int) -> di
     from undream.engine.algorithm import judge
 
     task = ctx.victim.task
+    pre = store.jobs(run.id, k, "pre")
     benign_preds = [prediction_from_json(task, j.result["prediction"])  # type: ignore[index]
-                    for j in store.jobs(run.id, k, "pre")]
+                    for j in pre]
     adv_preds = [prediction_from_json(task, j.result["prediction"])  # type: ignore[index]
                  for j in store.jobs(run.id, k, "adversarial")]
     benign, adv = judge(ctx, benign_preds), judge(ctx, adv_preds)
@@ -80,7 +81,20 @@ def results(store: "Store", ctx: "RunContext", run: "RunSnapshot", k: int) -> di
         "loss_per_iteration": [r.loss_mean for r in iters],
         "frames_dropped_per_iteration": [r.n_bad for r in iters],
         "wall_time_seconds": times,
+        "benign_cache": benign_cache_record([j.result or {} for j in pre]),
     }
+
+
+def benign_cache_record(pre: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """Where the benign evaluation came from (``pre``: its jobs' results): the cache key
+    (:mod:`scheduler.benign`; a list if batches differed), the frames read from the cache and the
+    frames rendered and judged by this run; None when the run did not use the cache."""
+    marks = [r.get("benign_cache") for r in pre]
+    if not any(marks):
+        return None
+    keys = sorted({m["key"] for m in marks if m})
+    hits = sum(1 for m in marks if m and m.get("hit"))
+    return {"key": keys[0] if len(keys) == 1 else keys, "frames_from_cache": hits, "frames_rendered": len(pre) - hits}
 
 
 def _headline(judged: dict[str, Any]) -> dict[str, Any]:

@@ -33,6 +33,7 @@ from typing import TYPE_CHECKING, Any, Callable, Protocol, Sequence
 
 import numpy as np
 
+from scheduler.benign import benign_cache
 from scheduler.evaluation import eval_jobs, eval_textures, select_final
 from scheduler.iteration import MissingResults, drop_gradients, expected_frames, frame_jobs, reduce_and_step
 from scheduler.options import FarmOptions
@@ -45,7 +46,7 @@ from undream.store import ACTIVE, UNFINISHED, NewRun
 if TYPE_CHECKING:
     from undream.engine.context import RunContext
     from undream.spec.run import RunConfig
-    from undream.store import RunSnapshot, Store
+    from undream.store import BlobStore, RunSnapshot, Store
 
 log = logging.getLogger(__name__)
 
@@ -166,7 +167,8 @@ def served_last(run_id: str, parts: list[list[int]]) -> list[list[int]]:
 
 
 def run_batch(store: "Store", contexts: Contexts, run_id: str, phase: str, k: int,
-              frames: Sequence[int], textures: "LRU[tuple, dict] | None" = None) -> dict[str, Any]:
+              frames: Sequence[int], textures: "LRU[tuple, dict] | None" = None,
+              benign: "BlobStore | None" = None) -> dict[str, Any]:
     """The header task's body: the jobs of ``frames`` that have no result yet, computed together
     (the victim once per batch of them), failures recorded.
 
@@ -175,7 +177,9 @@ def run_batch(store: "Store", contexts: Contexts, run_id: str, phase: str, k: in
     batches it serves (least recently used dropped past ``TEXTURE_VERSIONS``).
     Returns a small JSON summary: frames ``done``, ``failed`` (gave up), ``retry`` (failed,
     attempts left: run the batch again), ``skipped`` (the run moved on or was
-    cancelled), and the blob bytes read and written.
+    cancelled), and the blob bytes read and written. ``benign``: the blob store that keeps benign
+    evaluations (:mod:`scheduler.benign`; default the run store's) when the run's
+    :attr:`FarmOptions.benign_cache` is on.
     """
     summary: dict[str, Any] = {"run_id": run_id, "phase": phase, "k": k, "done": [], "failed": [],
                                "retry": [], "skipped": []}
@@ -211,7 +215,10 @@ def run_batch(store: "Store", contexts: Contexts, run_id: str, phase: str, k: in
                 frame_jobs(store, ctx, run_id, k, todo, read["k"])
                 _SERVED.put(run_id, frozenset(todo))
             else:
-                eval_jobs(store, ctx, run_id, phase, k, todo, read)
+                cache = None
+                if phase == "pre" and FarmOptions.of(run).benign_cache:
+                    cache = benign_cache(benign or store.blobs, ctx, run.scene_ref, read["benign"])
+                eval_jobs(store, ctx, run_id, phase, k, todo, read, cache)
             summary["done"].extend(todo)
         except Exception as exc:  # any failure of a job is recorded with it, then retried or counted
             error = f"{type(exc).__name__}: {' '.join(str(exc).split())}"

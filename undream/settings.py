@@ -34,6 +34,8 @@ in the library)::
     UNDREAM_BLENDER_THREADS  Cycles' CPU threads (default: the process's Dr.Jit threads)
     UNDREAM_UNREAL_SPOOL     the spool folder shared with the Unreal editor's worker
     UNDREAM_UNREAL_TIMEOUT   seconds to wait for one Unreal frame (default 600)
+    UNDREAM_BENIGN_CACHE     0: every run renders and judges its benign frames itself (default 1:
+                             read them where a run with the same key kept them; scheduler.benign)
     HF_HUB_OFFLINE, TRANSFORMERS_OFFLINE   1/true/yes/on: never ask the Hugging Face hub
 
 Other tools' variables, read to find things: ``XDG_DATA_HOME`` and
@@ -142,6 +144,8 @@ class Settings:
         if token is not None and (not isinstance(token, str) or len(token.strip()) < 8):
             raise SettingsError("dashboard_token: must be a secret of at least 8 characters or unset, "
                                 f"got {'a shorter one' if isinstance(token, str) else repr(token)}")
+        if not isinstance(self.benign_cache, bool):
+            raise SettingsError(f"benign_cache: must be true or false, got {self.benign_cache!r}")
         if isinstance(self.connect_timeout, bool) or not isinstance(self.connect_timeout, (int, float)) \
                 or not self.connect_timeout > 0:
             raise SettingsError(f"connect_timeout: must be a number of seconds > 0, got {self.connect_timeout!r}")
@@ -186,6 +190,13 @@ def _coerce(source: str, name: str, value: Any) -> Any:
             return int(str(value).strip())
         except ValueError:
             return _bad(source, value, "an integer")
+    if name == "benign_cache":
+        if isinstance(value, bool):
+            return value
+        text = str(value).strip().lower()
+        if text not in _TRUE + _FALSE:
+            return _bad(source, value, "true or false (1/0, yes/no, on/off)")
+        return text in _TRUE
     if name == "connect_timeout":
         try:
             return float(value)
@@ -266,6 +277,8 @@ DRJIT_THREADS_ENV = "UNDREAM_DRJIT_THREADS"  # also the farm's drjit_threads (Se
 HF_OFFLINE_ENVS = ("HF_HUB_OFFLINE", "TRANSFORMERS_OFFLINE")
 DEFAULT_LIBCUDA = "libcuda.so.1"
 _TRUE = ("1", "true", "yes", "on")
+_FALSE = ("0", "false", "no", "off")
+BENIGN_CACHE_ENV = "UNDREAM_BENIGN_CACHE"  # also the farm's benign_cache (Settings)
 
 
 @dataclass(frozen=True)
@@ -288,6 +301,7 @@ class LocalSettings:
     cache_home: str = ""  # "" → ~/.cache
     libcuda_path: str = DEFAULT_LIBCUDA  # the CUDA driver library Dr.Jit loads
     cuda_visible_devices: str | None = None  # as set, for messages
+    benign_cache: bool = True  # `undream run` keeps benign evaluations in <cache_home>/undream/benign
     # What child processes (Blender's interpreter) get as their environment; None: only what
     # undream sets for them. Not compared or shown: it may hold secrets.
     child_env: Mapping[str, str] | None = field(default=None, repr=False, compare=False)
@@ -341,5 +355,6 @@ def load_local(env: Mapping[str, str] | None = None) -> LocalSettings:
         cache_home=str(cache_home(env)),
         libcuda_path=env.get("DRJIT_LIBCUDA_PATH") or DEFAULT_LIBCUDA,
         cuda_visible_devices=env.get("CUDA_VISIBLE_DEVICES"),
+        benign_cache=_coerce(BENIGN_CACHE_ENV, "benign_cache", env.get(BENIGN_CACHE_ENV, "")),
         child_env=dict(env),
     )

@@ -44,6 +44,10 @@ if TYPE_CHECKING:
     from undream.spec import Frame
 
 EVAL_ITERATION = 10**6  # seeds of evaluation renders never coincide with the attack's
+# The evaluation renders' run seed, the same for every run (not the run's seed): the runs of a sweep
+# judge their textures on the same render noise, and the benign evaluation is the same work for all of
+# them (scheduler.benign computes it once). A run of seed 0 renders as it always did.
+EVAL_SEED = 0
 
 
 # --------------------------------------------------------------------------- 1. start
@@ -117,10 +121,11 @@ def quantise(texture: np.ndarray) -> np.ndarray:
 
 
 def eval_render(ctx: RunContext, position: int, texture: np.ndarray) -> np.ndarray:
-    """Frame ``position`` with ``texture`` at ``eval_spp`` and the evaluation's seed: sRGB H×W×3."""
+    """Frame ``position`` with ``texture`` at ``eval_spp`` and the evaluation's seed (:data:`EVAL_SEED`,
+    whatever the run's seed): sRGB H×W×3."""
     index = ctx.frame_indices[position]
     return linear_to_srgb(ctx.sim.render(index, texture, ctx.config.eval_spp,
-                                         frame_seed(ctx.config.seed, EVAL_ITERATION, index)))
+                                         frame_seed(EVAL_SEED, EVAL_ITERATION, index)))
 
 
 def _stacks(ctx: RunContext, images: Sequence[np.ndarray]) -> list[tuple[list[int], torch.Tensor]]:

@@ -1,0 +1,127 @@
+"""The benign evaluation once: a sweep over seeds renders the scene's own texture once (counted), a
+change of anything in the key renders it again, and a run reads the same numbers with or without it."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from farm_support import make_scene, make_victim
+from undream.settings import LocalSettings
+from undream.spec.run import RunConfig
+
+N_FRAMES = 3
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory, mi):
+    root = tmp_path_factory.mktemp("benign")
+    return {"root": root, "victim": make_victim(root / "victim"), "scene": make_scene(root / "scene", N_FRAMES, 16)}
+
+
+@pytest.fixture
+def renders(monkeypatch):
+    """Every evaluation render of this process: (frame position, whether the texture was the benign one)."""
+    from undream.engine import algorithm
+
+    seen: list[tuple[int, bool]] = []
+    real = algorithm.eval_render
+
+    def counted(ctx, position, texture):
+        benign = algorithm.quantise(algorithm.start_texture(ctx))
+        seen.append((position, bool(np.array_equal(texture, benign))))
+        return real(ctx, position, texture)
+
+    monkeypatch.setattr(algorithm, "eval_render", counted)
+    return seen
+
+
+def _config(tiny, seed=0, **fields):
+    return RunConfig.from_json({"scene": str(tiny["scene"]), "name": f"s{seed}", "victim": tiny["victim"],
+                                "loss": "ce", "attack": {"name": "pgd", "eps": 32.0, "steps": 1},
+                                "sim_spp": 2, "grad_spp": 2, "eval_spp": 2, "seed": seed, **fields})
+
+
+def _run(config, out, local):
+    from scheduler.local import run_local
+
+    return run_local(config, out, progress=False, local=local)
+
+
+def _benign_renders(renders) -> int:
+    return sum(1 for _, benign in renders if benign)
+
+
+def test_a_sweep_over_seeds_renders_the_benign_frames_once(tiny, tmp_path, renders):
+    local = LocalSettings(cache_home=str(tmp_path / "cache"))
+    results = [_run(_config(tiny, seed), tmp_path / f"seed{seed}", local) for seed in range(4)]
+    assert _benign_renders(renders) == N_FRAMES  # once for the sweep, not once per run
+    assert len(renders) == N_FRAMES * 5  # and each run's own adversarial frames
+    key = results[0]["benign_cache"]["key"]
+    assert [r["benign_cache"] for r in results] == \
+        [{"key": key, "frames_from_cache": 0, "frames_rendered": N_FRAMES}] + \
+        [{"key": key, "frames_from_cache": N_FRAMES, "frames_rendered": 0}] * 3
+    assert len({json.dumps(r["benign"], sort_keys=True) for r in results}) == 1
+    assert (tmp_path / "cache" / "undream" / "benign" / key / "key.json").is_file()
+    pngs = [sorted((tmp_path / f"seed{s}" / "frames_benign").glob("*.png")) for s in range(4)]
+    assert len(pngs[0]) == N_FRAMES
+    for other in pngs[1:]:  # the frames the report and dashboard show: the same bytes
+        assert [p.read_bytes() for p in other] == [p.read_bytes() for p in pngs[0]]
+
+
+def test_a_run_reads_the_same_benign_numbers_with_the_cache_on_and_off(tiny, tmp_path, renders):
+    from undream.store import open_store
+
+    cache = str(tmp_path / "cache")
+    on = [_run(_config(tiny, 1), tmp_path / f"on{i}", LocalSettings(cache_home=cache)) for i in range(2)]
+    off = _run(_config(tiny, 1), tmp_path / "off", LocalSettings(cache_home=cache, benign_cache=False))
+    assert on[1]["benign_cache"]["frames_from_cache"] == N_FRAMES and off["benign_cache"] is None
+    assert _benign_renders(renders) == 2 * N_FRAMES  # the first run and the one with the cache off
+    for block in ("benign", "attacked", "held_out", "attack_success"):
+        assert on[1][block] == off[block] == on[0][block], block
+    frames = {}
+    for name, res in (("on1", on[1]), ("off", off)):
+        with open_store(None, tmp_path / name / "store") as store:
+            jobs = store.jobs(res["run_id"], 1, "pre")
+            frames[name] = ([store.blobs.get_array(j.image_ref) for j in jobs],
+                            [j.result["prediction"] for j in jobs])
+    assert all(np.array_equal(a, b) for a, b in zip(frames["on1"][0], frames["off"][0]))
+    assert frames["on1"][1] == frames["off"][1]
+
+
+def test_anything_in_the_key_renders_the_benign_frames_again(tiny, tmp_path, renders):
+    local = LocalSettings(cache_home=str(tmp_path / "cache"))
+    other_victim = make_victim(tmp_path / "victim2")  # the same architecture and seed: the same weights
+    import torch
+    from transformers import ResNetForImageClassification
+
+    model = ResNetForImageClassification.from_pretrained(other_victim)
+    with torch.no_grad():
+        next(model.parameters()).add_(0.01)  # one weight changed, the name's folder the same kind
+    model.save_pretrained(other_victim)
+    keys = []
+    for i, fields in enumerate(({}, {"seed": 7, "attack": {"name": "pgd", "eps": 8.0, "steps": 1}},
+                                {"eval_spp": 3}, {"victim": other_victim}, {"victim_batch": 2})):
+        res = _run(_config(tiny, **fields), tmp_path / f"run{i}", local)
+        keys.append((res["benign_cache"]["key"], res["benign_cache"]["frames_rendered"]))
+    # A run of another seed or attack reads the first run's frames; another eval_spp, victim or
+    # victim batch renders and judges them again.
+    assert [n for _, n in keys] == [N_FRAMES, 0, N_FRAMES, N_FRAMES, N_FRAMES]
+    assert keys[0][0] == keys[1][0] and len({k for k, _ in keys}) == 4
+    assert _benign_renders(renders) == 4 * N_FRAMES
+
+
+def test_the_key_holds_the_scene_the_texture_and_the_simulator(tiny, tmp_path):
+    """Key documents differ where the scene's files, the benign texture or the simulator differ."""
+    from scheduler.benign import benign_key, key_document, scene_digest
+    from undream.engine.context import build_context
+
+    ctx = build_context(_config(tiny), tiny["scene"])
+    texture = np.full((8, 16, 3), 0.5, np.float32)
+    base = key_document(ctx, scene_digest(ctx.scene_dir), texture)
+    assert benign_key(base) == benign_key(key_document(ctx, scene_digest(ctx.scene_dir), texture.copy()))
+    assert base["eval_seed"][0] == 0 and base["sim_versions"]["variant"]
+    changed = [key_document(ctx, "another scene", texture), key_document(ctx, base["scene"], texture * 0.5),
+               {**base, "sim_versions": {**base["sim_versions"], "mitsuba": "0.0.0"}}, {**base, "frozen": False}]
+    assert len({benign_key(d) for d in [base, *changed]}) == 5
