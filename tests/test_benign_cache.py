@@ -125,3 +125,36 @@ def test_the_key_holds_the_scene_the_texture_and_the_simulator(tiny, tmp_path):
     changed = [key_document(ctx, "another scene", texture), key_document(ctx, base["scene"], texture * 0.5),
                {**base, "sim_versions": {**base["sim_versions"], "mitsuba": "0.0.0"}}, {**base, "frozen": False}]
     assert len({benign_key(d) for d in [base, *changed]}) == 5
+
+
+def test_a_sweep_over_seeds_on_a_farm_worker_renders_the_benign_frames_once(tiny, tmp_path):
+    """`undream sweep` of 4 seeds served by a real worker process: the runs' own records say that
+    the benign frames were rendered and judged once, in the farm's blob store, for the whole sweep."""
+    from conftest import service_missing
+    from farm_support import Farm, finished_runs, redis_up, wait_for, write_yaml
+
+    reason = redis_up()
+    if reason:
+        service_missing(reason)
+    farm = Farm(tmp_path / "farm")
+    farm.root.mkdir()
+    try:
+        run = {"scene": str(tiny["scene"]), "victim": tiny["victim"], "loss": "ce", "sim_spp": 2, "grad_spp": 2,
+               "eval_spp": 2, "attack": {"name": "pgd", "eps": 32.0, "steps": 1}}
+        write_yaml(farm.root / "run.yaml", run)
+        sweep = write_yaml(farm.root / "sweep.yaml", {"name": "seeds", "run": "run.yaml", "grid": {"seed": [0, 1, 2, 3]}})
+        res = farm.cli("sweep", str(sweep))
+        assert res.returncode == 0, res.stderr
+        sweep_id = res.stdout.splitlines()[0]
+        farm.start_worker()
+        wait_for(lambda: finished_runs(farm.store, 4), 300, "the sweep's 4 runs")
+        runs = farm.store.runs(sweep_id=sweep_id)
+        assert [r.status for r in runs] == ["done"] * 4, [(r.status, r.error) for r in runs]
+        records = [r.results["benign_cache"] for r in runs]
+        assert sum(r["frames_rendered"] for r in records) == N_FRAMES, records
+        assert sum(r["frames_from_cache"] for r in records) == 3 * N_FRAMES
+        assert len({r["key"] for r in records}) == 1
+        assert len({json.dumps(r.results["benign"], sort_keys=True) for r in runs}) == 1
+        assert (farm.blobs / "benign" / records[0]["key"] / "key.json").is_file()
+    finally:
+        farm.stop()
