@@ -3,35 +3,44 @@
 The stall rule (:func:`stall_reason`) looks at the farm's active runs in
 which nothing happened for ``heal_after`` seconds (the run's row unchanged,
 no job of its current iteration started or finished since:
-:meth:`undream.store.Store.quiet_runs`), and calls one *stalled* when
+:meth:`undream.store.Store.quiet_runs`), and asks the broker what it knows of
+each (a :class:`FarmView`, :func:`workers.health.farm_view`):
 
-- it is ``queued``: its start was never run (lost with the broker, or never sent);
-- its current iteration has no job queued, started or retried: the phase's
-  callback was lost, or found nothing to do;
-- its current iteration has jobs queued, none started: their messages were lost;
-- it has a started job too, and has been quiet for ``visibility_timeout`` more:
-  the broker would have handed a lost worker's job to another worker by then,
-  so the broker lost its copy (a restarted, empty Redis).
+- **held**: a live worker holds a task of the run (running it, prefetched, or
+  waiting out a retry's countdown): each ``undream worker`` names the runs of
+  the tasks it holds in its announcement (:mod:`workers.presence`). Such a
+  run is at work, however long its job takes, and is never sent again;
+- **waiting**: a message of the run sits in one of the broker's queues: it
+  is waiting its turn behind other runs' work, not lost.
 
-A run holding a started job, quiet for less than that, is a long job at
-work and is left alone; so, for as long, is a run whose next work goes to
-a queue that holds messages (``busy``: it may be waiting its turn). :func:`heal_run` sends a stalled run's current work
-again through :func:`scheduler.stages.resume`'s code path (its jobs without
-a result, then the phase's callback; a queued run's start) and records an
-event line on the run saying why and what it sent; the event moves the
-run's ``updated``, so the same run is healed at most once per
-``heal_after``. Everything sent is idempotent (upserted jobs, a
-compare-and-set step, :func:`scheduler.stages.catch_up`), so a run healed
-while its work was only slow does that work twice at most. Workers run
-:func:`heal` periodically (:mod:`workers.healer`); ``undream status`` shows
-the same rule's verdicts.
+A quiet run neither held nor waiting is *stalled*: its start, its jobs or its
+callback are nowhere (lost with a restarted broker, or with a worker that was
+killed or stopped: its announcement lapses :data:`workers.presence.TTL_S`
+after its last), or its callback found nothing to do. Where the broker cannot
+say (its Redis unreachable, restarted less than ``TTL_S`` ago so that not
+every worker has announced itself again, or a queue too long to read), the
+rule falls back on time alone: a run with a started job, or whose next work's
+queue holds messages, is stalled only after ``visibility_timeout`` more.
+
+:func:`heal` confirms each verdict with a second look :data:`CONFIRM_S` later
+(an announcement trails a delivery by up to a second), then :func:`heal_run`
+sends the run's current work again through :func:`scheduler.stages.resume`'s
+code path (its jobs without a result, then the phase's callback; a queued
+run's start), keeping the jobs' attempts (a job that kills its worker each
+time still gives up at ``max_attempts``), and records an event line on the
+run saying why and what it sent. The event moves the run's ``updated``, so
+one run is healed at most once per ``heal_after``. Everything sent is
+idempotent (upserted jobs, a compare-and-set step, :func:`scheduler.stages.catch_up`).
+Workers run :func:`heal` periodically (:mod:`workers.healer`); ``undream
+status`` shows the same rule's verdicts.
 """
 from __future__ import annotations
 
 import datetime as dt
 import logging
+import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Collection
+from typing import TYPE_CHECKING, Any, Callable
 
 from undream.errors import StoreError
 
@@ -44,20 +53,45 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 HEAL_BATCH = 50  # stalled runs one pass heals at most (quiet longest first); the next pass takes the rest
+CONFIRM_S = 2.0  # s between a pass's two looks at the broker (a worker announces a task it took within 1 s)
 
 
 @dataclass(frozen=True)
 class StallRule:
-    """When a quiet farm run counts as stalled: ``after_s`` seconds without progress (0: never),
-    ``started_s`` with a job started (the broker redelivers a lost worker's job before that)."""
+    """When a quiet farm run counts as stalled: ``after_s`` seconds without progress (0: never);
+    where the broker cannot say what holds the run, ``started_s`` (the broker redelivers a lost
+    worker's job before that)."""
 
     after_s: float
     started_s: float
 
     @classmethod
     def of(cls, settings: "Settings") -> "StallRule":
-        """The rule of a farm's settings: ``heal_after``, and ``visibility_timeout`` more with a job started."""
+        """The rule of a farm's settings: ``heal_after``, and ``visibility_timeout`` more when blind."""
         return cls(float(settings.heal_after), float(settings.heal_after + settings.visibility_timeout))
+
+
+@dataclass(frozen=True)
+class FarmView:
+    """What the broker says of the farm's runs now (:func:`workers.health.farm_view`).
+
+    ``held``: the runs a live worker holds a task of (None: unknown: the announcements unreadable,
+    or not yet every worker's after a restarted Redis); ``waiting``: the runs with a message in a
+    queue that was read; ``unread``: the kinds of next work (:func:`waits_for`) whose queue could
+    not be read (unreachable, or too long), which may be waiting there; ``why``: why it is partial."""
+
+    held: frozenset[str] | None = None
+    waiting: frozenset[str] = frozenset()
+    unread: frozenset[str] = frozenset({"queued", "callback", "jobs"})
+    why: str = ""
+
+    @classmethod
+    def blind(cls, why: str = "") -> "FarmView":
+        """Nothing known: the rule falls back on time alone."""
+        return cls(why=why)
+
+
+BLIND = FarmView.blind()
 
 
 def _duration(seconds: float) -> str:
@@ -73,44 +107,47 @@ def waits_for(run: "RunHealth") -> str:
     return "jobs" if run.unfinished else "callback"
 
 
-def stall_reason(run: "RunHealth", now: dt.datetime, rule: StallRule, busy: Collection[str] = ()) -> str | None:
+def stall_reason(run: "RunHealth", now: dt.datetime, rule: StallRule, view: FarmView = BLIND) -> str | None:
     """Why the quiet farm run ``run`` is stalled, in one line; None when it is not: quiet for less
-    than ``rule.after_s``; a started job, quiet for less than ``rule.started_s``; or its next work
-    (:func:`waits_for`) is of a kind in ``busy``, whose queue holds messages: it may be waiting
-    behind other runs' work (a sweep's starts, a long frames queue), not lost; but not for longer
-    than ``rule.started_s``."""
+    than ``rule.after_s``; a live worker holds a task of it (``view.held``); a message of it waits
+    in a queue (``view.waiting``); or, where ``view`` cannot say, a started job or a next work whose
+    queue may hold it (``view.unread``), quiet for less than ``rule.started_s``."""
     quiet = (now - (max(run.updated, run.last_job) if run.last_job else run.updated)).total_seconds()
     if rule.after_s <= 0 or quiet < rule.after_s:
         return None
-    at, since = f"k={run.iteration}", _duration(quiet)
-    if run.started and quiet >= rule.started_s:
-        return f"{run.started} job(s) started at {at}, nothing finished for {since} (the broker lost them)"
-    if run.started or (waits_for(run) in busy and quiet < rule.started_s):  # a long queue, for an hour at most
+    if (view.held is not None and run.id in view.held) or run.id in view.waiting:
         return None
+    at, since, blind = f"k={run.iteration}", _duration(quiet), quiet < rule.started_s
+    if blind and ((run.started and view.held is None) or waits_for(run) in view.unread):
+        return None  # it may be at work or waiting its turn: time alone decides, an hour on
+    if run.started:
+        holder = "no live worker holds them" if view.held is not None else "the broker lost them"
+        return f"{run.started} job(s) started at {at}, nothing finished for {since} ({holder})"
     if run.status == "queued":
-        return f"queued, its start not run for {since}"
+        return f"queued, its start not run for {since} (its message lost)"
     if run.unfinished == 0:
         return f"no job queued or started at {at} for {since} (its callback lost, or it found nothing to do)"
     return f"{run.unfinished} job(s) queued at {at}, none started for {since} (their messages lost)"
 
 
 def stalled(store: "Store", rule: StallRule, now: dt.datetime | None = None, limit: int = HEAL_BATCH,
-            busy: Collection[str] = ()) -> list[tuple["RunHealth", str]]:
-    """The stalled farm runs (at most ``limit``, quiet longest first), each with why (``busy``:
+            view: FarmView = BLIND) -> list[tuple["RunHealth", str]]:
+    """The stalled farm runs (at most ``limit``, quiet longest first), each with why (``view``:
     see :func:`stall_reason`)."""
     if rule.after_s <= 0:
         return []
     now = now or dt.datetime.now(dt.timezone.utc)
     runs = store.quiet_runs(now - dt.timedelta(seconds=rule.after_s), limit)
-    return [(run, why) for run in runs if (why := stall_reason(run, now, rule, busy)) is not None]
+    return [(run, why) for run in runs if (why := stall_reason(run, now, rule, view)) is not None]
 
 
 def heal_run(store: "Store", run_id: str, dispatch: "Dispatch", why: str, by: str) -> str:
-    """Send the stalled run's current work again (:func:`scheduler.stages.resume`) and record an
-    event line by ``by`` saying ``why`` and what was sent; returns the phase sent (or ``start``)."""
+    """Send the stalled run's current work again (:func:`scheduler.stages.resume`, the jobs'
+    attempts kept) and record an event line by ``by`` saying ``why`` and what was sent; returns
+    the phase sent (or ``start``)."""
     from scheduler.stages import resume  # the stages load the attacks and outputs: not for `undream status`
 
-    sent = resume(store, run_id, dispatch)
+    sent = resume(store, run_id, dispatch, keep_attempts=True)
     store.add_event(run_id, f"healed: {why}; sent again: {_sent(sent)}", by)
     return sent
 
@@ -120,12 +157,22 @@ def _sent(phase: str) -> str:
 
 
 def heal(store: "Store", dispatch: "Dispatch", rule: StallRule, by: str, now: dt.datetime | None = None,
-         limit: int = HEAL_BATCH, busy: Collection[str] = ()) -> list[dict[str, Any]]:
-    """One pass: heal every stalled run (at most ``limit``; ``busy``: see :func:`stall_reason`);
+         limit: int = HEAL_BATCH, view: Callable[[], FarmView] = lambda: BLIND,
+         confirm_s: float = CONFIRM_S) -> list[dict[str, Any]]:
+    """One pass: heal every stalled run (at most ``limit``), each found stalled by two looks
+    ``confirm_s`` apart (``view``: the broker's answer, asked at each look; see :func:`stall_reason`);
     returns what it did, a dict per run. A run the store cannot heal now (the database away a
     moment) is logged and left to the next pass."""
+    first = {run.id for run, _ in stalled(store, rule, now, limit, view())}
+    if not first:
+        return []
+    if confirm_s > 0:
+        time.sleep(confirm_s)
     healed = []
-    for run, why in stalled(store, rule, now, limit, busy):
+    later = None if now is None else now + dt.timedelta(seconds=confirm_s)
+    for run, why in stalled(store, rule, later, limit, view()):
+        if run.id not in first:
+            continue
         try:
             sent = heal_run(store, run.id, dispatch, why, by)
         except StoreError as err:

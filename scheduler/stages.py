@@ -370,7 +370,7 @@ def resume_sweep(store: "Store", sweep_id: str, dispatch: Dispatch) -> tuple[lis
     return queued, active
 
 
-def resume(store: "Store", run_id: str, dispatch: Dispatch) -> str:
+def resume(store: "Store", run_id: str, dispatch: Dispatch, keep_attempts: bool = False) -> str:
     """Dispatch a run again from what the store says (after a crash of any part, or a cancel).
 
     Failed and cancelled runs are queued again with a fresh failure budget;
@@ -379,7 +379,8 @@ def resume(store: "Store", run_id: str, dispatch: Dispatch) -> str:
     dispatched again, then its callback. Jobs still in flight may run twice;
     every write is idempotent and the step is a compare-and-set. Returns the
     phase it dispatched (``start``, ``attack``, ``pre``, ``adversarial``) or
-    ``done``.
+    ``done``. ``keep_attempts`` (the healer, :mod:`scheduler.heal`): the jobs keep the attempts
+    they used, so a job that kills its worker each time still gives up at ``max_attempts``.
     """
     run = store.get_run(run_id)
     if run.status == "done":
@@ -400,7 +401,7 @@ def resume(store: "Store", run_id: str, dispatch: Dispatch) -> str:
     if phase == "attack":  # a gradient the machine's power cut took (written without fsync): computed again
         store.reset_jobs(run_id, run.iteration, store.lost_gradients(run_id, run.iteration), phase, succeeded=True)
     jobs = {j.frame: j for j in store.jobs(run_id, run.iteration, phase)}
-    store.reset_jobs(run_id, run.iteration, [f for f in frames if f in jobs], phase)
+    store.reset_jobs(run_id, run.iteration, [f for f in frames if f in jobs], phase, keep_attempts=keep_attempts)
     plan(store, run, phase, run.iteration, dispatch,
          only=[f for f in frames if f not in jobs or jobs[f].status != "succeeded"])
     return phase

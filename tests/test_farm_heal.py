@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import os
 import time
 from pathlib import Path
 
@@ -22,7 +23,7 @@ from farm_support import (
     wait_for, write_yaml,
 )
 from scheduler import stages
-from scheduler.heal import StallRule, heal, stall_reason, stalled
+from scheduler.heal import FarmView, StallRule, heal, stall_reason, stalled
 from scheduler.local import LocalDispatch, drain
 from undream.errors import StoreError
 from undream.settings import load_settings
@@ -134,23 +135,45 @@ def _health(status: str = "running", quiet_s: float = 900, unfinished: int = 0, 
     return RunHealth("r1", "r", status, 4, then, 0, {}, None, unfinished, 0, then if unfinished else None, started)
 
 
-def test_the_stall_rule_says_why_and_leaves_long_jobs_and_recent_runs_alone():
-    assert stall_reason(_health("queued"), NOW, RULE) == "queued, its start not run for 15 min"
-    assert stall_reason(_health(), NOW, RULE) == \
+KNOWN = FarmView(held=frozenset(), waiting=frozenset(), unread=frozenset())  # the broker read: nothing of r1
+
+
+def test_the_stall_rule_says_why_and_leaves_held_waiting_and_recent_runs_alone():
+    assert stall_reason(_health("queued"), NOW, RULE, KNOWN) == "queued, its start not run for 15 min (its message lost)"
+    assert stall_reason(_health(), NOW, RULE, KNOWN) == \
         "no job queued or started at k=4 for 15 min (its callback lost, or it found nothing to do)"
-    assert stall_reason(_health(unfinished=3), NOW, RULE) == \
+    assert stall_reason(_health(unfinished=3), NOW, RULE, KNOWN) == \
         "3 job(s) queued at k=4, none started for 15 min (their messages lost)"
-    assert stall_reason(_health(unfinished=3, started=1), NOW, RULE) is None  # a long job: the broker's
-    assert stall_reason(_health(unfinished=3, started=1, quiet_s=4300), NOW, RULE) == \
+    # a started job no live worker holds (its worker killed or stopped): stalled after heal_after, not an hour
+    assert stall_reason(_health(unfinished=3, started=1), NOW, RULE, KNOWN) == \
+        "1 job(s) started at k=4, nothing finished for 15 min (no live worker holds them)"
+    assert stall_reason(_health(quiet_s=599), NOW, RULE, KNOWN) is None
+    assert stall_reason(_health(), NOW, StallRule(0, 0), KNOWN) is None  # heal_after 0: never
+    # a live worker holds a task of it: a long job at work, never sent again, however long
+    held = FarmView(held=frozenset({"r1"}), waiting=frozenset(), unread=frozenset())
+    for quiet in (900, 4300, 86400):
+        assert stall_reason(_health(unfinished=3, started=1, quiet_s=quiet), NOW, RULE, held) is None
+        assert stall_reason(_health(quiet_s=quiet), NOW, RULE, held) is None  # its callback, running
+    # a message of it waits in a queue: behind other runs' work, not lost
+    waiting = FarmView(held=frozenset(), waiting=frozenset({"r1"}), unread=frozenset())
+    assert stall_reason(_health("queued", quiet_s=86400), NOW, RULE, waiting) is None
+
+
+def test_where_the_broker_cannot_say_the_stall_rule_falls_back_on_time():
+    """Announcements unknown (Redis restarted less than TTL_S ago) or a queue unread: a started job,
+    or next work whose queue may hold it, is left alone for visibility_timeout more."""
+    blind = FarmView.blind("Redis unreachable")
+    assert stall_reason(_health(unfinished=3, started=1), NOW, RULE, blind) is None
+    assert stall_reason(_health(unfinished=3, started=1, quiet_s=4300), NOW, RULE, blind) == \
         "1 job(s) started at k=4, nothing finished for 71 min (the broker lost them)"
-    assert stall_reason(_health(quiet_s=599), NOW, RULE) is None
-    assert stall_reason(_health(), NOW, StallRule(0, 0)) is None  # heal_after 0: never
-    # work that may be waiting behind other runs' (its queue holds messages) is not called lost, for an hour
-    assert stall_reason(_health("queued"), NOW, RULE, busy={"queued", "callback"}) is None
-    assert stall_reason(_health(), NOW, RULE, busy={"queued", "callback"}) is None
-    assert stall_reason(_health(unfinished=3), NOW, RULE, busy={"queued", "callback"}) is not None
-    assert stall_reason(_health(unfinished=3), NOW, RULE, busy={"jobs"}) is None
-    assert stall_reason(_health(unfinished=3, quiet_s=4300), NOW, RULE, busy={"jobs"}) is not None
+    assert stall_reason(_health(), NOW, RULE, blind) is None
+    assert stall_reason(_health(quiet_s=4300), NOW, RULE, blind) is not None
+    unread_jobs = FarmView(held=frozenset(), waiting=frozenset(), unread=frozenset({"jobs"}))
+    assert stall_reason(_health(unfinished=3), NOW, RULE, unread_jobs) is None
+    assert stall_reason(_health(), NOW, RULE, unread_jobs) is not None  # its callback: the control queue was read
+    no_presence = FarmView(held=None, waiting=frozenset(), unread=frozenset())
+    assert stall_reason(_health(unfinished=3, started=1), NOW, RULE, no_presence) is None
+    assert stall_reason(_health(unfinished=3), NOW, RULE, no_presence) is not None  # none started: nobody holds
 
 
 def _stalled_farm(blobs: Path) -> dict[str, str]:
@@ -169,27 +192,44 @@ def _stalled_farm(blobs: Path) -> dict[str, str]:
     return ids
 
 
-def test_the_backlog_of_a_queue_is_read_across_its_priorities():
-    from workers.health import busy_kinds
-    from workers.presence import PRIORITY_SEP, queue_backlog
+def test_the_farm_view_reads_the_queues_across_priorities_and_the_workers_announcements():
+    from workers.health import farm_view
+    from workers.presence import PRIORITY_SEP, SINCE_KEY, TTL_S, announce
     from workers.queues import CONTROL_QUEUE, FRAMES_QUEUE, QUEUES
+    from workers.app import create_celery_app
 
     if (reason := redis_up()) is not None:
         service_missing(reason)
     db = free_db()
     try:
         settings = load_settings(env={"UNDREAM_BROKER_URL": f"redis://127.0.0.1:6379/{db}"})
-        assert queue_backlog(settings, QUEUES) == {CONTROL_QUEUE: 0, FRAMES_QUEUE: 0} and busy_kinds(settings) == set()
+        assert farm_view(settings) == FarmView(None, frozenset(), frozenset(), farm_view(settings).why)
+        app = create_celery_app(settings)  # real task messages, as the farm sends them
+        app.signature("undream.frames", args=("run-a", "attack", 2, [0, 1])).apply_async()
+        app.signature("undream.collect", args=("run-b", "attack", 2)).apply_async(priority=3)
+        app.signature("undream.start", args=("run-c",)).apply_async()
         from farm_support import redis_client
 
-        redis_client(db).lpush(FRAMES_QUEUE, "a", "b")
-        redis_client(db).lpush(f"{CONTROL_QUEUE}{PRIORITY_SEP}3", "c")
-        assert queue_backlog(settings, QUEUES) == {CONTROL_QUEUE: 1, FRAMES_QUEUE: 2}
-        assert busy_kinds(settings) == {"queued", "callback", "jobs"}
+        client = redis_client(db)
+        assert client.llen(FRAMES_QUEUE) == 1 and client.llen(f"{CONTROL_QUEUE}{PRIORITY_SEP}3") == 1
+        withdraw = announce(settings, "w1@host", QUEUES, holds=lambda: ["run-d", "run-d"])
+        try:
+            view = farm_view(settings)
+            assert view.waiting == {"run-a", "run-b", "run-c"} and view.unread == frozenset()
+            assert view.held is None and "announced" in view.why  # the announcements are younger than TTL_S
+            client.set(SINCE_KEY, time.time() - TTL_S - 1)
+            assert farm_view(settings).held == {"run-d"}
+        finally:
+            withdraw()
+        assert farm_view(settings).held == frozenset()
+        from workers.presence import queued_runs
+
+        assert queued_runs(settings, QUEUES, limit=1) == (frozenset({"run-a"}), frozenset({CONTROL_QUEUE}))
     finally:
         release_db(db)
     unreachable = load_settings(env={"UNDREAM_BROKER_URL": "redis://127.0.0.1:1/0", "UNDREAM_CONNECT_TIMEOUT": "1"})
-    assert busy_kinds(unreachable) == {"queued", "callback", "jobs"}  # unknown: nothing called lost
+    view = farm_view(unreachable)  # unknown: nothing called lost that could be held or waiting
+    assert view.held is None and view.unread == {"queued", "callback", "jobs"}
 
 
 def test_status_names_the_stalled_runs_while_every_queue_has_a_live_worker(tmp_path):
@@ -233,14 +273,14 @@ def test_a_stalled_run_is_healed_once_with_an_event_and_finishes(tiny, tmp_path)
     rule = StallRule(after_s=0.5, started_s=10)
     assert stalled(store, rule) == []  # not quiet for long enough yet
     time.sleep(0.6)
-    healed = heal(store, dispatch, rule, by="node:7")
+    healed = heal(store, dispatch, rule, by="node:7", view=lambda: KNOWN, confirm_s=0.1)
     assert healed == [{"run_id": run_id, "sent": "attack",
                        "reason": healed[0]["reason"]}] and "no job queued or started at k=0" in healed[0]["reason"]
     assert list(dispatch.queue) == [("frames", run_id, "attack", 0, [])]  # the callback alone: every job succeeded
     (event,) = store.events(run_id)
     assert event.by == "node:7" and event.line.startswith("healed: no job queued or started at k=0")
     assert event.line.endswith("sent again: its attack jobs without a result, then their callback")
-    assert heal(store, dispatch, rule, by="node:7") == []  # healed: quiet again only after heal_after
+    assert heal(store, dispatch, rule, by="node:7", view=lambda: KNOWN) == []  # healed: quiet again only after heal_after
     drain(store, contexts, dispatch)
     assert store.get_run(run_id).status == "done"
     np.testing.assert_array_equal(store.final_texture(run_id), _reference(tiny, tmp_path))
@@ -286,6 +326,94 @@ def test_a_worker_heals_a_run_whose_broker_lost_everything(farm_tiny):
                                       np.load(farm.root / "reference" / "texture_final.npy"))
         res = farm.cli("status", run_id)
         assert res.returncode == 0 and "events:" in res.stdout and "healed: " in res.stdout, res.stdout
+    finally:
+        farm.stop()
+
+
+def _started_job(farm: Farm, run_id: str):
+    """A started frame job of iteration >= 1 of the run, with a worker, else None (for wait_for)."""
+    run = farm.store.get_run(run_id)
+    jobs = [j for j in farm.store.jobs(run_id, run.iteration) if j.status == "started" and j.worker]
+    return run.iteration >= 1 and jobs and jobs[0]
+
+
+def _final(farm: Farm, run) -> np.ndarray:
+    out = Path(run.out_dir) if run.out_dir else farm.blobs / "outputs" / f"{run.name}-{run.id[:8]}"
+    return np.load(out / "texture_final.npy")
+
+
+@pytest.mark.slow
+def test_a_killed_workers_job_is_sent_again_by_the_healer_not_after_the_visibility_timeout(farm_tiny):
+    """Issue 41: with the default visibility timeout a SIGKILLed worker's job came back after an hour.
+    Now its announcement lapses (30 s), nothing else holds the run, and the healer sends the job
+    again: the run finishes with the undisturbed run's texture, no person involved, the broker's
+    copy of the job still an hour away."""
+    from scheduler.local import run_local
+    from workers.presence import TTL_S
+
+    farm = Farm(farm_tiny["root"] / "killed", heal_after=3, heal_interval=1, visibility_timeout=3600,
+                frames_per_task=1)
+    farm.root.mkdir()
+    cfg = run_config(farm_tiny["scene"], farm_tiny["victim"], name="killed", steps=4, sim_spp=256, grad_spp=16)
+    try:
+        run_id = farm.submit(write_yaml(farm.root / "killed.yaml", cfg))
+        workers = [farm.start_worker(), farm.start_worker()]
+        job = wait_for(lambda: _started_job(farm, run_id), 90, "a started frame job of iteration >= 1",
+                       interval=0.005)
+        victim = next(w for w in workers if w.pid == os.getpgid(int(job.worker.split(":")[1])))
+        farm.kill_worker(victim)
+        killed = time.monotonic()
+        run = farm.wait_status(run_id, timeout=90)
+        took = time.monotonic() - killed
+        # the announcement's lapse, heal_after, a pass interval, the confirming look, the rest of the run
+        assert took < TTL_S + 3 + 1 + 2 + 25, took
+        again = next(j for j in farm.store.jobs(run_id, job.k) if j.frame == job.frame)
+        assert again.status == "succeeded" and again.attempts == 2 and run.failures == 0  # attempts kept
+        healed = [e.line for e in farm.store.events(run_id)]
+        assert any(line.startswith(f"healed: 1 job(s) started at k={job.k}") and "no live worker holds them" in line
+                   for line in healed), healed
+        assert [r.k for r in farm.store.iterations(run_id)] == [0, 1, 2, 3]
+        run_local(RunConfig.from_json(cfg), farm.root / "reference", progress=False)
+        np.testing.assert_array_equal(_final(farm, run), np.load(farm.root / "reference" / "texture_final.npy"))
+    finally:
+        farm.stop()
+
+
+@pytest.mark.slow
+def test_a_long_job_is_never_sent_again_while_its_worker_lives(farm_tiny):
+    """A job that makes no progress for 5x heal_after (its pool process stopped, its worker alive and
+    announcing it) is left alone: no heal, no second attempt; the run finishes once it goes on."""
+    import signal
+
+    from farm_support import redis_client
+    from workers.health import farm_view
+    from workers.presence import SINCE_KEY
+
+    farm = Farm(farm_tiny["root"] / "long", heal_after=2, heal_interval=1, frames_per_task=1,
+                visibility_timeout=3600)
+    farm.root.mkdir()
+    cfg = run_config(farm_tiny["scene"], farm_tiny["victim"], name="long", steps=3, sim_spp=256, grad_spp=16)
+    try:
+        run_id = farm.submit(write_yaml(farm.root / "long.yaml", cfg))
+        farm.start_worker()
+        redis_client(farm.db).set(SINCE_KEY, time.time() - 3600)  # a farm up for an hour: announcements complete
+        job = wait_for(lambda: _started_job(farm, run_id), 90, "a started frame job of iteration >= 1",
+                       interval=0.005)
+        child = int(job.worker.split(":")[1])
+        os.kill(child, signal.SIGSTOP)  # the job "runs" on: no progress at all
+        try:
+            time.sleep(3)
+            assert farm_view(farm.settings()).held == {run_id}  # what keeps it: its worker says it holds it
+            time.sleep(7)
+            assert farm.store.events(run_id) == []
+            res = farm.cli("status")
+            assert res.returncode == 0 and "stalled" not in res.stdout.split("stuck:")[-1], res.stdout
+        finally:
+            os.kill(child, signal.SIGCONT)
+        run = farm.wait_status(run_id, timeout=90)
+        assert farm.store.events(run_id) == []
+        assert next(j for j in farm.store.jobs(run_id, job.k) if j.frame == job.frame).attempts == 1
+        assert run.failures == 0
     finally:
         farm.stop()
 

@@ -26,11 +26,11 @@ import threading
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Callable, Mapping
 
-from scheduler.heal import StallRule, stalled
+from scheduler.heal import BLIND, FarmView, StallRule, stalled
 from scheduler.options import FarmOptions
 from undream.redact import redact_text
 from undream.store import mask_url
-from workers.presence import live_queues, queue_backlog
+from workers.presence import TTL_S, live_queues, presence, queued_runs
 from workers.queues import CONTROL_QUEUE, FRAMES_QUEUE
 
 if TYPE_CHECKING:
@@ -81,15 +81,25 @@ def probe(settings: "Settings") -> Consumers:
     return Consumers(None, f"Redis at {mask_url(settings.backend_url)!r} did not answer within {limit:g} s")
 
 
-def busy_kinds(settings: "Settings") -> frozenset[str]:
-    """What a run may be waiting for behind other runs' work: the kinds (:data:`WAITS_ON`) of the
-    queues that hold messages; every kind when the broker cannot be read (nothing is called
-    stalled that could be waiting). :func:`scheduler.heal.stall_reason` leaves those runs alone."""
+def farm_view(settings: "Settings") -> FarmView:
+    """What the broker says of the farm's runs (:class:`scheduler.heal.FarmView`): the runs live
+    workers hold, from their announcements (unknown until they are complete: see
+    :func:`workers.presence.presence`), and the runs with a message waiting in a queue (a queue
+    too long to read, or a broker out of reach, leaves its kinds :data:`WAITS_ON` unread).
+    Never raises: what cannot be read is unknown, and nothing is called stalled that could be
+    held or waiting."""
     try:
-        sizes = queue_backlog(settings, list(WAITS_ON))
-    except Exception:  # redis-py's ConnectionError, TimeoutError, a URL that is not Redis
-        sizes = dict.fromkeys(WAITS_ON, 1)
-    return frozenset(kind for queue, n in sizes.items() if n for kind in WAITS_ON[queue])
+        seen = presence(settings)
+        held = seen.runs if seen.complete else None
+        why = "" if seen.complete else f"not every worker has announced itself yet (Redis started < {TTL_S:g} s ago)"
+    except Exception as exc:  # redis-py's ConnectionError, TimeoutError, a URL that is not Redis
+        held, why = None, f"cannot read the workers' announcements: {one_line(str(exc) or type(exc).__name__)}"
+    try:
+        waiting, unread = queued_runs(settings, list(WAITS_ON))
+    except Exception as exc:
+        return FarmView(held, frozenset(), frozenset(k for kinds in WAITS_ON.values() for k in kinds),
+                        f"cannot read the queues: {one_line(str(exc) or type(exc).__name__)}")
+    return FarmView(held, waiting, frozenset(k for q in unread for k in WAITS_ON[q]), why)
 
 
 def one_line(text: str, width: int = ERROR_WIDTH) -> str:
@@ -130,26 +140,26 @@ def _stalled_first(row: dict[str, Any]) -> tuple[float, str]:
     return -row["stalled_s"], row["run_id"]
 
 
-def _stalled(store: "Store", rule: "StallRule | None", busy: Callable[[], frozenset[str]], now: dt.datetime,
+def _stalled(store: "Store", rule: "StallRule | None", view: Callable[[], FarmView], now: dt.datetime,
              shown: set[str], limit: int) -> list[dict[str, Any]]:
     """The farm's stalled runs (:mod:`scheduler.heal`'s rule) not already shown as waiting or failing."""
     if rule is None:
         return []
-    found = stalled(store, rule, now, limit + len(shown), busy())
+    found = stalled(store, rule, now, limit + len(shown), view())
     return [{**_base(run, now), "state": "stalled", "reason": why} for run, why in found if run.id not in shown][:limit]
 
 
 def stuck_runs(store: "Store", consumers: Callable[[], Consumers], now: dt.datetime | None = None,
                limit: int = LIMIT, rule: "StallRule | None" = None,
-               busy: Callable[[], frozenset[str]] = frozenset) -> dict[str, Any]:
+               view: Callable[[], FarmView] = lambda: BLIND) -> dict[str, Any]:
     """The runs that cannot make progress, as plain data: ``waiting`` and ``failing`` (at most
     ``limit`` each, stalled longest first), their totals ``n_waiting`` (None while the live queues
     are unknown) and ``n_failing``, ``active`` (farm runs queued, running or evaluating), ``queues``
     (queue → live workers; None: unknown, or not asked) and ``broker_error``. ``consumers`` is
     called (the broker asked: ``asked``) only when a farm run is active; the runs waiting are read
     only when a queue has no live worker. ``rule`` given: also ``stalled``, the runs that rule calls
-    stalled (:func:`scheduler.heal.stall_reason`: live workers, yet no progress; ``busy``: what
-    may be waiting behind other work, :func:`busy_kinds`) that are neither waiting nor failing,
+    stalled (:func:`scheduler.heal.stall_reason`: live workers, yet no progress; ``view``: what
+    the broker says of the runs, :func:`farm_view`) that are neither waiting nor failing,
     quiet longest first, at most ``limit``. A fixed number of queries,
     whatever the number of runs."""
     now = now or dt.datetime.now(dt.timezone.utc)
@@ -163,7 +173,7 @@ def stuck_runs(store: "Store", consumers: Callable[[], Consumers], now: dt.datet
     failing = sorted((_failing(run, err, now) for run, err in store.failing_runs()), key=_stalled_first)
     queues = None if live.queues is None else {q: list(w) for q, w in live.queues.items()}
     shown = {row["run_id"] for row in waiting + failing}
-    idle = _stalled(store, rule, busy, now, shown, limit) if active else []
+    idle = _stalled(store, rule, view, now, shown, limit) if active else []
     return {"active": active, "asked": bool(active), "queues": queues, "broker_error": live.reason,
             "n_waiting": sum(counts.get(kind, 0) for kind in kinds) if live.known or not active else None,
             "n_failing": len(failing), "waiting": waiting, "failing": failing[:limit], "stalled": idle,

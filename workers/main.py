@@ -5,6 +5,7 @@ import logging
 import os
 import socket
 import sys
+import threading
 from typing import TYPE_CHECKING, Any, Callable
 
 from undream.redact import install_log_redaction
@@ -33,6 +34,16 @@ def worker_argv(settings: "Settings", loglevel: str = "INFO", hostname: str | No
             "--without-gossip", "--without-mingle", "--without-heartbeat"]
 
 
+def held_runs() -> list[str]:
+    """The runs of the tasks this worker (its parent process) holds: running in a child, prefetched,
+    or waiting out a retry's countdown (Celery's ``worker.state.requests``); a task's run is its
+    first argument (the heal pass's is a node name, which names no run)."""
+    from celery.worker import state
+
+    return [req.args[0] for req in list(state.requests.values())
+            if req.args and isinstance(req.args[0], str)]
+
+
 def run_worker(settings: "Settings", loglevel: str = "INFO", hostname: str | None = None) -> None:
     """Run a worker until it is stopped (blocks). Every log record of the worker and of its child
     processes is redacted, at every level (:func:`undream.redact.install_log_redaction`): at
@@ -44,6 +55,7 @@ def run_worker(settings: "Settings", loglevel: str = "INFO", hostname: str | Non
     app = create_celery_app(settings)
     node = node_name(hostname)
     withdraw: list[Callable[[], None]] = []
+    nudge = threading.Event()  # a task arrived: announce what the worker holds now
 
     def _child_init(**_: Any) -> None:
         app.undream_local = init_process(settings, app.undream_local)  # type: ignore[attr-defined]
@@ -54,13 +66,15 @@ def run_worker(settings: "Settings", loglevel: str = "INFO", hostname: str | Non
             log.error("undream worker: %s imported in the worker's parent process (not fork-safe)", heavy)
         log.info("undream worker ready: %d process(es), %d Dr.Jit thread(s) each, parent without %s",
                  settings.concurrency, drjit_threads_for(settings), ", ".join(HEAVY))
-        withdraw.append(announce(settings, node, QUEUES))  # `undream status` sees it live from now
+        # `undream status` sees it live from now, and the healer the runs it holds
+        withdraw.append(announce(settings, node, QUEUES, holds=held_runs, nudge=nudge))
         withdraw.append(start_healer(app, settings, node))  # stalled runs sent again, one worker at a time
 
     def _shutdown(**_: Any) -> None:
         for stop in withdraw:
             stop()
 
+    signals.task_received.connect(lambda **_: nudge.set(), weak=False)
     signals.worker_process_init.connect(_child_init, weak=False)
     signals.worker_ready.connect(_ready, weak=False)
     signals.worker_shutdown.connect(_shutdown, weak=False)

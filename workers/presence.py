@@ -9,13 +9,27 @@ round trip or two, so a command learns which queues have a live consumer in
 milliseconds, where Celery's remote control (``inspect().active_queues()``)
 waits its whole timeout for answers however many workers there are. A worker
 killed with SIGKILL stays listed until its key expires (at most ``TTL_S``).
+
+An announcement also names the runs of the tasks the worker holds (running,
+prefetched, or waiting out a retry's countdown: Celery's ``worker.state``
+requests in the parent process), and a task's arrival wakes the announcing
+thread, so a task taken is announced within :data:`NUDGE_S`. The healer
+(:mod:`scheduler.heal`) never sends again the work of a run a live worker
+holds. Its absence from every announcement means something only once every
+live worker has announced itself since Redis last started empty: each
+announcement also sets :data:`SINCE_KEY` where absent (no expiry), and
+:func:`presence` calls the announcements complete once that key is
+``TTL_S`` old.
 """
 from __future__ import annotations
 
+import base64
 import json
 import logging
 import threading
-from typing import TYPE_CHECKING, Callable, Sequence
+import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Callable, Iterable, Sequence
 
 import redis  # comes with celery[redis]
 
@@ -29,6 +43,8 @@ PREFIX = "undream:worker:"
 PRIORITY_SEP, PRIORITY_STEPS = "\x06\x16", (0, 3, 6, 9)
 BEAT_S = 10.0  # s between a worker's announcements
 TTL_S = 3 * BEAT_S  # s a key outlives its last announcement: a worker silent this long is not live
+NUDGE_S = 1.0  # s at least between two announcements (a task's arrival announces at once, then waits this)
+SINCE_KEY = "undream:presence:since"  # when the first announcement since Redis started empty was made (epoch s)
 
 
 def _client(settings: "Settings") -> redis.Redis:
@@ -37,22 +53,35 @@ def _client(settings: "Settings") -> redis.Redis:
 
 
 def announce(settings: "Settings", node: str, queues: Sequence[str], beat_s: float = BEAT_S,
-             ttl_s: float = TTL_S) -> Callable[[], None]:
-    """Announce worker ``node`` as consuming ``queues`` now and every ``beat_s`` seconds, from a
-    daemon thread; returns the function that stops announcing and deletes the key. A failed
-    announcement (Redis away a moment) is logged and tried again at the next beat."""
+             ttl_s: float = TTL_S, holds: Callable[[], Iterable[str]] = tuple,
+             nudge: threading.Event | None = None) -> Callable[[], None]:
+    """Announce worker ``node`` as consuming ``queues`` and holding tasks of the runs ``holds()``
+    now and every ``beat_s`` seconds, and at once (``NUDGE_S`` apart at most) when ``nudge`` is
+    set, from a daemon thread; returns the function that stops announcing and deletes the key. A
+    failed announcement (Redis away a moment) is logged and tried again at the next beat."""
     client, key, stop = _client(settings), PREFIX + node, threading.Event()
-    value = json.dumps({"node": node, "queues": list(queues)})
+    woken = nudge or threading.Event()
 
     def say() -> None:
         try:
-            client.set(key, value, ex=max(1, round(ttl_s)))
-        except Exception as exc:  # redis-py's ConnectionError and friends
+            runs = sorted(set(holds()))
+            value = json.dumps({"node": node, "queues": list(queues), "runs": runs, "at": time.time()})
+            with client.pipeline(transaction=False) as pipe:
+                pipe.set(key, value, ex=max(1, round(ttl_s)))
+                pipe.set(SINCE_KEY, time.time(), nx=True)
+                pipe.execute()
+        except Exception as exc:  # redis-py's ConnectionError and friends; a dict changed while read
             log.warning("worker %s: cannot announce itself in Redis: %s", node, exc)
 
     def beat() -> None:
-        while not stop.wait(beat_s):
+        while not stop.is_set():
+            nudged = woken.wait(beat_s)
+            woken.clear()
+            if stop.is_set():
+                return
             say()
+            if nudged:
+                stop.wait(NUDGE_S)
 
     say()  # live when this returns
     thread = threading.Thread(target=beat, name="undream-presence", daemon=True)
@@ -60,6 +89,7 @@ def announce(settings: "Settings", node: str, queues: Sequence[str], beat_s: flo
 
     def withdraw() -> None:
         stop.set()
+        woken.set()
         thread.join(5)
         try:
             client.delete(key)
@@ -69,41 +99,100 @@ def announce(settings: "Settings", node: str, queues: Sequence[str], beat_s: flo
     return withdraw
 
 
-def live_queues(settings: "Settings") -> dict[str, tuple[str, ...]]:
-    """Queue → the live workers (node names) consuming it, from their announcements; raises
-    redis-py's errors when Redis cannot be reached (the caller says so)."""
+@dataclass(frozen=True)
+class Presence:
+    """The live workers' announcements: queue → the nodes consuming it; ``runs``: the runs whose
+    tasks they hold; ``complete``: every live worker has announced itself since Redis last started
+    empty (:data:`SINCE_KEY` at least ``TTL_S`` old), so a run in no announcement is held by none."""
+
+    queues: dict[str, tuple[str, ...]]
+    runs: frozenset[str]
+    complete: bool
+
+
+def presence(settings: "Settings", now: float | None = None) -> Presence:
+    """The announcements, read in two round trips; raises redis-py's errors when Redis cannot be
+    reached (the caller says so)."""
     client = _client(settings)
     try:
         keys = sorted(client.scan_iter(match=PREFIX + "*", count=1000))
         values = client.mget(keys) if keys else []
+        since = client.get(SINCE_KEY)
     finally:
         client.close()
     queues: dict[str, list[str]] = {}
+    runs: set[str] = set()
     for raw in values:
         if raw is None:  # expired between the scan and the read
             continue
         try:
             entry = json.loads(raw)
             node, consumed = str(entry["node"]), [str(q) for q in entry["queues"]]
-        except (ValueError, KeyError, TypeError):
+            held = [str(r) for r in entry.get("runs", ())]
+        except (ValueError, KeyError, TypeError, AttributeError):
             continue
+        runs.update(held)
         for queue in consumed:
             queues.setdefault(queue, []).append(node)
-    return {q: tuple(sorted(nodes)) for q, nodes in sorted(queues.items())}
+    try:
+        age = (time.time() if now is None else now) - float(since) if since is not None else -1.0
+    except ValueError:
+        age = -1.0
+    return Presence({q: tuple(sorted(nodes)) for q, nodes in sorted(queues.items())}, frozenset(runs),
+                    age >= TTL_S)
 
 
-def queue_backlog(settings: "Settings", queues: Sequence[str]) -> dict[str, int]:
-    """Queue → the messages waiting on it in the broker's Redis (every priority's list, one round
-    trip); raises redis-py's errors when Redis cannot be reached."""
+def live_queues(settings: "Settings") -> dict[str, tuple[str, ...]]:
+    """Queue → the live workers (node names) consuming it, from their announcements; raises
+    redis-py's errors when Redis cannot be reached (the caller says so)."""
+    return presence(settings).queues
+
+
+SCAN_LIMIT = 20_000  # messages of one queue read to learn which runs wait there; a longer queue is not read
+
+
+def queued_runs(settings: "Settings", queues: Sequence[str],
+                limit: int = SCAN_LIMIT) -> tuple[frozenset[str], frozenset[str]]:
+    """The runs with a message waiting in ``queues`` (every priority's list) and the queues not
+    read (longer than ``limit`` messages); raises redis-py's errors when Redis cannot be reached.
+    A message's run is its task's first argument (every undream task but the heal pass has one)."""
     client = redis.Redis.from_url(settings.broker_url, socket_connect_timeout=settings.connect_timeout,
                                   socket_timeout=settings.connect_timeout)
+    lists = {q: [f"{q}{PRIORITY_SEP}{step}" if step else q for step in PRIORITY_STEPS] for q in queues}
+    runs: set[str] = set()
+    unread = set()
     try:
         with client.pipeline() as pipe:
-            for queue in queues:
-                for step in PRIORITY_STEPS:
-                    pipe.llen(f"{queue}{PRIORITY_SEP}{step}" if step else queue)
-            sizes = pipe.execute()
+            for names in lists.values():
+                for name in names:
+                    pipe.llen(name)
+            sizes = iter(pipe.execute())
+        readable = []
+        for queue, names in lists.items():
+            if sum(next(sizes) for _ in names) > limit:
+                unread.add(queue)
+            else:
+                readable.append(queue)
+        with client.pipeline() as pipe:
+            for queue in readable:
+                for name in lists[queue]:
+                    pipe.lrange(name, 0, limit)
+            messages = [m for batch in pipe.execute() for m in batch]
     finally:
         client.close()
-    n = len(PRIORITY_STEPS)
-    return {queue: int(sum(sizes[i * n:(i + 1) * n])) for i, queue in enumerate(queues)}
+    runs.update(filter(None, map(message_run, messages)))
+    return frozenset(runs), frozenset(unread)
+
+
+def message_run(raw: bytes) -> str | None:
+    """The run id of a task message as kombu's Redis transport keeps it (JSON whose ``body`` is the
+    base64 of Celery's ``[args, kwargs, embed]``): its first argument; None for another message."""
+    try:
+        message = json.loads(raw)
+        body = message["body"]
+        if message.get("properties", {}).get("body_encoding") == "base64":
+            body = base64.b64decode(body)
+        args = json.loads(body)[0]
+        return args[0] if args and isinstance(args[0], str) else None
+    except (ValueError, KeyError, IndexError, TypeError, AttributeError):
+        return None

@@ -20,7 +20,7 @@ from scheduler.heal import StallRule
 from scheduler.heal import heal as heal_pass
 from undream.errors import StoreError
 from workers.healer import HEAL_TASK
-from workers.health import busy_kinds
+from workers.health import farm_view
 from workers.runtime import runtime
 
 if TYPE_CHECKING:
@@ -108,7 +108,7 @@ def register_tasks(app: "Celery") -> None:
         """One heal pass (:mod:`workers.healer`): the farm's stalled runs' current work sent again."""
         rt, settings = runtime(app), app.undream_settings  # type: ignore[attr-defined]
         healed = heal_pass(rt.store, rt.dispatch, StallRule.of(settings), by=f"undream worker {by}",
-                           busy=busy_kinds(settings))
+                           view=lambda: farm_view(settings))
         return {"healed": healed}
 
     @app.task(name="undream.collect", **common)

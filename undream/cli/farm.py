@@ -229,9 +229,9 @@ def _tally(shown: int, total: int, counts: dict[str, int], state: str | None) ->
 def _echo_stuck(store: "Store", cfg: "Settings") -> None:
     """The runs that cannot make progress (:func:`workers.health.stuck_runs`), after the table."""
     from scheduler.heal import StallRule
-    from workers.health import busy_kinds, probe, stuck_runs
+    from workers.health import farm_view, probe, stuck_runs
 
-    report = stuck_runs(store, lambda: probe(cfg), rule=StallRule.of(cfg), busy=lambda: busy_kinds(cfg))
+    report = stuck_runs(store, lambda: probe(cfg), rule=StallRule.of(cfg), view=lambda: farm_view(cfg))
     if not report["asked"]:
         return
     if report["queues"] is None:

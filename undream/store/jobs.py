@@ -377,9 +377,9 @@ class JobTables:
             return n, s.scalar(select(Run.failures).where(Run.id == run_id))
 
     def reset_jobs(self, run_id: str, k: int, frames: Sequence[int], phase: str = "attack",
-                   succeeded: bool = False) -> int:
-        """Queue jobs ``frames`` again with no attempts, unless they succeeded (resume; ``succeeded``:
-        those too, their result forgotten); returns how many."""
+                   succeeded: bool = False, keep_attempts: bool = False) -> int:
+        """Queue jobs ``frames`` again with no attempts (``keep_attempts``: with those they used),
+        unless they succeeded (resume; ``succeeded``: those too, their result forgotten); returns how many."""
         frames = [integer("frame", f, 0) for f in frames]
         with self._tx("reset_jobs", write=True) as s:
             self._run(s, run_id)
@@ -387,7 +387,7 @@ class JobTables:
                      FrameJob.frame.in_(frames)]
             if not succeeded:
                 which.append(FrameJob.status != "succeeded")
-            values: dict[str, Any] = {"status": "queued", "attempts": 0}
+            values: dict[str, Any] = {"status": "queued"} if keep_attempts else {"status": "queued", "attempts": 0}
             if succeeded:
                 values["grad_ref"] = None
             return s.execute(update(FrameJob).where(*which).values(**values)
