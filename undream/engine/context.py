@@ -6,6 +6,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from undream.attacks import make_attack
+from undream.engine.crops import CropFrames
 from undream.engine.gradient import GradientPath
 from undream.errors import SpecError, VictimError
 from undream.render.scene_cache import SceneCache
@@ -37,6 +38,11 @@ class RunContext:
     targets: list["Target"]  # one per frame position
     attack: "Attack"
     gradients: GradientPath  # each frame's texture gradient: captured transport or prb
+    crops: CropFrames = None  # type: ignore[assignment]  # what an iteration renders of each frame
+
+    def __post_init__(self) -> None:
+        if self.crops is None:
+            self.crops = CropFrames(self)
 
     @property
     def frame_indices(self) -> list[int]:

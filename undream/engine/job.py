@@ -156,7 +156,7 @@ def render_and_grad_many(ctx: RunContext, positions: Sequence[int], texture: np.
     linear, srgb, t_sim = [], [], []
     for index, seed, cond in zip(indices, seeds, conditions):
         t0 = time.perf_counter()
-        img = ctx.sim.render(index, texture, cfg.sim_spp, seed, conditions=cond)
+        img = ctx.crops.render(index, texture, cfg.sim_spp, seed, conditions=cond)
         t_sim.append(time.perf_counter() - t0)
         linear.append(img)
         srgb.append(linear_to_srgb(img))

@@ -11,13 +11,16 @@ primal image of the gradient scene is rendered: it was never used).
 """
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from undream.color import srgb_to_linear
 from undream.errors import RenderError
 from undream.render.scene_cache import ActiveFrame, SceneCache, update_params
+
+if TYPE_CHECKING:
+    from undream.render.crop import Window
 
 
 def _check_texture(tex: np.ndarray, shape: Any) -> np.ndarray:
@@ -44,12 +47,43 @@ def _render_texture(scenes: SceneCache, active: ActiveFrame, texture_srgb: np.nd
 
 
 def render_linear(scenes: SceneCache, index: int, texture_srgb: np.ndarray, spp: int, seed: int,
-                  kind: str = "sim", conditions: Any = None) -> np.ndarray:
+                  kind: str = "sim", conditions: Any = None, window: "Window | None" = None) -> np.ndarray:
     """The render of frame ``index``'s ``kind`` scene (simulation by default): H×W×3 LINEAR radiance
-    (unclipped); ``conditions``: the camera and light moved for this render (:mod:`undream.render.jitter`)."""
+    (unclipped); ``conditions``: the camera and light moved for this render (:mod:`undream.render.jitter`);
+    ``window`` (:class:`undream.render.crop.Window`): only that region, ``height × width × 3``."""
     # the texture written with the frame's own values: one scene update (the conditions, if any, after)
     texture = _render_texture(scenes, scenes.loaded(kind, index), texture_srgb)
-    return render_frozen(scenes, kind, scenes.frame(kind, index, conditions, texture=texture), spp, seed)
+    active = scenes.frame(kind, index, conditions, texture=texture)
+    if window is None:
+        return render_frozen(scenes, kind, active, spp, seed)
+    return render_window(scenes, kind, active, spp, seed, window)
+
+
+def render_window(scenes: SceneCache, kind: str, active: ActiveFrame, spp: int, seed: int,
+                  window: "Window") -> np.ndarray:
+    """``mi.render`` of the region ``window`` of ``active``'s film (its crop window; the camera
+    is the whole frame's): ``window.height × window.width × 3`` linear radiance. The film is whole
+    again afterwards. Frozen (when ``scenes.frozen``) per window: a film's crop is a host-side value
+    that a recording holds as a constant, so each window has its own recording."""
+    mi = scenes.mi
+    params = active.params
+    size = params["sensor.film.size"]
+    if not (0 <= window.x0 < window.x1 <= size[0] and 0 <= window.y0 < window.y1 <= size[1]):
+        raise RenderError(f"crop window {window} is not inside the {size[0]}×{size[1]} film")
+    params["sensor.film.crop_offset"] = mi.ScalarPoint2u(window.x0, window.y0)
+    params["sensor.film.crop_size"] = mi.ScalarVector2u(window.width, window.height)
+    update_params(params)
+    try:
+        if scenes.frozen:
+            name = f"render/{kind}/{window.x0},{window.y0},{window.width}x{window.height}"
+            img = scenes.frozen_call(name, _render, active.scene, mi.UInt32(seed), spp, scene=active.scene)
+        else:
+            img = mi.render(active.scene, spp=spp, seed=seed)
+        return np.array(img, dtype=np.float32)
+    finally:
+        params["sensor.film.crop_offset"] = mi.ScalarPoint2u(0, 0)
+        params["sensor.film.crop_size"] = mi.ScalarVector2u(int(size[0]), int(size[1]))
+        update_params(params)
 
 
 def render_frozen(scenes: SceneCache, kind: str, active: ActiveFrame, spp: int, seed: int) -> np.ndarray:

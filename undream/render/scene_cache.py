@@ -110,6 +110,8 @@ class SceneCache:
         self.frozen = bool(frozen)
         self._frozen: dict[tuple[str, int | None], Any] = {}  # (name, id of its scene) → frozen function
         self.render_texture: LastArray[Any] = LastArray()  # the last sRGB texture rendered → its tensor
+        # (frame index, spp) → the frame rendered whole with the scene's own texture (undream.engine.crops)
+        self.bases: dict[tuple[int, int], np.ndarray] = {}
         self._groups: dict[tuple[str, tuple[str, int]], _Group] = {}
         self._states: dict[tuple[str, int], _FrameState] = {}
         # the loaded groups; _make_room drops the least recently used before a load, so put() drops none
@@ -121,6 +123,7 @@ class SceneCache:
             f.clear()
         self._frozen.clear()
         self.render_texture.clear()
+        self.bases.clear()
         for group in self._groups.values():
             group.loaded = None
         self._lru.clear()

@@ -74,6 +74,8 @@ class RunConfig:
     store: str | None = None  # SQLAlchemy URL; default: SQLite in the output directory
     gradient: str = "auto"  # auto | transport | prb
     transport_refresh: int = 5
+    crop: str = "auto"  # auto | off: an iteration renders the object's window on a base (undream.engine.crops)
+    crop_margin: float = 0.25  # the window: the object's box grown by this × its longer side on every side
     holdout: Any = "auto"  # frames the attack never sees, evaluated apart: see split_frames
     eot: Mapping[str, float] | None = None  # camera and light jitter per iteration: see EOT_FIELDS
     sim: str = "mitsuba"  # the simulator backend: one of SIMULATORS
@@ -100,6 +102,9 @@ class RunConfig:
         c.integer("victim_batch", self.victim_batch, 1, 4096)
         c.choice("gradient", self.gradient, ("auto", "transport", "prb"))
         c.integer("transport_refresh", self.transport_refresh, 1, 10**6)
+        c.choice("crop", self.crop, ("auto", "off"))
+        if not 0.0 <= c.finite("crop_margin", self.crop_margin) <= 4.0:
+            raise c.fail("crop_margin", self.crop_margin, "must be between 0 and 4 (× the object's box)")
         if not isinstance(self.device, str):
             raise c.fail("device", self.device, "must be a torch device string such as 'cpu'")
         _check_holdout(self.holdout)
