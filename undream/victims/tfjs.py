@@ -263,7 +263,11 @@ def _source_index(out: int, size: int, align: bool, half: bool, device: torch.de
 
 
 def _resize_bilinear(g: "GraphModule", node: Node, args: list[Any]) -> torch.Tensor:
-    x, size = args[0], [int(v) for v in args[1].tolist()]
+    x, size = args[0], [v * g.resize_scale for v in args[1].tolist()]
+    if any(v != int(v) or v < 1 for v in size):
+        raise VictimError(f"TF.js node {node.name!r} (ResizeBilinear): size {args[1].tolist()} × "
+                          f"{g.resize_scale} is not a whole number of pixels")
+    size = [int(v) for v in size]
     align, half = bool(node.get("align_corners", False)), bool(node.get("half_pixel_centers", False))
     lo, hi, t = _source_index(size[0], x.shape[1], align, half, x.device)
     x = x[:, lo] * (1 - t)[None, :, None, None] + x[:, hi] * t[None, :, None, None]
@@ -404,10 +408,16 @@ class GraphModule(nn.Module):
     a dict output name → tensor. Constants are buffers (``.to(device)`` moves
     them); convolution filters are kept in torch's layout. Every op needed for
     ``outputs`` is checked against :data:`OPS` here, before anything runs.
+    ``resize_scale``: the graph fed images this many times the size it was
+    converted for; a ``ResizeBilinear`` whose size the converter folded into a
+    constant (an upsampling by 2 written as the converted size) resizes to that
+    constant × ``resize_scale``.
     """
 
-    def __init__(self, model: GraphModel, outputs: Sequence[str], input_name: str | None = None) -> None:
+    def __init__(self, model: GraphModel, outputs: Sequence[str], input_name: str | None = None,
+                 resize_scale: float = 1.0) -> None:
         super().__init__()
+        self.resize_scale = float(resize_scale)
         placeholders = [n.name for n in model.nodes.values() if n.op == "Placeholder"]
         self.input_name = input_name or (placeholders[0] if len(placeholders) == 1 else "")
         if self.input_name not in placeholders:
