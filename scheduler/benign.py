@@ -10,8 +10,8 @@ job rows and frame blobs are written as before, so results, reports and the
 dashboard read the same).
 
 The key is the SHA-256 of a JSON document (:func:`benign_key`, kept beside
-the entries as ``key.json``): the scene's content (the run's scene blob on the
-farm, a digest of the scene directory's files in one process), the benign
+the entries as ``key.json``): the scene's content (:func:`scene_digest`: its
+files but its provenance and verification renders), the benign
 texture's digest, the frames, the simulator (name, versions, Mitsuba variant,
 frozen renders), ``eval_spp``, the evaluation seed, the victim (name, task,
 device, a digest of its weights and settings, torch threads, ``victim_batch``)
@@ -52,17 +52,30 @@ PREFIX = "benign"
 _VICTIM_DIGESTS: "weakref.WeakKeyDictionary[Any, str]" = weakref.WeakKeyDictionary()
 
 
-def _hash_files(h: Any, root: Path, pattern: str) -> None:
+def _hash_files(h: Any, root: Path, pattern: str, skip: tuple[str, ...] = ()) -> None:
     for p in sorted(q for q in root.rglob(pattern) if q.is_file() and "__pycache__" not in q.parts):
-        h.update(p.relative_to(root).as_posix().encode() + b"\0")
-        h.update(hashlib.sha256(p.read_bytes()).digest())
+        name = p.relative_to(root).as_posix()
+        if not any(name == s or name.startswith(s + "/") for s in skip):
+            h.update(name.encode() + b"\0")
+            h.update(hashlib.sha256(p.read_bytes()).digest())
 
 
 def scene_digest(scene_dir: Path) -> str:
-    """SHA-256 over a scene directory's files (sorted relative paths and their contents)."""
+    """SHA-256 over a scene directory's files (sorted relative paths and their contents) but its
+    ``metadata.json`` (when and with what it was made; the versions are in the key) and ``verify/``
+    (white-texture renders and masks: no frame render or prediction reads them; the masks make the
+    detection targets, which a run judges itself): two runs that initialise the same spec get the
+    same digest."""
     h = hashlib.sha256()
-    _hash_files(h, Path(scene_dir), "*")
+    _hash_files(h, Path(scene_dir), "*", skip=("metadata.json", "verify"))
     return h.hexdigest()
+
+
+@functools.lru_cache(maxsize=16)
+def _unpacked_digest(scene_ref: str, scene_dir: Path) -> str:
+    """:func:`scene_digest` of a farm run's scene, unpacked from blob ``scene_ref`` (never changed
+    once unpacked: computed once per process)."""
+    return scene_digest(scene_dir)
 
 
 @functools.cache
@@ -172,7 +185,7 @@ class BenignCache:
 
 
 def benign_cache(blobs: BlobStore, ctx: "RunContext", scene_ref: str | None, texture: np.ndarray) -> BenignCache:
-    """The cache of a run's benign evaluation: its scene is the run's scene blob (``scenes/<sha256>.tar``)
-    on the farm, else the digest of its scene directory's files (``undream run``)."""
-    scene = Path(scene_ref).stem if scene_ref else scene_digest(ctx.scene_dir)
+    """The cache of a run's benign evaluation (its scene: :func:`scene_digest` of its scene directory;
+    on the farm, ``scene_ref``, once per process)."""
+    scene = _unpacked_digest(scene_ref, ctx.scene_dir) if scene_ref else scene_digest(ctx.scene_dir)
     return BenignCache(blobs, key_document(ctx, scene, texture))

@@ -112,6 +112,15 @@ def test_anything_in_the_key_renders_the_benign_frames_again(tiny, tmp_path, ren
     assert _benign_renders(renders) == 4 * N_FRAMES
 
 
+def test_runs_that_initialise_the_same_spec_share_the_benign_frames(tiny, tmp_path, renders):
+    """Each run initialises its own scene from the spec (a new metadata.json each time): one key."""
+    local = LocalSettings(cache_home=str(tmp_path / "cache"))
+    spec = str(tiny["scene"] / "sequence.json")
+    res = [_run(_config(tiny, seed, scene=spec), tmp_path / f"spec{seed}", local) for seed in (0, 1)]
+    assert [r["benign_cache"]["frames_rendered"] for r in res] == [N_FRAMES, 0]
+    assert _benign_renders(renders) == N_FRAMES
+
+
 def test_the_key_holds_the_scene_the_texture_and_the_simulator(tiny, tmp_path):
     """Key documents differ where the scene's files, the benign texture or the simulator differ."""
     from scheduler.benign import benign_key, key_document, scene_digest
