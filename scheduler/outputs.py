@@ -144,11 +144,12 @@ def write_outputs(out: Path, store: "Store", ctx: "RunContext", run: "RunSnapsho
         (out / folder).mkdir(exist_ok=True)
         for job in store.jobs(run.id, k, phase):
             index = ctx.frame_indices[job.frame]
-            Image.fromarray(store.blobs.get_array(job.image_ref)).save(  # type: ignore[arg-type]
-                out / folder / f"{frame_name('frame', index)}.png")
+            image = Image.fromarray(store.blobs.get_array(job.image_ref))  # type: ignore[arg-type]
+            atomic_write(out / folder / f"{frame_name('frame', index)}.png", lambda f: image.save(f, format="PNG"))
     state0 = store.attack_state(run.id, 0) or {}
     if ctx.attack.config.random_start and isinstance(state0.get("visible"), np.ndarray):
-        Image.fromarray(state0["visible"].astype(np.uint8) * 255).save(out / "texture_visibility.png")
+        visible = Image.fromarray(state0["visible"].astype(np.uint8) * 255)
+        atomic_write(out / "texture_visibility.png", lambda f: visible.save(f, format="PNG"))
     atomic_write(out / "results.json", json.dumps(res, indent=1) + "\n")
     rows = [{"k": r.k, "loss_mean": r.loss_mean, "n_bad": r.n_bad} for r in store.iterations(run.id)]
     png = charts.loss_chart(rows, ctx.config.loss)  # the chart of the dashboard and the report

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import functools
 import signal
 import sys
@@ -28,6 +29,9 @@ def one_line_errors(fn: Callable[..., Any]) -> Callable[..., Any]:
             click.echo(f"undream: error: {redact_text(' '.join(str(err).split()))}", err=True)
             sys.exit(EXIT_BAD_INPUT)
         except OSError as err:  # the file system said no (a name too long, no space, no permission)
+            if err.filename is None and err.errno in (errno.ENOSPC, errno.EDQUOT):  # a writer no one named
+                click.echo(f"undream: error: {err.strerror}: a write failed (the system names no file)", err=True)
+                sys.exit(EXIT_BAD_INPUT)
             if err.filename is None:
                 raise
             where = err.filename if err.filename2 is None else f"{err.filename} → {err.filename2}"

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from undream.errors import SpecError
+from undream.spec.io import naming
 from undream.report import charts, page, tables
 from undream.report.data import RunData, load_run
 from undream.report.seen import SeenFinder
@@ -137,10 +138,12 @@ def _write(out: Path, files: dict[str, bytes], marker: dict[str, Any]) -> None:
     tmp.chmod(0o777 & ~umask)  # mkdtemp's 0700 is for the temporary name only
     old = tmp.with_name(tmp.name.replace(".tmp-", ".old-"))
     try:
-        for rel, data in files.items():
+        for rel, data in files.items():  # a full disk names the file as the report would hold it
             (tmp / rel).parent.mkdir(parents=True, exist_ok=True)
-            (tmp / rel).write_bytes(data)
-        (tmp / MARKER).write_text(json.dumps(marker, indent=1) + "\n")
+            with naming(out / rel):
+                (tmp / rel).write_bytes(data)
+        with naming(out / MARKER):
+            (tmp / MARKER).write_text(json.dumps(marker, indent=1) + "\n")
         if out.exists():
             os.rename(out, old)
         os.rename(tmp, out)

@@ -28,6 +28,7 @@ from typing import Sequence
 import numpy as np
 
 from undream.errors import AssetError
+from undream.spec.io import naming
 from undream.variant import mitsuba
 
 MESH_SUFFIXES = (".obj", ".ply")
@@ -188,7 +189,8 @@ def write_ply(mesh: Mesh, path: str | Path) -> Path:
         if array is not None:
             params[key] = type(params[key])(array.ravel())  # the variant's own buffer type
     params.update()
-    shape.write_ply(str(path))
+    with naming(path):  # Mitsuba's RuntimeError on a full disk: an OSError naming the file
+        shape.write_ply(str(path))
     return path
 
 

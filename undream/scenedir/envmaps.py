@@ -19,7 +19,7 @@ import numpy as np
 
 from undream.errors import AssetError
 from undream.spec import Sequence
-from undream.spec.io import resolve_against
+from undream.spec.io import naming, resolve_against
 from undream.variant import mitsuba
 
 ENVMAP_DIR = "textures"
@@ -93,7 +93,8 @@ def write_envmaps(maps: list[Envmap], root: Path) -> None:
     """Write each map into the scene directory ``root`` (linear float32 RGB OpenEXR)."""
     mi = mitsuba()
     for m in maps:
-        mi.Bitmap(m.data).write(str(root / m.file))
+        with naming(root / m.file):
+            mi.Bitmap(m.data).write(str(root / m.file))
 
 
 def envmap_sources(maps: list[Envmap]) -> dict[str, str]:

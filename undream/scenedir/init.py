@@ -42,7 +42,7 @@ from undream.scene.xml import to_xml
 from undream.scenedir.envmaps import Envmap, envmap_sources, load_envmaps, write_envmaps
 from undream.scenedir.verify import check_visible, contact_sheet, render_frames, save_mask, save_rgb
 from undream.spec import Sequence, TextureParam, save_sequence
-from undream.spec.io import check_writable_target, join_against, resolve_against
+from undream.spec.io import check_writable_target, join_against, naming, resolve_against
 from undream.variant import mitsuba
 from undream.versions import versions
 
@@ -122,6 +122,11 @@ def init_scene(source: Source, out: str | Path, options: InitOptions = InitOptio
             raise SpecError(f"{source}: {err}" if not isinstance(source, Sequence) else str(err)) from None
         _check_target(out, options.force)
         _swap_into_place(tmp, out)
+    except OSError as err:  # a full disk: the file that could not be written, as the scene would hold it
+        shutil.rmtree(tmp, ignore_errors=True)
+        if err.filename is None or not Path(err.filename).is_relative_to(tmp):
+            raise
+        raise OSError(err.errno, err.strerror, str(out / Path(err.filename).relative_to(tmp))) from err
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -217,14 +222,17 @@ def _write(checked: CheckedSource, root: Path, opt: InitOptions) -> None:
     for name, mesh in meshes.items():
         write_ply(mesh, root / "meshes" / f"{name}.ply")
     tex = seq.texture
-    mi.Bitmap(srgb_to_linear(texture)).write(str(root / "textures" / f"{tex.name}.exr"))
-    Image.fromarray(to_uint8(texture)).save(root / "textures" / f"{tex.name}.png")
+    with naming(root / "textures" / f"{tex.name}.exr"):
+        mi.Bitmap(srgb_to_linear(texture)).write(str(root / "textures" / f"{tex.name}.exr"))
+    with naming(root / "textures" / f"{tex.name}.png"):
+        Image.fromarray(to_uint8(texture)).save(root / "textures" / f"{tex.name}.png")
     write_envmaps(list(checked.envmaps), root)
     rel = ScenePaths("..")
     defaults = {"spp": opt.scene_spp}
     for frame in seq.frames:  # the mask scenes only while the frames are verified
         for kind in ("sim", "grad", "mask"):
-            frame_xml(root, kind, frame.index).write_text(to_xml(scene_dict(seq, frame, rel, kind), defaults))
+            with naming(frame_xml(root, kind, frame.index)):
+                frame_xml(root, kind, frame.index).write_text(to_xml(scene_dict(seq, frame, rel, kind), defaults))
     tiles = []
     indices = [frame.index for frame in seq.frames]
     renders = render_frames(mi, root, indices, opt.verify_spp, opt.frozen)
@@ -259,7 +267,8 @@ def _write_metadata(checked: CheckedSource, root: Path, opt: InitOptions, mi) ->
         "verify_spp": opt.verify_spp, "scene_spp": opt.scene_spp, "variant": mi.variant(),
         "versions": versions(mi),
     }
-    (root / "metadata.json").write_text(json.dumps(meta, indent=1) + "\n")
+    with naming(root / "metadata.json"):
+        (root / "metadata.json").write_text(json.dumps(meta, indent=1) + "\n")
 
 
 def _swap_into_place(tmp: Path, out: Path) -> None:

@@ -22,6 +22,7 @@ from undream.scene.layout import mask_png
 from undream.scene.mitsuba_scene import ScenePaths, scene_dict
 from undream.scene.xml import to_mitsuba
 from undream.spec import Frame, Sequence
+from undream.spec.io import naming
 
 
 def render_white(mi: ModuleType, xml: Path, spp: int, seed: int = 0) -> np.ndarray:
@@ -69,11 +70,13 @@ def render_mask(mi: ModuleType, seq: Sequence, frame: Frame, scene_dir: Path, sp
 
 
 def save_rgb(linear: np.ndarray, path: Path) -> None:
-    Image.fromarray(to_uint8(linear_to_srgb(linear))).save(path)
+    with naming(path):
+        Image.fromarray(to_uint8(linear_to_srgb(linear))).save(path)
 
 
 def save_mask(mask: np.ndarray, path: Path) -> None:
-    Image.fromarray((mask.astype(np.uint8) * 255)).save(path)
+    with naming(path):
+        Image.fromarray((mask.astype(np.uint8) * 255)).save(path)
 
 
 def read_mask(scene_dir: str | Path, index: int) -> np.ndarray:
@@ -116,7 +119,8 @@ def contact_sheet(tiles: list[tuple[str, np.ndarray, np.ndarray]], path: Path, c
         x, y = (i % cols) * tw, (i // cols) * th
         sheet.paste(tile, (x, y + 14))
         ImageDraw.Draw(sheet).text((x + 3, y + 1), label, fill=(230, 230, 230))
-    sheet.save(path)
+    with naming(path):
+        sheet.save(path)
 
 
 def _eroded(mask: np.ndarray) -> np.ndarray:

@@ -7,6 +7,7 @@ the line of a syntax error), whichever reader finds them.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import re
@@ -131,7 +132,8 @@ def load_sequence(path: str | Path) -> Sequence:
 
 def save_sequence(seq: Sequence, path: str | Path) -> None:
     """Write ``seq`` as canonical JSON (the exact inverse of :func:`load_sequence`)."""
-    Path(path).write_text(json.dumps(seq.to_json(), indent=1) + "\n")
+    with naming(path):
+        Path(path).write_text(json.dumps(seq.to_json(), indent=1) + "\n")
 
 
 def join_against(path: str | Path, base_dir: str | Path | None) -> Path:
@@ -150,6 +152,30 @@ def resolve_against(path: str | Path, base_dir: str | Path | None, *, keep_absol
     return str(join_against(path, base_dir).resolve())
 
 
+# How Mitsuba's writers (Bitmap.write, Mesh.write_ply) say the disk is full: a RuntimeError
+# ``[FileStream] "PATH": I/O error while attempting to write N bytes: No space left on device``.
+_FULL_DISK_TEXTS = {errno.ENOSPC: "No space left on device", errno.EDQUOT: "Disk quota exceeded"}
+
+
+@contextlib.contextmanager
+def naming(path: str | Path) -> Iterator[None]:
+    """Name ``path`` in a write's error that names no file: ``write()`` and ``close()`` on a full disk
+    raise ``OSError(ENOSPC)`` with no file name, and Mitsuba's writers a RuntimeError; both become an
+    ``OSError`` whose ``filename`` is ``path``, which the command line prints as one line
+    (:func:`undream.cli.errors.one_line_errors`). Other exceptions pass unchanged."""
+    try:
+        yield
+    except OSError as err:
+        if err.filename is not None:
+            raise
+        raise OSError(err.errno, err.strerror or str(err), str(path)) from err
+    except RuntimeError as err:
+        code = next((c for c, text in _FULL_DISK_TEXTS.items() if text in str(err)), None)
+        if code is None:
+            raise
+        raise OSError(code, _FULL_DISK_TEXTS[code], str(path)) from err
+
+
 def atomic_write(path: str | Path, data: bytes | str | Callable[[IO[bytes]], Any], *, fsync: bool = False,
                  mode: int = 0o666) -> int:
     """Write ``path`` so that a reader sees its old content or the new, never part of either.
@@ -158,13 +184,14 @@ def atomic_write(path: str | Path, data: bytes | str | Callable[[IO[bytes]], Any
     into a new hidden sibling (``.NAME.<random>.tmp``), is flushed (and with ``fsync``, forced to
     disk), then renamed over ``path`` (``os.replace``). Whatever fails, even the writer, the
     temporary file is removed, ``path`` is left as it was and the exception propagates. ``mode``:
-    the new file's permission bits, before the umask. Returns the bytes written.
+    the new file's permission bits, before the umask. Returns the bytes written. An error that names
+    no file (a full disk) names ``path`` (:func:`naming`).
     """
     path = Path(path)
     tmp = path.with_name(f".{path.name}.{secrets.token_hex(8)}.tmp")
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, mode)
     try:
-        with os.fdopen(fd, "wb") as f:
+        with naming(path), os.fdopen(fd, "wb") as f:
             if callable(data):
                 data(f)
             else:
