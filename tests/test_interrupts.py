@@ -8,6 +8,7 @@ a store transaction it could interrupt the write half done.
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -126,4 +127,62 @@ def test_a_sigterm_whose_exception_is_dropped_still_ends_undream_init(tmp_path):
     assert "signal sent" in res.stderr, res.stderr[-3000:]
     assert res.returncode == 128 + signal.SIGTERM, (res.returncode, res.stderr[-3000:])
     assert not out.exists()  # stopped at the next frame and removed what it had begun
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["spec.yaml"]
+
+
+# An undream command whose first Dr.Jit frozen function sends SIGNAL to the process while Dr.Jit
+# records it (the handler runs in the recorded Python code).
+RECORDING = """
+import os, signal, sys
+import drjit as dr
+from undream.cli import main
+
+real_freeze, sent = dr.freeze, []
+
+def freeze(fn):
+    def recorded(*args, **kwargs):
+        if not sent:
+            sent.append(1)
+            print("signal sent while recording", file=sys.stderr, flush=True)
+            os.kill(os.getpid(), signal.{signal})
+            sum(range(1000))  # bytecode for the handler to run in, inside the recording
+        return fn(*args, **kwargs)
+    return real_freeze(recorded)
+
+dr.freeze = freeze
+sys.argv = ["undream", *sys.argv[1:]]
+main()
+"""
+
+
+def _recording(sig: str, *args: str) -> subprocess.CompletedProcess:
+    """``undream ARGS`` with ``sig`` arriving while Dr.Jit records its first frozen function."""
+    return subprocess.run([sys.executable, "-c", RECORDING.format(signal=sig), *args], cwd=ROOT,
+                          capture_output=True, text=True, timeout=300, env={**os.environ, "UNDREAM_FROZEN": "1"})
+
+
+def test_a_sigterm_while_dr_jit_records_ends_undream_run_as_ctrl_c_does_and_it_resumes(inputs, tmp_path):
+    """Issue 41: Dr.Jit turned the handler's exception into a RuntimeError ("error encountered while
+    recording a frozen function"): 65 lines and exit 1 instead of 143, the run failed as a RuntimeError."""
+    cfg = write_yaml(tmp_path / "run.yaml", run_config(inputs["scene"], inputs["victim"], steps=2))
+    out = tmp_path / "out"
+    res = _recording("SIGTERM", "run", str(cfg), "--out", str(out), "--no-progress")
+    assert "signal sent while recording" in res.stderr, res.stderr[-3000:]
+    assert res.returncode == 128 + signal.SIGTERM, (res.returncode, res.stderr[-3000:])
+    assert "Traceback" not in res.stderr and "RuntimeError" not in res.stderr, res.stderr[-3000:]
+    status = subprocess.run([sys.executable, "-m", "undream.cli", "status", "--out", str(out)], cwd=ROOT,
+                            capture_output=True, text=True, timeout=120)
+    assert "SystemExit: 143" in status.stdout, status.stdout
+    again = subprocess.run([sys.executable, "-m", "undream.cli", "run", str(cfg), "--out", str(out), "--resume",
+                            "--no-progress"], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert json.loads((out / "results.json").read_text())
+
+
+def test_a_sighup_while_dr_jit_records_ends_undream_init_and_leaves_nothing(tmp_path):
+    spec = write_yaml(tmp_path / "spec.yaml", SPEC)
+    res = _recording("SIGHUP", "init", str(spec), "--out", str(tmp_path / "scene"), "--no-progress")
+    assert "signal sent while recording" in res.stderr, res.stderr[-3000:]
+    assert res.returncode == 128 + signal.SIGHUP, (res.returncode, res.stderr[-3000:])
+    assert "Traceback" not in res.stderr, res.stderr[-3000:]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["spec.yaml"]

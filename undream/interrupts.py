@@ -11,7 +11,8 @@ an arbitrary point, that exception has two failure modes:
   drops it, and the command goes on as if no signal had come.
 
 :func:`held` defers a signal that arrives during its block to the block's end (the store wraps each
-transaction in it), and :func:`check`, called between a run's jobs, raises again a stop whose first
+transaction in it, the scene cache each Dr.Jit frozen function: raised while Dr.Jit records, the
+exception became Dr.Jit's RuntimeError and the command exited 1), and :func:`check`, called between a run's jobs, raises again a stop whose first
 exception was dropped.
 """
 from __future__ import annotations

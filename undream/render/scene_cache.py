@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from undream import interrupts
 from undream.errors import RenderError
 from undream.lru import LRU, LastArray
 from undream.render.loading import load_scene, texture_param_key
@@ -143,13 +144,19 @@ class SceneCache:
         """``fn(*args)`` as a Dr.Jit frozen function (one per ``name`` and loaded ``scene``): recorded,
         then replayed. Per scene, so that dropping a scene drops only its own recordings (a
         multi-condition scene keeps several groups loaded; the 16-condition example printed Dr.Jit's
-        "recorded N times" warnings with one function for all, none with one per scene)."""
+        "recorded N times" warnings with one function for all, none with one per scene).
+
+        A SIGTERM, SIGHUP or Ctrl-C arriving while it records or replays is raised when the call ends
+        (:func:`undream.interrupts.held`): raised inside the recording, Dr.Jit turned its exception
+        into a RuntimeError ("error encountered while recording a frozen function") and the command
+        printed 65 lines and exited 1 instead of ending as Ctrl-C does (exit 143 for SIGTERM)."""
         import drjit as dr
 
         key = (name, None if scene is None else id(scene))
         if key not in self._frozen:
             self._frozen[key] = dr.freeze(fn)
-        return self._frozen[key](*args)
+        with interrupts.held():
+            return self._frozen[key](*args)
 
     def group_count(self, kind: str) -> int:
         """How many groups of ``kind`` the frames seen so far fall into."""
