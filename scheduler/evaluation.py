@@ -9,8 +9,11 @@ evaluation seed (:func:`undream.engine.algorithm.eval_render`, the one evaluatio
   last iteration's texture;
 - ``adversarial``: the frame with the final 8-bit texture and its prediction.
 
-A batch of jobs renders its frames, runs the victim once per batch of
-frames and records the results in one transaction. Predictions are stored
+The benign half of ``pre`` is the same for every run of a sweep over seeds,
+budgets or attacks: it is read from the blob store when a run with the same
+key kept it there (:mod:`scheduler.benign`). A batch of jobs renders its
+frames, runs the victim once per batch of frames and records the results in
+one transaction. Predictions are stored
 as JSON in the job rows and frames as uint8 blobs; nothing is held in memory
 between batches.
 """
@@ -56,7 +59,7 @@ def eval_jobs(store: "Store", ctx: "RunContext", run_id: str, phase: str, k: int
     when it holds the whole batch, written when it does not; each job's result says which
     (``benign_cache``: the key and ``hit``). None: rendered and judged here, as always.
     """
-    from undream.engine.algorithm import eval_losses
+    from undream.engine.algorithm import eval_losses, eval_render
     from undream.store import EvalResult
 
     store.jobs_started(run_id, k, positions, phase, worker=worker_name())
@@ -72,30 +75,21 @@ def eval_jobs(store: "Store", ctx: "RunContext", run_id: str, phase: str, k: int
                                              for p, r, im in zip(positions, results, images)])
 
 
-def eval_render(ctx: "RunContext", position: int, texture: np.ndarray) -> np.ndarray:
-    """:func:`undream.engine.algorithm.eval_render` (looked up at each call: tests count the renders)."""
-    from undream.engine import algorithm
-
-    return algorithm.eval_render(ctx, position, texture)
-
-
 def _judged_frames(ctx: "RunContext", positions: list[int], texture: np.ndarray,
                    benign: "BenignCache | None") -> tuple[list[dict[str, Any]], list[np.ndarray]]:
     """Each frame's result (``prediction``) and image (H×W×3 uint8 sRGB) with ``texture``: from the
     cache ``benign`` when it holds the whole batch, else rendered and judged (and kept in ``benign``)."""
     from scheduler.benign import CachedFrame
-    from undream.engine.algorithm import eval_predictions
+    from undream.engine.algorithm import eval_predictions, eval_render
 
     kept = benign.get(positions) if benign is not None else None
+    hit = kept is not None
     if kept is None:
         rendered = [eval_render(ctx, p, texture) for p in positions]
         kept = [CachedFrame(to_uint8(im), pred.to_dict())
                 for im, pred in zip(rendered, eval_predictions(ctx, rendered))]
         if benign is not None:
             benign.put(positions, kept)
-        hit = False
-    else:
-        hit = True
     results: list[dict[str, Any]] = [{"prediction": f.prediction} for f in kept]
     if benign is not None:
         for result in results:
