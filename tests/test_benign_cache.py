@@ -167,3 +167,16 @@ def test_a_sweep_over_seeds_on_a_farm_worker_renders_the_benign_frames_once(tiny
         assert (farm.blobs / "benign" / records[0]["key"] / "key.json").is_file()
     finally:
         farm.stop()
+
+
+def test_the_cache_is_turned_off_by_one_variable_for_the_farm_and_undream_run():
+    from scheduler.options import FarmOptions
+    from undream.settings import SettingsError, load_local, load_settings
+
+    assert load_settings(env={}).benign_cache is True and load_local({}).benign_cache is True
+    off = {"UNDREAM_BENIGN_CACHE": "0"}
+    assert load_settings(env=off).benign_cache is False and load_local(off).benign_cache is False
+    assert FarmOptions(benign_cache=False).to_json()["benign_cache"] is False
+    assert "benign_cache" not in FarmOptions().to_json()  # on: stored as runs before the cache were
+    with pytest.raises(SettingsError, match="UNDREAM_BENIGN_CACHE: must be true or false"):
+        load_local({"UNDREAM_BENIGN_CACHE": "maybe"})
