@@ -26,7 +26,9 @@ A batch reads the cache only when every one of its frames is there and was
 judged in the same batch (the victim's batches decide float rounding), so a
 run reads exactly what it would have computed; otherwise it computes the
 batch as before and writes it. Two runs that reach the same batch at once
-both compute it and write the same bytes (writes are idempotent).
+both compute it, and the later write replaces the earlier (writes are whole
+and idempotent). Nothing deletes entries: deleting a run leaves them, and
+``benign/`` grows by one image and one small JSON document per frame and key.
 """
 from __future__ import annotations
 
