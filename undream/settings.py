@@ -106,6 +106,7 @@ class Settings:
     connect_timeout: float = 5.0  # s to reach the broker before giving up (CLI commands)
     dashboard_token: str | None = field(default=None, repr=False)  # cancel/resume need it; None: none
     transport_cache_mb: int = 512  # MB of captured transports the blob store keeps (least recently used go)
+    benign_cache: bool = True  # runs read a benign evaluation another run computed (scheduler.benign)
     s3_endpoint_url: str | None = None  # S3-compatible endpoint of s3:// blobs (None: AWS)
     s3_region: str | None = None  # its region (None: boto3's default)
     s3_access_key_id: str | None = field(default=None, repr=False)  # None: boto3's own credential chain
