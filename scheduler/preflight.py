@@ -271,27 +271,38 @@ def live_owner(out: Path) -> str | None:
     return None
 
 
-def claim_output(out: Path, config: RunConfig) -> None:
-    """Make ``out`` this run's output folder, atomically: create it (and its parents) if absent,
-    then its starting ``metadata.json`` exclusively (``O_EXCL``). Of two runs given the same new
-    ``--out``, both past :func:`check_output_folder`, one claims it and the other gets a one-line
-    SpecError and deletes nothing: the folder and its files are the winner's. A failure (a full
-    disk, a signal) while the file is written removes it, and the folder when this call made it."""
+def claim_output(out: Path, config: RunConfig, marker: str = METADATA, command: str = "run") -> None:
+    """Make ``out`` this command's output folder, atomically: create it (and its parents) if absent,
+    then its starting ``marker`` file exclusively (``O_EXCL``): ``undream run``'s ``metadata.json``, or
+    ``baseline.json`` for ``undream baseline`` (``command``, recorded in the file). Of two commands
+    given the same new ``--out``, both past :func:`check_output_folder`, one claims it and the other
+    gets a one-line SpecError and deletes nothing: the folder and its files are the winner's. A
+    failure (a full disk, a signal) while the file is written removes it, and the folder when this
+    call made it."""
     out = Path(out)
     made = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
     try:
-        fd = os.open(out / METADATA, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+        fd = os.open(out / marker, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
     except FileExistsError:
-        raise SpecError(f"--out {out}: another command claimed this folder after this run's checks (its "
-                        f"{METADATA} appeared); it is left as it is; choose another output folder") from None
+        raise _claimed(out, command, marker) from None
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(json.dumps({MARKER: "run", "status": "started", "config": redact(config.to_json())},
+            f.write(json.dumps({MARKER: command, "status": "started", "config": redact(config.to_json())},
                                indent=1) + "\n")
+        # Another command's marker (a run's metadata.json beside a baseline's baseline.json) or files:
+        # of two that race, the one that finds the other's file gives the folder up.
+        others = sorted(p.name for p in out.iterdir() if p.name != marker)
+        if others:
+            raise _claimed(out, command, others[0])
     except BaseException:
-        (out / METADATA).unlink(missing_ok=True)
+        (out / marker).unlink(missing_ok=True)
         if made:
             with contextlib.suppress(OSError):  # not empty: another process wrote there meanwhile
                 out.rmdir()
         raise
+
+
+def _claimed(out: Path, command: str, found: str) -> SpecError:
+    return SpecError(f"--out {out}: another command claimed this folder after this {command}'s checks (its "
+                     f"{found} appeared); it is left as it is; choose another output folder")

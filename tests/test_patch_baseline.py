@@ -72,3 +72,94 @@ def test_bad_baselines_are_one_line_and_write_nothing(tiny, tmp_path):
     (mine / "notes.txt").write_text("keep")
     res = _baseline(tiny, "mine", mine)
     assert res.returncode == 2 and "already exists" in res.stderr and (mine / "notes.txt").read_text() == "keep"
+
+
+def test_two_baselines_on_one_new_out_the_later_refuses_and_deletes_nothing(tiny, tmp_path, monkeypatch):
+    """Issue 41: `undream baseline` removed --out (rmtree) after its checks, whatever had appeared
+    there since. The race made deterministic: the first baseline claims the folder while the second
+    loads its victim (between its check and its first write). The second refuses in one line; every
+    file of the first is as it was."""
+    import scheduler.baseline
+    from click.testing import CliRunner
+    from undream.cli import main
+
+    out = tmp_path / "out"
+    winner = {"baseline.json": '{"undream_output": "baseline", "status": "started"}\n', "scene/sequence.json": "{}"}
+    real = scheduler.baseline.preflight
+
+    def preflight_while_the_first_baseline_claims(*args, **kwargs):
+        checked = real(*args, **kwargs)
+        assert not out.exists()  # this baseline's check saw no folder
+        for name, text in winner.items():
+            (out / name).parent.mkdir(parents=True, exist_ok=True)
+            (out / name).write_text(text)
+        return checked
+
+    monkeypatch.setattr(scheduler.baseline, "preflight", preflight_while_the_first_baseline_claims)
+    cfg = write_yaml(tmp_path / "b.yaml", run_config(tiny["scene"], tiny["victim"], name="b", steps=1))
+    res = CliRunner().invoke(main, ["baseline", str(cfg), "--out", str(out), "--no-progress"],
+                             env={"HF_HUB_OFFLINE": "1"})
+    lines = res.output.strip().splitlines()
+    assert res.exit_code == 2 and len(lines) == 1, res.output
+    assert f"--out {out}: another command claimed this folder" in lines[0], res.output
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file()) == sorted(winner)
+    assert all((out / name).read_text() == text for name, text in winner.items())
+
+
+def test_a_run_claiming_the_out_a_baseline_checked_keeps_it(tiny, tmp_path, monkeypatch):
+    """The claim holds across commands: a run's metadata.json appearing in the new --out a baseline
+    checked makes the baseline give it up (their markers differ, so O_EXCL alone would not see it)."""
+    import scheduler.baseline
+    from click.testing import CliRunner
+    from undream.cli import main
+
+    out = tmp_path / "out"
+    real = scheduler.baseline.preflight
+
+    def preflight_while_a_run_claims(*args, **kwargs):
+        checked = real(*args, **kwargs)
+        out.mkdir()
+        (out / "metadata.json").write_text('{"undream_output": "run", "status": "started"}\n')
+        return checked
+
+    monkeypatch.setattr(scheduler.baseline, "preflight", preflight_while_a_run_claims)
+    cfg = write_yaml(tmp_path / "b.yaml", run_config(tiny["scene"], tiny["victim"], name="b", steps=1))
+    res = CliRunner().invoke(main, ["baseline", str(cfg), "--out", str(out), "--no-progress"],
+                             env={"HF_HUB_OFFLINE": "1"})
+    assert res.exit_code == 2 and "another command claimed this folder" in res.output, res.output
+    assert [p.name for p in out.iterdir()] == ["metadata.json"]
+
+
+def test_two_baselines_started_together_on_one_new_out_one_wins_whole(tiny, tmp_path):
+    """Two real processes on the same new --out: one writes its whole folder, the other refuses in
+    one line (at its check or at its claim) and touches none of it."""
+    out = tmp_path / "race"
+    cfg = write_yaml(tmp_path / "race.yaml", run_config(tiny["scene"], tiny["victim"], name="race", steps=2))
+    args = [sys.executable, "-m", "undream.cli", "baseline", str(cfg), "--out", str(out), "--no-progress"]
+    procs = [subprocess.Popen(args, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for _ in range(2)]
+    done = [(p.wait(timeout=300), *p.communicate()) for p in procs]
+    codes = sorted(rc for rc, _, _ in done)
+    assert codes == [0, 2], [(rc, err[-2000:]) for rc, _, err in done]
+    loser = next(err for rc, _, err in done if rc == 2).strip()
+    assert "\n" not in loser and f"--out {out}" in loser, loser
+    assert sorted(p.name for p in out.iterdir()) == ["baseline.json", "patch.npy", "patch.png"]
+    assert json.loads((out / "baseline.json").read_text())["victim_evaluations"] == 2 * 3
+
+
+def test_a_failed_baseline_leaves_no_folder(tiny, tmp_path, monkeypatch):
+    """A failure after the claim (here the optimisation) removes the folder the baseline claimed."""
+    import scheduler.baseline
+    from click.testing import CliRunner
+    from undream.cli import main
+    from undream.errors import RenderError
+
+    def fails(*args, **kwargs):
+        raise RenderError("the simulator failed")
+
+    monkeypatch.setattr(scheduler.baseline, "_baseline", fails)
+    out = tmp_path / "out"
+    cfg = write_yaml(tmp_path / "b.yaml", run_config(tiny["scene"], tiny["victim"], name="b", steps=1))
+    res = CliRunner().invoke(main, ["baseline", str(cfg), "--out", str(out), "--no-progress"])
+    assert res.exit_code == 2 and "the simulator failed" in res.output, res.output
+    assert not out.exists()
