@@ -180,3 +180,20 @@ def test_the_cache_is_turned_off_by_one_variable_for_the_farm_and_undream_run():
     assert "benign_cache" not in FarmOptions().to_json()  # on: stored as runs before the cache were
     with pytest.raises(SettingsError, match="UNDREAM_BENIGN_CACHE: must be true or false"):
         load_local({"UNDREAM_BENIGN_CACHE": "maybe"})
+
+
+def test_a_batch_reads_the_cache_only_whole_and_judged_in_the_same_batch(tmp_path):
+    """The victim's batches decide float rounding: frames kept from another batch are computed again."""
+    from scheduler.benign import BenignCache, CachedFrame
+    from undream.store import BlobStore
+
+    cache = BenignCache(BlobStore(tmp_path), {"scene": "s"})
+    frames = [CachedFrame(np.full((2, 2, 3), i, np.uint8), {"label": i, "score": 0.5 + i / 8}) for i in range(2)]
+    cache.put([0, 1], frames)
+    got = cache.get([0, 1])
+    assert [f.prediction for f in got] == [f.prediction for f in frames]
+    assert all(np.array_equal(a.image, b.image) for a, b in zip(got, frames))
+    assert cache.get([0]) is None and cache.get([1, 2]) is None and cache.get([1, 0]) is None
+    assert BenignCache(BlobStore(tmp_path), {"scene": "t"}).get([0, 1]) is None  # another key
+    (tmp_path / "benign" / cache.key / "0001.json").write_text("{")  # a torn or foreign entry
+    assert cache.get([0, 1]) is None
