@@ -18,13 +18,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
 import numpy as np
-from PIL import Image
 
 from scheduler.preflight import is_scene
 from scheduler.scenes import unpack_scene
 from undream.engine.job import prediction_record
 from undream.errors import SpecError, StoreError
 from undream.scene.mesh import Mesh, read_ply
+from undream.scene.texture_file import read_image_rgb, read_npy_texture
 from undream.scene.mitsuba_scene import OBJECT_ID
 from undream.scenedir.init import InitOptions, init_scene
 from undream.settings import LocalSettings
@@ -74,23 +74,18 @@ def read_texture(path: Path) -> np.ndarray:
         path = path / TEXTURE_FILE
     if not path.is_file():
         raise SpecError(f"TEXTURE {path}: no such file")
-    try:
-        if path.suffix.lower() == ".npy":
-            array = np.load(path, allow_pickle=False)
-        elif path.suffix.lower() == ".png":
-            with Image.open(path) as image:
-                array = np.asarray(image.convert("RGB"))
-        else:
-            raise SpecError(f"TEXTURE {path}: give a .npy, a .png or an `undream run` output folder")
-    except (OSError, ValueError) as exc:
-        raise SpecError(f"TEXTURE {path}: unreadable ({exc})") from None
-    if array.ndim != 3 or array.shape[2] != 3:
-        raise SpecError(f"TEXTURE {path}: shape {array.shape}, not H×W×3")
+    name = f"TEXTURE {path}"
+    if path.suffix.lower() == ".npy":  # header, shape and size checked before the data is read
+        array = read_npy_texture(path, name)
+    elif path.suffix.lower() == ".png":  # its size checked before it is decoded; 16-bit scaled
+        array = np.asarray(read_image_rgb(path, name))
+    else:
+        raise SpecError(f"{name}: give a .npy, a .png or an `undream run` output folder")
     if array.dtype == np.uint8:
         return array.astype(np.float32) / 255.0
     if not np.issubdtype(array.dtype, np.floating) or not np.isfinite(array).all() \
             or array.min() < 0 or array.max() > 1:
-        raise SpecError(f"TEXTURE {path}: values must be uint8, or finite floats in [0, 1]")
+        raise SpecError(f"{name}: values must be uint8, or finite floats in [0, 1] (this one is {array.dtype})")
     return array.astype(np.float32)
 
 

@@ -37,6 +37,7 @@ from undream.scene.builtin import asset_mesh
 from undream.scene.layout import frame_name, frame_xml, mask_png, mesh_name
 from undream.scene.mesh import Mesh, write_ply
 from undream.scene.mitsuba_scene import OBJECT_ID, ScenePaths, scene_dict
+from undream.scene.texture_file import read_image_rgb
 from undream.scene.sources import sequence_from_file
 from undream.scene.xml import to_xml
 from undream.scenedir.envmaps import Envmap, envmap_sources, load_envmaps, write_envmaps
@@ -204,12 +205,10 @@ def texture_from_spec(tex: TextureParam, base_dir: Path | None) -> np.ndarray:
     if not isinstance(tex.init, str):
         return np.broadcast_to(np.array(tex.init, np.float32), tex.shape).copy()
     path = join_against(tex.init, base_dir)
-    try:
-        img = Image.open(path).convert("RGB").resize(tex.resolution, Image.BILINEAR)
-    except FileNotFoundError:
-        raise AssetError(f"{path}: texture file not found (asset.texture.init)") from None
-    except OSError as err:
-        raise AssetError(f"{path}: cannot read texture image ({err})") from None
+    try:  # its size checked before it is decoded, 16-bit greyscale scaled (read_image_rgb)
+        img = read_image_rgb(path, str(path)).resize(tex.resolution, Image.BILINEAR)
+    except SpecError as err:
+        raise AssetError(f"{err} (asset.texture.init)") from None
     return np.asarray(img, dtype=np.float32) / 255.0
 
 
