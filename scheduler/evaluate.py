@@ -28,6 +28,7 @@ from undream.scene.texture_file import read_image_rgb, read_npy_texture
 from undream.scene.mitsuba_scene import OBJECT_ID
 from undream.scenedir.init import InitOptions, init_scene
 from undream.settings import LocalSettings
+from undream.spec.io import load_sequence
 from undream.spec.run import TASK_LOSSES, RunConfig, split_conditions
 
 if TYPE_CHECKING:
@@ -55,14 +56,23 @@ def _object_mesh(scene_dir: Path) -> Mesh:
 
 
 def check_uv_layout(reference: Path, scene_dir: Path, scene: Path) -> None:
-    """SpecError naming ``scene`` when its object's triangles or UVs differ from the object of the
-    scene the texture was optimised on (``reference``): a texel would land elsewhere on the surface."""
+    """SpecError naming ``scene`` when its object's triangles or UVs, or its texture's resolution or
+    ``uv_scale`` (how often the texture repeats over the UVs), differ from those of the scene the
+    texture was optimised on (``reference``): a texel would land elsewhere on the surface."""
+    ref_tex, got_tex = (load_sequence(d / "sequence.json").texture for d in (reference, scene_dir))
+    if (got_tex.resolution, got_tex.uv_scale) != (ref_tex.resolution, ref_tex.uv_scale):
+        raise SpecError(f"SCENE {scene}: its texture is {_texture_size(got_tex)}, the scene the texture was "
+                        f"optimised on ({reference}) has {_texture_size(ref_tex)}: its texels would land elsewhere")
     ref, got = _object_mesh(reference), _object_mesh(scene_dir)
     if got.n_vertices != ref.n_vertices or not np.array_equal(got.faces, ref.faces) \
             or not np.allclose(got.uvs, ref.uvs, atol=1e-6):
         raise SpecError(f"SCENE {scene}: its object has another UV layout than the scene the texture was "
                         f"optimised on ({got.n_vertices} vertices, {got.n_faces} triangles against "
                         f"{ref.n_vertices}, {ref.n_faces}, or other UVs): its texels would land elsewhere")
+
+
+def _texture_size(tex: Any) -> str:
+    return f"{tex.resolution[0]}×{tex.resolution[1]} texels at uv_scale {tex.uv_scale[0]:g}×{tex.uv_scale[1]:g}"
 
 
 def read_texture(path: Path) -> np.ndarray:

@@ -236,6 +236,31 @@ def test_a_runs_texture_on_a_scene_with_another_uv_layout_is_one_line(inputs, tm
     assert same.exit_code == 0, same.output  # its own scene: the same layout
 
 
+def test_a_runs_texture_on_a_scene_with_another_uv_scale_is_one_line_naming_both(inputs, tmp_path):
+    """Issue 41: the same mesh and resolution with the texture repeated twice (uv_scale 2) was judged
+    without a word, every texel landing elsewhere (a conditions run refuses such a scene)."""
+    import dataclasses
+
+    from undream.spec.io import load_sequence, save_sequence
+
+    run = tmp_path / "run"
+    run.mkdir()
+    np.save(run / "texture_final.npy", np.load(inputs["base"] / "texture.npy"))
+    (run / "metadata.json").write_text(json.dumps({"scene_dir": str(inputs["scene"])}))
+    other = tmp_path / "tiled"
+    shutil.copytree(inputs["scene"], other)
+    seq = load_sequence(other / "sequence.json")
+    save_sequence(dataclasses.replace(seq, asset=dataclasses.replace(
+        seq.asset, texture=dataclasses.replace(seq.texture, uv_scale=(2.0, 2.0)))), other / "sequence.json")
+    res = _evaluate(str(run), str(other), "--victim", inputs["victim"], "--spp", "1", "--json", str(tmp_path / "r.json"))
+    lines = [line for line in res.output.strip().splitlines() if line]
+    assert res.exit_code == 2 and len(lines) == 1, res.output
+    assert lines[0] == (f"undream: error: SCENE {other}: its texture is 16×8 texels at uv_scale 2×2, the scene the "
+                        f"texture was optimised on ({inputs['scene']}) has 16×8 texels at uv_scale 1×1: its texels "
+                        "would land elsewhere"), lines[0]
+    assert not (tmp_path / "r.json").exists()
+
+
 def test_a_runs_texture_is_judged_by_the_victim_it_was_attacked_against(inputs, tmp_path):
     """Without --victim, an `undream run` folder's texture is judged by its run config's victim (the
     main job attacks bundled:classifier-v3; judging it by the default bundled:classifier measured
