@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from undream.engine.seeds import frame_seed
 from undream.render.crop import PAD, Window, composite, crop_window
 from undream.render.differentiable import render_linear
 from undream.render.loading import read_texture_srgb
@@ -60,8 +61,6 @@ class CropFrames:
 
     def base(self, index: int, spp: int) -> np.ndarray:
         """Frame ``index`` rendered whole with the scene's own texture at ``spp`` (once per process)."""
-        from undream.engine.job import frame_seed
-
         scenes = self.ctx.scenes
         key = (index, spp)
         if key not in scenes.bases:

@@ -9,6 +9,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from undream.engine.context import RunContext
+from undream.engine.seeds import frame_seed
 from undream.color import linear_to_srgb
 from undream.metrics import GroundTruth, is_detected
 from undream.render.differentiable import srgb_encode_grad
@@ -16,11 +17,6 @@ from undream.render.jitter import draw_conditions
 
 
 MAX_BOXES = 5  # detections per frame kept in results.json (the highest-scoring)
-
-
-def frame_seed(run_seed: int, iteration: int, frame: int) -> int:
-    """A render seed unique to (run, iteration, frame); ``seed + 1`` is its ``seed_grad``."""
-    return (run_seed * 1_000_003 + iteration * 10_007 + frame * 2) % (2**31 - 2)
 
 
 @dataclass
