@@ -42,10 +42,13 @@ from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 
+import scheduler
+import undream
 from undream.errors import StoreError
 from undream.store import BlobStore
 from undream.store.blobs import array_digest
 from undream.store.snapshots import dumps
+from undream.versions import versions
 
 if TYPE_CHECKING:
     from undream.engine.context import RunContext
@@ -83,9 +86,6 @@ def _unpacked_digest(scene_ref: str, scene_dir: Path) -> str:
 @functools.cache
 def code_digest() -> str:
     """SHA-256 of the source of ``undream`` and ``scheduler`` as this process runs them (once per process)."""
-    import scheduler
-    import undream
-
     h = hashlib.sha256()
     for package in (undream, scheduler):
         root = Path(package.__file__).parent
@@ -122,7 +122,6 @@ def key_document(ctx: "RunContext", scene: str, texture: np.ndarray) -> dict[str
 
     ``scene``: the scene's content digest; ``texture``: the benign 8-bit texture (sRGB H×W×3 in [0, 1])."""
     from undream.engine.algorithm import EVAL_ITERATION, EVAL_SEED
-    from undream.versions import versions
 
     cfg = ctx.config
     return {

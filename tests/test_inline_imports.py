@@ -34,6 +34,7 @@ HEAVY = {
 # of its lazily-loaded names is imported). test_heavy_own_is_heavy checks each use really does.
 HEAVY_OWN = {
     "undream.store": "SQLAlchemy",
+    "scheduler.benign": "undream.store (SQLAlchemy)",
     "scheduler.lease": "undream.store (SQLAlchemy)",
     "scheduler.local": "undream.store (SQLAlchemy)",
     "scheduler.scenes": "undream.store (SQLAlchemy)",
