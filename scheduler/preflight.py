@@ -24,7 +24,7 @@ from undream.redact import MASK, redact
 from undream.render.budget import run_estimate
 from undream.scenedir.conditions import conditions_sequence
 from undream.scenedir.init import InitOptions, check_source
-from undream.scenedir.verify import check_visible
+from undream.scenedir.verify import check_seen
 from undream.settings import LocalSettings
 from undream.sim import check_simulator
 from undream.spec import load_sequence
@@ -117,7 +117,7 @@ def check_frames(config: RunConfig, sequence: "Sequence") -> None:
 def _sequence(src: Path, memory_limit: int | None = None) -> "Sequence":
     if is_scene(src):
         seq = load_sequence(src / SCENE_MARKER)
-        check_visible(src, [f.index for f in seq.frames])  # a spec file: `undream init` checks it
+        check_seen(src, seq)  # a spec file: `undream init` checks it (each condition's frames too)
         return seq
     if not src.is_file():
         raise SpecError(f"scene: {src} is neither a scene directory nor a spec file")

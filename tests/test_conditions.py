@@ -328,3 +328,18 @@ def test_undream_evaluate_judges_a_multi_condition_scene_per_condition(local_run
     for n in NAMES:
         right = [f["texture_correct"] == "True" for f in frames if f["condition"] == n]
         assert sum(right) / 4 == pytest.approx(rows[f"condition {n}"]["adversarial"])
+
+
+def test_a_condition_in_which_the_object_is_never_seen_is_refused_naming_it(inputs, tmp_path):
+    """Issue 41: a condition whose camera looks away from the object was attacked anyway (the other
+    conditions showed it) and reported 0.0 → 0.0. Now `undream run` refuses it in one line naming the
+    condition, after its masks are rendered and before the run is recorded; --out is left absent."""
+    cfg = run_config(inputs["spec"], inputs["victim"], name="unseen", steps=1)
+    cfg["conditions"] = {"grid": {"camera.look_at_offset": [[0, 0.4, 0], [0, 60, 0]]}}
+    out = tmp_path / "out"
+    res = _undream("run", write_yaml(tmp_path / "unseen.yaml", cfg), "--out", out, "--no-progress")
+    assert res.returncode == 2, res.stderr[-3000:]
+    line = res.stderr.strip()
+    assert "\n" not in line and line.startswith("undream: error: condition 'look_at_offset_0_60_0': "), line
+    assert "the object is visible in 0 of 4 frames" in line, line
+    assert not out.exists()

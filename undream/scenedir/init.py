@@ -41,7 +41,7 @@ from undream.scene.texture_file import read_image_rgb
 from undream.scene.sources import sequence_from_file
 from undream.scene.xml import to_xml
 from undream.scenedir.envmaps import Envmap, envmap_sources, load_envmaps, write_envmaps
-from undream.scenedir.verify import check_visible, contact_sheet, render_frames, save_mask, save_rgb
+from undream.scenedir.verify import check_seen, contact_sheet, render_frames, save_mask, save_rgb
 from undream.spec import Sequence, TextureParam, save_sequence
 from undream.spec.io import check_writable_target, join_against, naming, resolve_against
 from undream.variant import mitsuba
@@ -118,7 +118,7 @@ def init_scene(source: Source, out: str | Path, options: InitOptions = InitOptio
     try:
         _write(checked, tmp, options)
         try:
-            check_visible(tmp, [f.index for f in checked.sequence.frames])
+            check_seen(tmp, checked.sequence)  # every condition's frames show the object
         except SpecError as err:
             raise SpecError(f"{source}: {err}" if not isinstance(source, Sequence) else str(err)) from None
         _check_target(out, options.force)

@@ -88,9 +88,27 @@ def check_visible(scene_dir: str | Path, indices: list[int]) -> None:
     """SpecError unless the object shows in at least one frame's mask (``verify/mask_NNNN.png``):
     a run on a scene that never shows it would judge nothing and report 0 → 0."""
     if not any(read_mask(scene_dir, i).any() for i in indices):
-        raise SpecError(f"the object is visible in 0 of {len(indices)} frames (its masks verify/mask_*.png are "
-                        "empty: the camera is inside it, looks away from it, or something hides it); "
-                        "move the camera or the object; nothing written")
+        raise SpecError(_UNSEEN.format(n=len(indices)))
+
+
+_UNSEEN = ("the object is visible in 0 of {n} frames (its masks verify/mask_*.png are empty: the camera is "
+           "inside it, looks away from it, or something hides it); move the camera or the object; nothing written")
+
+
+def check_seen(scene_dir: str | Path, seq: Sequence) -> None:
+    """:func:`check_visible` over the whole sequence and, for a multi-condition sequence, over each
+    condition's frames: a condition in which the object is never seen would be attacked and judged on
+    nothing (it reported 0.0 → 0.0); SpecError naming the condition."""
+    seen = {f.index: bool(read_mask(scene_dir, f.index).any()) for f in seq.frames}
+    if not any(seen.values()):
+        raise SpecError(_UNSEEN.format(n=len(seen)))
+    if not seq.conditions:
+        return
+    for part, span in seq.condition_ranges():
+        if not any(seen[seq.frames[i].index] for i in span):
+            raise SpecError(f"condition {part.name!r}: the object is visible in 0 of {len(span)} frames (their "
+                            "masks are empty: its camera looks away from the object, is inside it, or something "
+                            "hides it); change or drop the condition; nothing written")
 
 
 def mask_box(mask: np.ndarray) -> tuple[float, float, float, float] | None:
