@@ -94,6 +94,33 @@ def test_status_of_a_run_folder_asks_for_the_password_it_does_not_keep(inputs, d
     assert res.returncode == 2 and "--database" in res.stderr and PLANTED not in res.stderr
 
 
+def test_status_of_a_run_folder_lists_its_own_runs_and_refuses_another_database(inputs, database, tmp_path):
+    """Issue 41: `status --out FOLDER --database OTHER` listed OTHER's runs as the folder's, and a
+    database shared by several folders' runs listed all of them. Now only the folder's runs are
+    listed, and a --database that is not the folder's is one line (without its password)."""
+    runs = {}
+    for name in ("mine", "theirs"):
+        cfg = write_yaml(tmp_path / f"{name}.yaml",
+                         run_config(inputs["scene"], inputs["victim"], name=name, steps=1, store=database))
+        res = _cli("run", str(cfg), "--out", str(tmp_path / name), "--no-progress")
+        assert res.returncode == 0, res.stderr[-3000:]
+        runs[name] = json.loads((tmp_path / name / "metadata.json").read_text())["run_id"]
+    status = _cli("status", "--out", str(tmp_path / "mine"), "--database", database)
+    assert status.returncode == 0, status.stderr
+    assert runs["mine"][:8] in status.stdout and runs["theirs"][:8] not in status.stdout, status.stdout
+    assert "1 of 1 run" in status.stdout, status.stdout
+    other, drop = fresh_postgres()
+    try:
+        res = _cli("status", "--out", str(tmp_path / "mine"), "--database", _planted(other))
+        assert res.returncode == 2 and res.stdout == "", res.stdout
+        line = res.stderr.strip()
+        assert "\n" not in line and "not the database of --out" in line and PLANTED not in line, line
+    finally:
+        drop()
+    sqlite = _cli("status", "--out", str(tmp_path / "mine"), "--database", f"sqlite:///{tmp_path / 'x.db'}")
+    assert sqlite.returncode == 2 and "not the database of --out" in sqlite.stderr, sqlite.stderr
+
+
 def test_an_unreachable_database_is_one_line_without_its_password(tmp_path):
     url = f"postgresql://postgres:{PLANTED}@127.0.0.1:1/nowhere"
     for args in (["status", "--database", url], ["results", "x", "--database", url]):

@@ -188,7 +188,11 @@ def status_cmd(run: str | None, out: Path | None, limit: int, show_all: bool, st
     from scheduler.lease import expire_stale
     from scheduler.query import job_rows, run_rows
 
-    store = _run_store(out, settings().database_url) if out is not None else _store(settings(), create=False)
+    if out is not None:
+        _status_of_folder(out, run, state, sweep, click.get_current_context().params.get("database"),
+                          settings().database_url)
+        return
+    store = _store(settings(), create=False)
     expire_stale(store)
     if run is None:
         sweep_id = store.find_sweep(sweep).id if sweep else None
@@ -198,7 +202,13 @@ def status_cmd(run: str | None, out: Path | None, limit: int, show_all: bool, st
         if out is None:
             _echo_stuck(store, settings())
         return
-    snap = store.find_run(run)
+    _echo_run(store, store.find_run(run))
+
+
+def _echo_run(store: "Store", snap: Any) -> None:
+    """One run's row, error, current jobs and latest events."""
+    from scheduler.query import job_rows, run_rows
+
     click.echo(_table(run_rows(store, [snap])))
     if snap.error:
         click.echo(f"error: {snap.error}")
@@ -279,6 +289,44 @@ def _run_store(out: Path, database: str | None = None) -> "Store":
                             "give it with --database URL")
         url = database
     return open_store(url, out / "store", create=False)
+
+
+def _status_of_folder(out: Path, run: str | None, state: str | None, sweep: str | None,
+                      flag: str | None, database: str | None) -> None:
+    """``undream status --out FOLDER``: the runs recorded for FOLDER in its store (a shared database
+    holds other folders' runs too: they are not listed), or RUN among them. ``flag``: ``--database``
+    as given, refused in one line when it is not the folder's database (another URL, or any URL for a
+    folder whose store is its own SQLite file): another database's runs were listed as the folder's.
+    ``database``: the settings' URL, used where the folder keeps its URL without its password."""
+    from scheduler.lease import expire_stale
+    from scheduler.preflight import run_store_url
+    from scheduler.query import run_rows
+    from undream.redact import redact_text
+
+    if sweep:
+        raise SpecError(f"--sweep {sweep}: an `undream run` output folder holds no sweep; give --out or --sweep")
+    url = run_store_url(out) if (out / "store").is_dir() else None
+    if flag and (out / "store").is_dir() and redact_text(flag) != (url or ""):
+        kept = url or f"its own SQLite file in {out / 'store'}"
+        raise SpecError(f"--database {redact_text(flag)}: not the database of --out {out}'s run ({kept}); "
+                        "give --out alone, or --database with that database's URL")
+    store = _run_store(out, flag or database)
+    expire_stale(store)
+    mine = [r for r in store.runs() if r.out_dir and Path(r.out_dir).resolve() == out.resolve()]
+    if not mine:
+        raise SpecError(f"--out {out}: its store records no run of this folder")
+    if run is not None:
+        snap = next((r for r in mine if r.id.startswith(run) or r.name == run), None)
+        if snap is None:
+            raise SpecError(f"{run}: no run of --out {out} has this id or name ({', '.join(r.id[:8] for r in mine)})")
+        _echo_run(store, snap)
+        return
+    shown = list(reversed([r for r in mine if state is None or r.status == state]))
+    counts: dict[str, int] = {}
+    for r in mine:
+        counts[r.status] = counts.get(r.status, 0) + 1
+    click.echo(_table(run_rows(store, shown)))
+    click.echo(_tally(len(shown), len(shown), counts, state))
 
 
 @click.command("cancel")
