@@ -232,6 +232,21 @@ def test_victims_commands_never_write_into_a_users_folder(tmp_path):
     assert _tree(user) == before
 
 
+def test_victims_train_never_writes_its_model_inside_its_own_test_set(tmp_path):
+    """Issue 41: `victims train --out TEST/model` was accepted (the check looked for inputs inside
+    --out, not for --out inside an input): the model landed in the held-out data set. Refused in one
+    line before any training, naming the folder; nothing written."""
+    test = tmp_path / "test"
+    (test / "images").mkdir(parents=True)
+    (tmp_path / "data").mkdir()
+    before = _tree(test)
+    for out in (test / "model", test / "images" / "model"):
+        line = _refused(_cli("victims", "train", "--task", "classification", "--data", str(tmp_path / "data"),
+                             "--test", str(test), "--out", str(out)), f"--out {out}", "lies inside this command's input")
+        assert str(test) in line
+    assert _tree(test) == before and sorted(p.name for p in test.iterdir()) == ["images"]
+
+
 def test_sigterm_during_make_dataset_leaves_the_folder_as_it_was(tmp_path):
     out = tmp_path / "ds"
     proc = subprocess.Popen([sys.executable, "-m", "undream.cli", "victims", "make-dataset", "--out", str(out),

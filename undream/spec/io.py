@@ -258,13 +258,16 @@ def check_writable_target(out: str | Path, option: str = "--out") -> None:
 def check_new_folder(out: str | Path, option: str = "--out", inputs: tuple[str | Path, ...] = ()) -> Path:
     """Refuse, in one line and before anything is written, an output folder that must not be used by
     a command that never replaces anything (``victims make-dataset``, ``victims train``): one that
-    holds files already, one that holds (or is) one of the command's ``inputs``, or one that cannot
-    be written (:func:`check_writable_target`). Returns ``out`` resolved."""
+    holds files already, one that holds (or is) one of the command's ``inputs``, one inside an input
+    folder (a model written into its own ``--test`` set), or one that cannot be written
+    (:func:`check_writable_target`). Returns ``out`` resolved."""
     target = Path(out).resolve()
     check_writable_target(target, option)
     for path in (Path(p).resolve() for p in inputs):
         if target == path or target in path.parents:
             raise SpecError(f"{option} {out}: holds this command's input {path}; choose another folder")
+        if path.is_dir() and path in target.parents:
+            raise SpecError(f"{option} {out}: lies inside this command's input {path}; choose a folder outside it")
     if target.is_dir() and any(target.iterdir()):
         raise SpecError(f"{option} {out}: already holds files; this command writes only into a new or "
                         "empty folder, so nothing in it is replaced; choose another folder")
