@@ -1,15 +1,19 @@
 """Shared pieces of the farm tests: a tiny victim and scene, real worker subprocesses, services.
 
 The farm tests use the real Redis (``UNDREAM_TEST_REDIS``, default
-127.0.0.1:6379; each farm on its own database number, flushed) and the real
-PostgreSQL of tests/test_store.py (a fresh database per farm). A missing
-service is a skip that says why, never a silent pass.
+127.0.0.1:6379; each farm on its own database number, flushed, claimed across
+processes so that pytest-xdist's workers and other sessions never share one)
+and the real PostgreSQL of tests/test_store.py (a fresh database per farm). A
+farm whose test SIGKILLs the broker gets a Redis server of its own
+(:class:`PrivateRedis`) instead: the machine's Redis is never killed. A
+missing service is a skip that says why, never a silent pass.
 """
 from __future__ import annotations
 
 import contextlib
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -23,9 +27,6 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 REDIS_HOST = os.environ.get("UNDREAM_TEST_REDIS", "127.0.0.1:6379")
 PG_ADMIN_URL = os.environ.get("UNDREAM_TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/test")
-REDIS_START = ["redis-server", "--daemonize", "yes", "--bind", "127.0.0.1", "-::1", "--port", "6379",
-               "--save", "", "--appendonly", "no", "--dir", "/var/lib/redis",
-               "--logfile", "/var/log/redis/ci.log"]
 LABELS = ["car", "sphere", "stop_sign", "traffic_cone", "trash_bin", "umbrella"]
 _used_dbs: set[int] = set()
 DB_CLAIM = "undream-tests:redis-db:"  # + a number: a key in database 0 saying a farm of some session uses it
@@ -101,10 +102,10 @@ def runs_per_attack_value(tmp_path: Path, scene: Path, victim: str, field: str,
     return textures
 
 
-def redis_client(db: int = 0):
+def redis_client(db: int = 0, server: str = REDIS_HOST):
     import redis
 
-    host, port = REDIS_HOST.split(":")
+    host, port = server.split(":")
     return redis.Redis(host=host, port=int(port), db=db, socket_connect_timeout=2)
 
 
@@ -115,6 +116,56 @@ def redis_up() -> str | None:
         return None
     except Exception as exc:
         return f"Redis unreachable at {REDIS_HOST}: {exc}"
+
+
+class PrivateRedis:
+    """A ``redis-server`` of its own on a free loopback port (no persistence, its files in ``root``),
+    for a test that SIGKILLs the broker mid-run and starts it again, empty, on the same port: the
+    machine's Redis, which other farms (of this session's xdist workers or of other sessions) use,
+    stays up."""
+
+    def __init__(self, root: Path) -> None:
+        from conftest import free_port, service_missing
+
+        if shutil.which("redis-server") is None:
+            service_missing("redis-server not found (apt-get install redis-server)")
+        self.root = root
+        root.mkdir(parents=True, exist_ok=True)
+        self.host = f"127.0.0.1:{free_port()}"
+        self.proc: subprocess.Popen | None = None
+        self.start()
+
+    def start(self) -> None:
+        """Start the server (again, after :meth:`kill`) and wait until it answers."""
+        port = self.host.split(":")[1]
+        log = self.root / "redis.log"
+        with log.open("a") as out:
+            self.proc = subprocess.Popen(["redis-server", "--bind", "127.0.0.1", "--port", port, "--save", "",
+                                          "--appendonly", "no", "--dir", str(self.root)],
+                                         stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
+        wait_for(lambda: self.up() or self.proc.poll() is not None, 20, f"a private Redis on {self.host}")
+        assert self.proc.poll() is None, log.read_text()[-2000:]
+
+    def client(self, db: int = 0):
+        return redis_client(db, self.host)
+
+    def up(self) -> bool:
+        try:
+            return bool(self.client().ping())
+        except Exception:  # redis' ConnectionError or a timeout: not up
+            return False
+
+    def kill(self) -> None:
+        """SIGKILL the server (by the pid it reports, as an operator's ``kill -9`` would) and wait until
+        it no longer answers."""
+        os.kill(self.client().info("server")["process_id"], signal.SIGKILL)
+        self.proc.wait(10)
+        wait_for(lambda: not self.up(), 10, "the private Redis to go away")
+
+    def stop(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(10)
 
 
 def free_db() -> int:
@@ -161,10 +212,11 @@ class Farm:
     """One farm: its settings as environment variables, its worker subprocesses, its CLI."""
 
     def __init__(self, root: Path, database_url: str | None = None, blob_url: str | None = None,
-                 **settings: Any) -> None:
+                 redis: PrivateRedis | None = None, **settings: Any) -> None:
         self.root = root
-        self.db = free_db()
-        self.broker = f"redis://{REDIS_HOST}/{self.db}"
+        self.private_redis = redis  # None: a claimed database of the machine's Redis
+        self.db = 0 if redis is not None else free_db()
+        self.broker = f"redis://{redis.host if redis is not None else REDIS_HOST}/{self.db}"
         self.blobs = root / "blobs"
         # Blobs in the database or S3: each worker gets its own cache and temporary folders (no
         # folder is shared between the farm's processes, as on a cluster without a shared volume).
@@ -232,7 +284,8 @@ class Farm:
         if self._store is not None:
             self._store.close()
             self._store = None
-        release_db(self.db)  # its workers are gone: the number is free for the next farm
+        if self.private_redis is None:
+            release_db(self.db)  # its workers are gone: the number is free for the next farm
 
     def logs(self) -> str:
         return "\n".join(p.read_text()[-4000:] for p in sorted(self.root.glob("worker*.log")))

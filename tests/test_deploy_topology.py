@@ -4,8 +4,9 @@ shape, without containers); a sweep runs to completion and the dashboard's JSON 
 then one worker is SIGKILLed and the broker restarted in turn while a second sweep runs, which
 still finishes (and the dashboard reports that too).
 
-The broker restart kills the machine's Redis (every database of it): run this file alone, never
-beside the other farm tests. Services missing: skipped, or failed under UNDREAM_REQUIRE_SERVICES.
+The broker is a Redis server of this module's own (farm_support.PrivateRedis): its restart
+leaves the machine's Redis, and the farms of the other tests beside it, alone. Services missing:
+skipped, or failed under UNDREAM_REQUIRE_SERVICES.
 """
 from __future__ import annotations
 
@@ -22,8 +23,7 @@ from typing import Any
 import pytest
 
 from farm_support import (
-    REDIS_START, Farm, cuda_driver_present, farm_inputs, fresh_postgres, redis_client, redis_up, run_config,
-    wait_for, write_yaml,
+    Farm, PrivateRedis, cuda_driver_present, farm_inputs, fresh_postgres, run_config, wait_for, write_yaml,
 )
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -31,11 +31,20 @@ HEALTHCHECK = ROOT / "deploy" / "docker" / "healthcheck.py"
 
 
 @pytest.fixture(scope="module")
-def topology(tmp_path_factory, mi):
-    """Two one-core workers on PostgreSQL and Redis, sharing one blob folder; the tiny inputs."""
+def broker(tmp_path_factory):
+    """This module's own Redis server (the second test SIGKILLs it)."""
+    server = PrivateRedis(tmp_path_factory.mktemp("topology-redis"))
+    yield server
+    server.stop()
+
+
+@pytest.fixture(scope="module")
+def topology(tmp_path_factory, mi, broker):
+    """Two one-core workers on PostgreSQL and a Redis of their own, sharing one blob folder; the tiny
+    inputs."""
     inputs = farm_inputs(tmp_path_factory, "topology", 4)
     url, drop = fresh_postgres()
-    farm = Farm(inputs["root"] / "farm", database_url=url)
+    farm = Farm(inputs["root"] / "farm", database_url=url, redis=broker)
     farm.root.mkdir()
     dashboard = None
     try:
@@ -46,8 +55,8 @@ def topology(tmp_path_factory, mi):
     finally:
         if dashboard is not None:
             dashboard.stop()
-        if redis_up() is not None:
-            _restart_redis()
+        if not broker.up():
+            broker.start()  # the workers stop cleanly against a live broker
         farm.stop()
         drop()
 
@@ -115,13 +124,6 @@ def results(farm: Farm, sweep_name: str) -> list[dict[str, str]]:
     res = farm.cli("results", sweep_name, "--csv")
     assert res.returncode == 0, res.stderr
     return list(csv.DictReader(io.StringIO(res.stdout)))
-
-
-def _restart_redis() -> None:
-    Path("/var/lib/redis").mkdir(parents=True, exist_ok=True)
-    Path("/var/log/redis").mkdir(parents=True, exist_ok=True)
-    subprocess.run(REDIS_START, check=True, capture_output=True)
-    wait_for(lambda: redis_up() is None, 20, "Redis to answer again")
 
 
 def check_dashboard(dashboard: Dashboard, sweep_id: str, runs: list[str], steps: int) -> None:
@@ -206,10 +208,9 @@ def test_a_sweep_finishes_after_a_worker_is_killed_and_the_broker_restarted(topo
 
     # 2. SIGKILL the broker mid-sweep and start it again (empty); `undream resume` sends the runs again.
     wait_for(lambda: any(farm.store.get_run(r).status == "running" for r in runs), 60, "a run still running")
-    os.kill(redis_client().info("server")["process_id"], signal.SIGKILL)
-    wait_for(lambda: redis_up() is not None, 10, "Redis to go away")
+    farm.private_redis.kill()
     assert dashboard.get("/api/health")["status"] == "ok"  # the dashboard reads the store, not the broker
-    _restart_redis()
+    farm.private_redis.start()
     for run_id in runs:
         res = farm.cli("resume", run_id)
         assert res.returncode == 0, res.stderr

@@ -6,8 +6,6 @@ config and seed); the farm's final texture must equal it bit for bit.
 from __future__ import annotations
 
 import os
-import signal
-import subprocess
 import time
 from pathlib import Path
 
@@ -17,9 +15,7 @@ import pytest
 from scheduler.iteration import attacked_frames
 
 from conftest import s3_bucket
-from farm_support import (
-    REDIS_START, Farm, farm_inputs, fresh_postgres, redis_client, redis_up, run_config, wait_for, write_yaml,
-)
+from farm_support import Farm, PrivateRedis, farm_inputs, fresh_postgres, run_config, wait_for, write_yaml
 
 
 
@@ -181,27 +177,26 @@ def test_a_run_on_postgresql(tiny):
         drop()
 
 
-def _restart_redis() -> None:
-    Path("/var/lib/redis").mkdir(parents=True, exist_ok=True)
-    Path("/var/log/redis").mkdir(parents=True, exist_ok=True)
-    subprocess.run(REDIS_START, check=True, capture_output=True)
-    wait_for(lambda: redis_up() is None, 20, "Redis to answer again")
+@pytest.fixture
+def broker(tmp_path):
+    """A Redis server of the test's own, to SIGKILL (the machine's serves the other farms meanwhile)."""
+    server = PrivateRedis(tmp_path / "redis")
+    yield server
+    server.stop()
 
 
-def test_a_run_survives_a_broker_restart_with_resume(tiny):
+def test_a_run_survives_a_broker_restart_with_resume(tiny, broker):
     """Redis is SIGKILLed mid-run and started again (empty: no persistence); `undream resume` finishes."""
-    farm = Farm(tiny["root"] / "broker")
+    farm = Farm(tiny["root"] / "broker", redis=broker)
     farm.root.mkdir()
     try:
         farm.start_worker()
         cfg = {"steps": 24, "sim_spp": 128, "grad_spp": 16}  # long enough to be mid-attack when Redis dies
         run_id = submit(farm, tiny, "broker", **cfg)
         wait_for(lambda: farm.store.get_run(run_id).iteration >= 1, 60, "the run to step", interval=0.02)
-        pid = redis_client().info("server")["process_id"]
-        os.kill(pid, signal.SIGKILL)
-        wait_for(lambda: redis_up() is not None, 10, "Redis to go away")
+        broker.kill()
         at_kill = farm.store.get_run(run_id).iteration
-        _restart_redis()
+        broker.start()
         time.sleep(2)
         # A callback that was publishing when Redis died may have gone on by itself, as far as the
         # evaluation (or failed the run when its publish gave up); queued jobs and chord counters are
@@ -214,6 +209,6 @@ def test_a_run_survives_a_broker_restart_with_resume(tiny):
         assert [r.k for r in farm.store.iterations(run_id)] == list(range(24)) and at_kill < 24
         assert np.array_equal(final_texture(farm, run_id), reference(tiny, **cfg))
     finally:
-        if redis_up() is not None:
-            _restart_redis()
+        if not broker.up():
+            broker.start()  # the workers stop cleanly against a live broker
         farm.stop()
