@@ -261,6 +261,38 @@ def test_status_names_the_stalled_runs_while_every_queue_has_a_live_worker(tmp_p
     assert ids["busy"][:8] not in stuck and ids["local"][:8] not in stuck
 
 
+def test_the_dashboard_shows_stalled_runs_and_a_runs_heals(tmp_path):
+    """The workers page lists the stalled runs with the reason; a run's page its event lines."""
+    from undream.dashboard import create_app
+    from workers.presence import announce
+    from workers.queues import QUEUES
+
+    if (reason := redis_up()) is not None:
+        service_missing(reason)
+    ids = _stalled_farm(tmp_path)
+    with open_store(None, tmp_path) as store:
+        store.add_event(ids["lost"], "healed: 3 job(s) queued at k=0, none started for 61 s (their messages lost); "
+                                     "sent again: its attack jobs without a result, then their callback", "node:7")
+    db = free_db()
+    env = {"UNDREAM_BLOB_URL": str(tmp_path), "UNDREAM_BROKER_URL": f"redis://127.0.0.1:6379/{db}",
+           "UNDREAM_HEAL_AFTER": "1"}
+    settings = load_settings(env=env)
+    withdraw = announce(settings, "w1@host", QUEUES)
+    app = create_app(settings)
+    try:
+        time.sleep(1.2)
+        client = app.test_client()
+        page = client.get("/workers").get_data(as_text=True)
+        run_page = client.get(f"/runs/{ids['lost']}").get_data(as_text=True)
+    finally:
+        app.extensions["undream"].close()
+        withdraw()
+        release_db(db)
+    assert f'data-run="{ids["nojob"]}" data-state="stalled"' in page
+    assert "no job queued or started at k=0" in page and "2 stalled" in page
+    assert 'id="run-events"' in run_page and "node:7: healed: 3 job(s) queued at k=0" in run_page
+
+
 def test_a_stalled_run_is_healed_once_with_an_event_and_finishes(tiny, tmp_path):
     """The iteration's jobs ran; its callback was lost (a restarted broker). The heal sends the work
     without a result (none) and the callback; the run finishes as if nothing happened."""

@@ -16,7 +16,8 @@ import datetime as dt
 from typing import TYPE_CHECKING, Any
 
 from undream.dashboard.query import iso
-from workers.health import probe, stuck_runs
+from scheduler.heal import StallRule
+from workers.health import farm_view, probe, stuck_runs
 
 if TYPE_CHECKING:
     from undream.settings import Settings
@@ -67,6 +68,9 @@ def workers_overview(store: "Store", now: dt.datetime | None = None, window_s: f
 def farm_overview(store: "Store", settings: "Settings", now: dt.datetime | None = None) -> dict[str, Any]:
     """:func:`workers_overview` and, under ``stuck``, the runs that cannot make progress
     (:func:`workers.health.stuck_runs`: the broker asked which queues have a live worker, within
-    the settings' ``connect_timeout``, only while a farm run is active). Four queries in all."""
+    the settings' ``connect_timeout``, only while a farm run is active; and the runs stalled by the
+    healer's rule, :mod:`scheduler.heal`). A fixed number of queries, whatever the number of runs."""
     now = now or dt.datetime.now(dt.timezone.utc)
-    return {**workers_overview(store, now), "stuck": stuck_runs(store, lambda: probe(settings), now)}
+    stuck = stuck_runs(store, lambda: probe(settings), now, rule=StallRule.of(settings),
+                       view=lambda: farm_view(settings))
+    return {**workers_overview(store, now), "stuck": stuck}

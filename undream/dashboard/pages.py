@@ -16,6 +16,8 @@ from undream.dashboard.actions import act
 from undream.dashboard.state import farm
 from undream.store import RUN_STATUSES
 
+EVENTS_SHOWN = 10  # a run's latest events its page shows (what the farm did by itself: heals)
+
 pages = Blueprint("pages", __name__)
 REFRESH_S = 5  # seconds between refreshes of a page about active runs
 
@@ -43,7 +45,8 @@ def run(run_id: str) -> Any:
     detail = query.run_detail(store, run_id)
     sweep = store.find_sweep(detail["sweep_id"]) if detail["sweep_id"] else None
     active = detail["status"] in query.ACTIVE_STATUSES
-    return render_template("run.html", run=detail, grid=farm().grid(run_id), sweep=sweep,
+    events = store.events(detail["id"], limit=EVENTS_SHOWN)  # what the farm did to it by itself (heals)
+    return render_template("run.html", run=detail, grid=farm().grid(run_id), sweep=sweep, events=events,
                            version=f"{detail['updated']}-{detail['iteration']}",
                            refresh=REFRESH_S if active else None)
 
