@@ -114,6 +114,24 @@ def test_bad_inputs_are_one_line(inputs, texture, extra, needle):
     assert len(lines) == 1 and needle in lines[0], res.output
 
 
+def test_holdout_takes_the_mapping_its_message_offers(inputs, tmp_path):
+    """Issue 41: `--holdout '{every: 2}'` was refused by a message offering `{every: N, offset: K}`
+    (the option's text was never parsed). Now the YAML mapping is the run config's holdout; text
+    that is none of the forms is one line saying which are."""
+    args = [str(inputs["base"] / "texture.npy"), str(inputs["scene"]), "--victim", inputs["victim"], "--spp", "1"]
+    for holdout, held in (("{every: 2}", 2), ("every: 2", 2), ("{every: 2, offset: 1}", 2), ("{frames: [0]}", 1), ("none", 0)):
+        res = _evaluate(*args, "--holdout", holdout, "--json", str(tmp_path / "rows.json"))
+        assert res.exit_code == 0, (holdout, res.output)
+        rows = json.loads((tmp_path / "rows.json").read_text())["rows"]
+        assert [r["frames"] for r in rows if r["split"] == "held_out"] in ([held], []), (holdout, rows)
+    for holdout, needle in (("evry", "'evry' is neither auto, none nor a YAML mapping"),
+                            ("[1, 2]", "neither auto, none nor a YAML mapping"),
+                            ("{every: 1}", "holdout.every"), ("{evry: 2}", "got {'evry': 2}")):
+        res = _evaluate(*args, "--holdout", holdout)
+        lines = [line for line in res.output.strip().splitlines() if line]
+        assert res.exit_code == 2 and len(lines) == 1 and needle in lines[0], (holdout, res.output)
+
+
 @pytest.mark.parametrize("case", ["texture", "scene file", "in the scene", "same file", "folder",
                                   "another run's results"])
 def test_an_output_file_never_replaces_an_input_or_a_result(inputs, tmp_path, case):

@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any, Callable
 import click
 
 from undream.cli.errors import one_line_errors
+from undream.errors import UndreamError
 from undream.cli.farm import settings_options
 from undream.cli.options import local_settings, spp_option
 
@@ -28,8 +29,9 @@ DEFAULT_VICTIM = "bundled:classifier"  # a texture file names no victim
                    f"victim TEXTURE was attacked against (its runs' config), else {DEFAULT_VICTIM}]")
 @click.option("--sim", default="mitsuba", show_default=True, help="The simulator that renders: mitsuba or blender.")
 @spp_option("--spp", 32, "Samples per pixel of every frame.")
-@click.option("--holdout", default="auto", show_default=True,
-              help="Which frames a run would hold out (auto: every 4th; none), judged apart.")
+@click.option("--holdout", default="auto", show_default=True, callback=lambda _c, _p, v: _holdout(v),
+              help="Which frames a run would hold out, judged apart: auto (every 4th), none, or a run "
+                   "config's mapping in YAML: '{every: N, offset: K}' or '{frames: [0, 5]}'.")
 @click.option("--label", default=None, help="The object's class (default: the scene's).")
 @click.option("--json", "json_out", type=click.Path(path_type=Path), default=None, help="Write the rows as JSON.")
 @click.option("--csv", "csv_out", type=click.Path(path_type=Path), default=None, help="Write the rows as CSV.")
@@ -39,7 +41,7 @@ DEFAULT_VICTIM = "bundled:classifier"  # a texture file names no victim
 @settings_options
 @one_line_errors
 def evaluate_cmd(texture: Path, scenes: tuple[Path, ...], victims: tuple[str, ...], sim: str, spp: int,
-                 holdout: str, label: str | None, json_out: Path | None, csv_out: Path | None,
+                 holdout: Any, label: str | None, json_out: Path | None, csv_out: Path | None,
                  frames_out: Path | None, settings: Callable[..., "Settings"]) -> None:
     """Judge TEXTURE (a .npy, a .png, an `undream run` output folder, or a farm run or sweep by id or
     name: each of its runs' final textures) on SCENES (scene directories or spec files) by each
@@ -67,6 +69,25 @@ def evaluate_cmd(texture: Path, scenes: tuple[Path, ...], victims: tuple[str, ..
         atomic_write(csv_out, _csv(rows))
     if frames_out is not None and per_frame is not None:
         atomic_write(frames_out, _csv(per_frame))
+
+
+def _holdout(value: str) -> Any:
+    """``--holdout`` as a run config's ``holdout``: ``auto``, ``none``, or the YAML mapping it spells
+    (``{every: 2}`` was refused by a message that offered that very form: the text was never parsed)."""
+    import yaml
+
+    from undream.spec.yaml_strict import load
+
+    if value.strip() in ("auto", "none"):
+        return value.strip()
+    try:
+        parsed = load(value)
+    except (yaml.YAMLError, UndreamError):
+        parsed = None
+    if not isinstance(parsed, dict):
+        raise click.BadParameter(f"{value!r} is neither auto, none nor a YAML mapping such as "
+                                 "'{every: 2}' or '{frames: [0, 5]}'")
+    return parsed
 
 
 def _check_outputs(outputs: tuple[tuple[str, Path | None], ...], texture: Path, scenes: tuple[Path, ...],
