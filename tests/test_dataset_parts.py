@@ -86,3 +86,27 @@ def test_parts_that_are_not_one_set_are_refused(parts, tmp_path, case, message):
     if case != "test among data":
         with pytest.raises(DatasetError, match=message):
             load_datasets(data)
+
+
+def test_make_dataset_at_the_documented_minimum_size(tmp_path):
+    """Issue 41: `victims make-dataset --size 16` (the option's minimum) always failed with "the
+    object stayed hidden in 20 draws": v1 asked for 60 covered pixels of 256. It now asks for the
+    same share of the image as at 64 px (4 pixels), as v2 and v3 did."""
+    res = CliRunner().invoke(victims, ["make-dataset", "--out", str(tmp_path / "ds"), "--n", "4", "--size", "16",
+                                       "--spp", "2", "--no-progress"])
+    assert res.exit_code == 0, res.output
+    data = load_dataset(tmp_path / "ds")
+    assert len(data) == 4 and all(r["visible_pixels"] >= 4 for r in data.records)
+
+
+def test_an_object_too_small_to_keep_names_the_options(tmp_path, monkeypatch):
+    import undream.training.distribution_v2 as v2
+    from undream.cli import main
+
+    monkeypatch.setattr(v2, "min_visible_pixels", lambda size: 10**6)
+    res = CliRunner().invoke(main, ["victims", "make-dataset", "--out", str(tmp_path / "ds"), "--n", "1",
+                                    "--size", "16", "--spp", "1", "--no-progress"])
+    lines = res.output.strip().splitlines()
+    assert res.exit_code == 2 and len(lines) == 1, res.output
+    assert "--size 16" in lines[0] and "--distribution v1" in lines[0] and "a larger --size" in lines[0], lines[0]
+    assert not (tmp_path / "ds").exists()

@@ -292,7 +292,9 @@ def render_sample(mi: ModuleType, meshes: _Meshes, cfg: DatasetConfig, index: in
     label = int(rng.integers(len(CLASSES)))
     sphere = meshes.spheres[CLASSES[label]]
     street = {v2.NAME: v2, v3.NAME: v3}.get(cfg.distribution)  # the camera placed on the ground plan
-    min_visible = MIN_VISIBLE_PIXELS if street is None else v2.min_visible_pixels(cfg.size)
+    # v1: 60 pixels, or the same share of a smaller image (60 of 256 pixels at --size 16 was never met)
+    min_visible = min(MIN_VISIBLE_PIXELS, v2.min_visible_pixels(cfg.size)) if street is None \
+        else v2.min_visible_pixels(cfg.size)
     for attempt in range(MAX_TRIES):
         p: SampleParams | v2.SampleParamsV2
         if street is not None:
@@ -308,7 +310,9 @@ def render_sample(mi: ModuleType, meshes: _Meshes, cfg: DatasetConfig, index: in
         if box is not None and int(mask.sum()) >= min_visible:
             break
     else:
-        raise DatasetError(f"sample {index}: the object stayed hidden in {MAX_TRIES} draws")
+        raise DatasetError(f"sample {index}: in {MAX_TRIES} draws the object never covered {min_visible} of the "
+                           f"{cfg.size}×{cfg.size} pixels (--size {cfg.size}, --distribution {cfg.distribution}); "
+                           "a larger --size shows it bigger")
     texture = make_texture(p.texture, cfg.size)
     lin = np.array(mi.render(_scene(mi, seq, paths, "sim", cfg.spp, texture), seed=index))
     image = to_uint8(linear_to_srgb(lin))
