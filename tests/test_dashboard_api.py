@@ -219,6 +219,13 @@ def test_postgresql_serves_and_a_lost_database_is_a_503(pg_url, tmp_path):
     client = app.test_client()
     assert {r["status"] for r in client.get("/api/runs").get_json()["runs"]} == set(RUN_STATUSES)
     assert client.get(f"/runs/{ids.runs['running']}").status_code == 200
+    # Issue 41: PostgreSQL refuses a NUL in a string, and ?sweep=%00 was a 503 "database error"
+    for url in ("/api/runs?sweep=%00", "/api/runs?status=done%00", "/api/sweeps?limit=1%01"):
+        res = client.get(url)
+        assert res.status_code == 400 and "holds the control character" in res.get_json()["error"], url
+    res = client.get("/?sweep=a%00b")
+    assert res.status_code == 400 and "query parameter 'sweep'" in _one_line(res.get_data(as_text=True))
+    assert client.get(f"/api/runs?sweep={ids.sweep_id}").status_code == 200
     drop()  # the database disappears under the running dashboard
     res = client.get("/")
     assert res.status_code == 503 and "database error" in _one_line(res.get_data(as_text=True))

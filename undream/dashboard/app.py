@@ -22,7 +22,7 @@ from undream import charts
 from undream.dashboard import filters
 from undream.dashboard.api import api
 from undream.dashboard.artifacts import artifacts
-from undream.dashboard.errors import DashboardError, from_store_error
+from undream.dashboard.errors import BadRequest, DashboardError, from_store_error
 from undream.dashboard.markup import job_grid_html
 from undream.dashboard.pages import pages
 from undream.dashboard.state import EXTENSION, Farm
@@ -110,6 +110,16 @@ def _check_host(allowed: tuple[str, ...]) -> Callable[[], Any]:
     return check
 
 
+def _check_query() -> None:
+    """BadRequest (400) naming the parameter when a query parameter's name or value holds a control
+    character: PostgreSQL refuses a NUL in a string, so ``?sweep=%00`` was a 503 "database error"."""
+    for key, value in request.args.items(multi=True):
+        bad = next((c for c in key + value if ord(c) < 32 or ord(c) == 127), None)
+        if bad is not None:
+            raise BadRequest(f"query parameter {key!r}: holds the control character {bad!r}; "
+                             "ids, names, states and cursors are printable text")
+
+
 def _headers(response: "Response") -> "Response":
     response = _redacted(response)
     response.headers.setdefault("Cache-Control", "no-store")
@@ -148,6 +158,7 @@ def create_app(settings: "Settings", opener: Callable[[str | None, str], "Store"
     app.register_blueprint(api, url_prefix="/api")
     app.register_blueprint(artifacts, url_prefix="/artifacts")
     app.before_request(_check_host(tuple(h.lower() for h in allowed_hosts)))
+    app.before_request(_check_query)
     app.after_request(_headers)
     _register_errors(app)
     return app
