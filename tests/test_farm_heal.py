@@ -192,6 +192,24 @@ def _stalled_farm(blobs: Path) -> dict[str, str]:
     return ids
 
 
+def test_a_pass_heals_only_the_runs_both_its_looks_find_stalled(tmp_path):
+    """A task taken between the looks (its worker announces it within a second) saves its run; the
+    runs stalled at both looks are healed, each with its event line; a run its own process drives never."""
+    ids = _stalled_farm(tmp_path)
+    rule = StallRule(after_s=1, started_s=100)
+    taken = FarmView(held=frozenset({ids["nojob"], ids["busy"]}), waiting=frozenset({ids["lost"]}), unread=frozenset())
+    time.sleep(1.1)
+    with open_store(None, tmp_path) as store:
+        dispatch, looks = LocalDispatch(), iter([KNOWN, taken])
+        assert heal(store, dispatch, rule, by="node:7", view=lambda: next(looks), confirm_s=0.05) == []
+        assert not dispatch.queue and all(store.events(i) == [] for i in ids.values())
+        healed = heal(store, dispatch, rule, by="node:7", view=lambda: KNOWN, confirm_s=0.05)
+        assert {h["run_id"] for h in healed} == {ids["nojob"], ids["lost"], ids["busy"]}
+        assert all(len(store.events(ids[n])) == 1 for n in ("nojob", "lost", "busy")) and store.events(ids["local"]) == []
+        # recorded without an attack state (no Mitsuba here): what is sent again is their start
+        assert sorted(item[:2] for item in dispatch.queue) == sorted(("start", ids[n]) for n in ("nojob", "lost", "busy"))
+
+
 def test_the_farm_view_reads_the_queues_across_priorities_and_the_workers_announcements():
     from workers.health import farm_view
     from workers.presence import PRIORITY_SEP, SINCE_KEY, TTL_S, announce
