@@ -4,12 +4,15 @@
     .venv/bin/python scripts/fuzz_inputs.py --count 20000 [--seed 1] [--show 5]
 
 Draws ``--count`` cases, each one of: a broken spec for ``undream init``, a
-broken run config for ``undream run`` (on a scene folder and on a spec
-file), a broken sweep file for ``undream sweep``, each meeting an absent
-``--out``, a user's folder or an earlier run's output (``--check`` first,
-then the real command when ``--check`` refuses); or a generated command line
-of any command (tests/fuzz_support.py and tests/fuzz_cli.py say how cases are
-made and judged). Prints how many of each kind were accepted, refused with
+broken run config for ``undream run`` (on a scene folder, on a spec file, and
+a multi-condition one), a broken sweep file for ``undream sweep``, each
+meeting an absent ``--out``, a user's folder or an earlier run's output
+(``--check`` first, then the real command when ``--check`` refuses); a
+generated command line of any command; an ``undream evaluate`` with a valid or
+hostile texture, output files that may or may not be replaced, and a holdout;
+or threads racing for one new output folder or one output file
+(tests/fuzz_support.py, tests/fuzz_cli.py and tests/fuzz_outputs.py say how
+cases are made and judged). Prints how many of each kind were accepted, refused with
 one line, or failed (a traceback, several lines, a message that names
 neither the input nor ``--out``, a byte changed on disk by a refused
 command, a user's file changed by any command), with the first ``--show``
@@ -44,7 +47,9 @@ def main(argv: list[str] | None = None) -> int:
 
     from farm_support import make_scene, write_yaml
     from fuzz_cli import command_lines, judge, make_sandbox, sandbox_env
-    from fuzz_support import SPEC, SPEC_ACTORS, SPEC_KEYS, inputs, json_bases, outcome, run_doc, sweep_doc
+    from fuzz_outputs import evaluate_cases, judge_evaluate, judge_race, make_evaluate_work, race_cases
+    from fuzz_support import (SPEC, SPEC_ACTORS, SPEC_KEYS, conditions_doc, inputs, json_bases, outcome, run_doc,
+                              sweep_doc)
     from undream.cli import main as undream
 
     seed = args.seed if args.seed is not None else random.randrange(2**31)
@@ -60,7 +65,10 @@ def main(argv: list[str] | None = None) -> int:
                  *((name, inputs("spec", base, ".json")) for name, base in json_bases().items()),
                  ("run on a scene folder", inputs("run", run_doc(str(scene)))),
                  ("run on a spec file", inputs("run", run_doc(spec))),
-                 ("sweep", inputs("sweep", sweep_doc(str(scene)))), ("command line", command_lines(box, undream))]
+                 ("run with conditions", inputs("run", conditions_doc(spec))),
+                 ("sweep", inputs("sweep", sweep_doc(str(scene)))), ("command line", command_lines(box, undream)),
+                 ("evaluate", evaluate_cases()), ("race", race_cases())]
+        evaluate_work = make_evaluate_work(root / "evaluate", scene)
         runner, cli_runner = CliRunner(), CliRunner(env=sandbox_env(box))
         table, failures = Counter(), []
         start = time.monotonic()
@@ -73,6 +81,10 @@ def main(argv: list[str] | None = None) -> int:
             case = data.draw(strategy)
             if label == "command line":
                 result, how = judge(case, box, cli_runner), case[0]
+            elif label == "evaluate":
+                result, how = judge_evaluate(case, evaluate_work, runner), case.how
+            elif label == "race":
+                result, how = judge_race(case, work), f"{case.what} from {case.start}"
             else:
                 result, how = outcome(case, work, runner), case.how
             verdict = "FAIL" if result.startswith("FAIL") else result
@@ -87,7 +99,8 @@ def main(argv: list[str] | None = None) -> int:
     for (label, how, verdict), n in sorted(table.items()):
         print(f"| {label} | {how} | {verdict} | {n} |")
     for label, case, result in failures[: args.show]:
-        shown = case if label == "command line" else f"({case.how}, --out {case.out}): {case.data[:400]!r}"
+        shown = case if label in ("command line", "evaluate", "race") else \
+            f"({case.how}, --out {case.out}): {case.data[:400]!r}"
         print(f"\n--- {label} {shown}\n{result}")
     return 1 if failures else 0
 

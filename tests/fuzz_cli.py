@@ -23,6 +23,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import stat
 import traceback
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,18 +43,22 @@ SQLITE_TRANSIENT = ("-shm", "-wal")
 
 
 def fingerprint(folder: Path) -> dict[str, str]:
-    """Every file, folder and link under ``folder``: a file's SHA-256, ``dir`` or the link's target."""
+    """Every file, folder and link under ``folder``: a file's SHA-256, ``dir``, the link's target, or
+    the kind of a special file (a FIFO is never opened: reading it would wait for a writer)."""
     out: dict[str, str] = {}
     for root, dirs, files in os.walk(folder):
         for name in dirs + files:
             p = Path(root) / name
             key = str(p.relative_to(folder))
-            if p.is_symlink():
+            mode = p.lstat().st_mode
+            if stat.S_ISLNK(mode):
                 out[key] = f"link -> {os.readlink(p)}"
-            elif p.is_dir():
+            elif stat.S_ISDIR(mode):
                 out[key] = "dir"
-            else:
+            elif stat.S_ISREG(mode):
                 out[key] = hashlib.sha256(p.read_bytes()).hexdigest()
+            else:
+                out[key] = f"special {stat.S_IFMT(mode):o}"
     return out
 
 

@@ -78,6 +78,14 @@ def run_doc(scene: str) -> dict[str, Any]:
             "eval_spp": 2, "seed": 0, "gradient": "auto", "transport_refresh": 5}
 
 
+def conditions_doc(spec: str) -> dict[str, Any]:
+    """A valid multi-condition run config on the spec file ``spec``: a 2 × 2 grid of weathers and
+    camera heights, one condition held out."""
+    return {**run_doc(spec), "conditions": {
+        "grid": {"camera.path.height": [1.0, 1.4], "environment.weather": ["clear", "fog"]},
+        "holdout": ["height_1p4-weather_fog"]}}
+
+
 def sweep_doc(scene: str) -> dict[str, Any]:
     """A valid sweep file on ``scene``: two budgets × two seeds of :func:`run_doc`'s run."""
     return {"name": "fuzz", "base": run_doc(scene), "grid": {"attack.eps": [4, 8], "seed": [0, 1]}}

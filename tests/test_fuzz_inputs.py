@@ -1,13 +1,15 @@
 """Fuzzed specs, run configs, sweep files and command lines: each one works or is one line naming
 its file, and a refused one leaves every byte on disk as it was.
 
-1,100 generated cases here, derandomised so CI sees the same ones: 500 specs for
+1,280 generated cases here, derandomised so CI sees the same ones: 500 specs for
 ``undream init`` from five bases (three trajectory YAMLs, a canonical
 sequence.json and an Unreal export), 200 run configs for ``undream run`` from
-two, 100 sweep files for ``undream sweep``, each meeting an absent ``--out``, a
+two and 60 multi-condition ones, 100 sweep files for ``undream sweep``, each meeting an absent ``--out``, a
 user's folder or an earlier run's output, with or without ``--force`` (through
 ``--check``, then the real command when ``--check`` refuses); and 300 command
-lines over every command (tests/fuzz_cli.py). ``scripts/fuzz_inputs.py --count
+lines over every command (tests/fuzz_cli.py); 80 ``undream evaluate`` command lines with valid and
+hostile textures, output files and holdouts, and 40 races for one output (tests/fuzz_outputs.py).
+``scripts/fuzz_inputs.py --count
 20000`` draws fresh ones and prints a table. See tests/fuzz_support.py and
 tests/fuzz_cli.py for how inputs are broken and judged.
 """
@@ -20,7 +22,9 @@ from hypothesis import strategies as st
 
 from farm_support import make_scene, write_yaml
 from fuzz_cli import command_lines, judge, make_sandbox, sandbox_env
-from fuzz_support import SPEC, SPEC_ACTORS, SPEC_KEYS, inputs, json_bases, outcome, run_doc, sweep_doc
+from fuzz_outputs import evaluate_cases, judge_evaluate, judge_race, make_evaluate_work, race_cases
+from fuzz_support import (SPEC, SPEC_ACTORS, SPEC_KEYS, conditions_doc, inputs, json_bases, outcome, run_doc,
+                          sweep_doc)
 
 EXAMPLES = 100  # per base: 5 spec bases (2 of them JSON) + 2 run bases = 700 inputs
 FUZZ = settings(max_examples=EXAMPLES, deadline=None, derandomize=True, database=None,
@@ -92,6 +96,12 @@ def test_fuzzed_run_configs_on_a_spec_file(data, bases, runner):
     _judge(_on(data, bases["spec"]), bases, runner)
 
 
+@settings(FUZZ, max_examples=60)
+@given(data=inputs("run", conditions_doc("SPEC")))
+def test_fuzzed_multi_condition_run_configs(data, bases, runner):
+    _judge(_on(data, bases["spec"]), bases, runner)
+
+
 @FUZZ
 @given(data=inputs("sweep", sweep_doc("SCENE")))
 def test_fuzzed_sweep_files(data, bases, runner):
@@ -146,3 +156,29 @@ def test_the_judge_catches_a_traceback_and_a_message_without_the_file(bases, run
     assert "does not name the file" in outcome(Input("spec", "edited", dump(SPEC)), bases["work"], runner)
     monkeypatch.undo()
     assert outcome(Input("spec", "edited", dump(SPEC)), bases["work"], runner) == "ok"
+
+
+@pytest.fixture(scope="module")
+def evaluate_work(tmp_path_factory, bases):
+    from pathlib import Path
+
+    return make_evaluate_work(tmp_path_factory.mktemp("fuzz-evaluate") / "work", Path(bases["scene"]))
+
+
+@settings(FUZZ, max_examples=80)
+@given(case=evaluate_cases())
+def test_fuzzed_evaluate_textures_outputs_and_holdouts(case, evaluate_work, runner):
+    """`undream evaluate` with valid and hostile textures, output files and holdouts: it works and
+    writes whole outputs without touching an input, or it is one line and changes nothing."""
+    result = judge_evaluate(case, evaluate_work, runner)
+    assert not result.startswith("FAIL"), f"{case.how} --json {case.json_out!r} --csv {case.csv_out!r} " \
+                                          f"--holdout {case.holdout!r}: {result}"
+
+
+@settings(FUZZ, max_examples=40)
+@given(case=race_cases())
+def test_fuzzed_races_for_one_output(case, bases):
+    """Threads claiming one new --out (run's and baseline's markers) or replacing one file at once:
+    at most one claim wins, the losers are one line, a raced file holds one writer's bytes whole."""
+    result = judge_race(case, bases["work"])
+    assert not result.startswith("FAIL"), f"{case}: {result}"
