@@ -252,7 +252,42 @@ def stalls(store: Any, run: Any) -> tuple[float, list[float]]:
     return longest, heals
 
 
+def asked(args: argparse.Namespace) -> Counter[str]:
+    """The faults asked for, by kind."""
+    return Counter(dict(zip(KINDS, (args.kills, args.child_kills, args.pauses, args.broker_restarts,
+                                    args.db_restarts))))
+
+
+def drive(farm: Farm, store: Any, redis: Redis, pg: Postgres, rng: random.Random, args: argparse.Namespace,
+          t0: float) -> Counter[str]:
+    """Inject the faults, in random order, while runs are active; return once no run is active
+    and no worker is paused (or after ``--timeout``). Returns the faults injected, by kind."""
+    faults = list(asked(args).elements())
+    rng.shuffle(faults)
+    done: Counter[str] = Counter()
+    next_fault, active = time.monotonic() + rng.uniform(0.5, 1.5) * args.interval, args.runs
+    while time.monotonic() - t0 < args.timeout:
+        now = time.monotonic()
+        farm.tend(now)
+        if faults and now >= next_fault and active:
+            kind = faults[0]
+            if inject(kind, farm, redis, pg, rng, args, now):
+                done[faults.pop(0)] += 1
+                print(f"{now - t0:7.1f} s  fault {sum(done.values()):3d}: {kind:14s} {active} runs active", flush=True)
+            next_fault = time.monotonic() + rng.uniform(0.5, 1.5) * args.interval
+        try:
+            counts = store.status_counts(None)
+            active = sum(counts.get(s, 0) for s in ("queued", "running", "evaluating"))
+        except Exception:  # the database restarting: ask again next round
+            pass
+        if not active and all(s.cont_at is None for s in farm.slots):
+            break  # faults not injected yet are reported as such: give the runs more --steps
+        time.sleep(0.5)
+    return done
+
+
 def soak(args: argparse.Namespace, tmp: Path) -> dict[str, Any]:
+    """Services, workers, the sweep, the faults, then :func:`check`; the numbers of the table."""
     import yaml
 
     sys.path.insert(0, str(ROOT / "tests"))
@@ -261,62 +296,43 @@ def soak(args: argparse.Namespace, tmp: Path) -> dict[str, Any]:
 
     rng = random.Random(args.seed)
     scene, victim = make_scene(tmp / "scene", n_frames=4, size=24), make_victim(tmp / "victim")
-    redis, pg = Redis(tmp), Postgres(tmp / "pg")
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "HF_HUB_OFFLINE": "1", "TRANSFORMERS_OFFLINE": "1",
-           "PYTHONUNBUFFERED": "1", "UNDREAM_BROKER_URL": redis.url, "UNDREAM_DATABASE_URL": pg.url,
-           "UNDREAM_BLOB_URL": str(tmp / "blobs"), "UNDREAM_CACHE_DIR": str(tmp / "cache"),
-           "UNDREAM_FARM_SLOTS": str(args.workers)}
-    env.pop("UNDREAM_SETTINGS", None)
-    for name in ("heal_after", "heal_interval", "visibility_timeout"):
-        if getattr(args, name) is not None:
-            env[f"UNDREAM_{name.upper()}"] = str(getattr(args, name))
-    farm = Farm(tmp, env, [Slot() for _ in range(args.workers)])
-    faults = [k for k, n in zip(KINDS, (args.kills, args.child_kills, args.pauses, args.broker_restarts,
-                                        args.db_restarts)) for _ in range(n)]
-    rng.shuffle(faults)
-    done: Counter[str] = Counter()
     base = run_config(scene, victim, name="soak", steps=args.steps, sim_spp=args.sim_spp, grad_spp=4)
     (tmp / "run.yaml").write_text(yaml.safe_dump(base))
     (tmp / "sweep.yaml").write_text(yaml.safe_dump({"name": "soak", "run": str(tmp / "run.yaml"),
                                                     "grid": {"seed": list(range(args.runs))}}))
-    load0, t0 = os.getloadavg(), time.monotonic()
+    redis = Redis(tmp)
+    pg = farm = None
     try:
+        pg = Postgres(tmp / "pg")
+        env = {**os.environ, "PYTHONPATH": str(ROOT), "HF_HUB_OFFLINE": "1", "TRANSFORMERS_OFFLINE": "1",
+               "PYTHONUNBUFFERED": "1", "UNDREAM_BROKER_URL": redis.url, "UNDREAM_DATABASE_URL": pg.url,
+               "UNDREAM_BLOB_URL": str(tmp / "blobs"), "UNDREAM_CACHE_DIR": str(tmp / "cache"),
+               "UNDREAM_FARM_SLOTS": str(args.workers)}
+        env.pop("UNDREAM_SETTINGS", None)
+        for name in ("heal_after", "heal_interval", "visibility_timeout"):
+            if getattr(args, name) is not None:
+                env[f"UNDREAM_{name.upper()}"] = str(getattr(args, name))
+        farm = Farm(tmp, env, [Slot() for _ in range(args.workers)])
+        load0, t0 = os.getloadavg(), time.monotonic()
         for slot in farm.slots:
             farm.start(slot)
         res = subprocess.run([sys.executable, "-m", "undream.cli", "sweep", str(tmp / "sweep.yaml")], cwd=ROOT,
                              env=env, capture_output=True, text=True, timeout=600)
         if res.returncode != 0:
             raise SystemExit(f"chaos_soak: undream sweep failed: {res.stderr.strip()}")
-        store = open_store(pg.url, tmp / "blobs")
-        next_fault, active = time.monotonic() + rng.uniform(0.5, 1.5) * args.interval, args.runs
-        while time.monotonic() - t0 < args.timeout:
-            now = time.monotonic()
-            farm.tend(now)
-            if faults and now >= next_fault and active:
-                kind = faults[0]
-                if inject(kind, farm, redis, pg, rng, args, now):
-                    done[faults.pop(0)] += 1
-                    print(f"{now - t0:7.1f} s  fault {sum(done.values()):3d}: {kind:14s} {active} runs active", flush=True)
-                next_fault = time.monotonic() + rng.uniform(0.5, 1.5) * args.interval
-            try:
-                counts = store.status_counts(None)
-                active = sum(counts.get(s, 0) for s in ("queued", "running", "evaluating"))
-            except Exception:  # the database restarting: ask again next round
-                pass
-            if not active and all(s.cont_at is None for s in farm.slots):
-                break  # faults not injected yet are reported as such: give the runs more --steps
-            time.sleep(0.5)
-        wall = time.monotonic() - t0
-        runs = store.runs(sweep_id=None)
-        results = check(store, runs, base, tmp, args)
-        store.close()
+        print(f"{time.monotonic() - t0:7.1f} s  {args.runs} runs submitted", flush=True)
+        with open_store(pg.url, tmp / "blobs") as store:
+            done = drive(farm, store, redis, pg, rng, args, t0)
+            wall, load1 = time.monotonic() - t0, os.getloadavg()
+            results = check(store, store.runs(), base, tmp, args)
     finally:
-        farm.stop()
+        if farm is not None:
+            farm.stop()
         redis.stop()
-        pg.stop()
-    return {**results, "faults": done, "asked": Counter(k for k, n in zip(
-        KINDS, (args.kills, args.child_kills, args.pauses, args.broker_restarts, args.db_restarts)) for _ in range(n)),
-        "wall": wall, "load0": load0, "load1": os.getloadavg(), "workers_started": farm.started}
+        if pg is not None:
+            pg.stop()
+    return {**results, "faults": done, "asked": asked(args), "wall": wall, "load0": load0, "load1": load1,
+            "workers_started": farm.started}
 
 
 def check(store: Any, runs: list[Any], base: dict[str, Any], tmp: Path, args: argparse.Namespace) -> dict[str, Any]:
@@ -348,7 +364,7 @@ def check(store: Any, runs: list[Any], base: dict[str, Any], tmp: Path, args: ar
             "heals": heals, "reasons": reasons}
 
 
-def table(r: dict[str, Any], args: argparse.Namespace) -> str:
+def table(r: dict[str, Any]) -> str:
     faults = ", ".join(f"{r['faults'][k]} {k}" + (f" (of {r['asked'][k]} asked)" if r['faults'][k] < r['asked'][k]
                                                    else "") for k in KINDS)
     worst_heal = max(r["heals"], default=0.0)
@@ -358,7 +374,8 @@ def table(r: dict[str, Any], args: argparse.Namespace) -> str:
         ("textures byte-identical to in-process `undream run`", f"{r['identical']} of {r['done']} done"),
         ("runs with an iteration missing or twice", str(len(r["bad_iterations"]))),
         ("faults injected", faults),
-        ("heals (event lines)", f"{len(r['heals'])}: " + ", ".join(f"{n} {why}" for why, n in r["reasons"].most_common())
+        ("heals (event lines)", f"{len(r['heals'])}: "
+         + ", ".join(f"{n} {why}" for why, n in r["reasons"].most_common())
          if r["heals"] else "0"),
         ("longest stall healed (last progress → heal)", f"{worst_heal:.0f} s"),
         ("longest time any run made no progress", f"{r['longest_stall']:.0f} s"),
@@ -398,9 +415,10 @@ def main(argv: list[str] | None = None) -> int:
             shutil.rmtree(tmp, ignore_errors=True)
         else:
             print(f"kept {tmp}")
-    print(f"\n{' '.join(sys.argv)}\n{args.runs} runs × {args.steps} PGD steps (4-frame 24 px sphere, sim_spp {args.sim_spp}), "
+    print(f"\n{' '.join(sys.argv)}\n{args.runs} runs × {args.steps} PGD steps "
+          f"(4-frame 24 px sphere, sim_spp {args.sim_spp}), "
           f"{args.workers} workers, seed {args.seed}, {os.cpu_count()} cores\n")
-    print(table(result, args))
+    print(table(result))
     ok = (result["done"] == result["runs"] == result["identical"] and not result["bad_iterations"])
     return 0 if ok else 1
 

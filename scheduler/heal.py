@@ -19,8 +19,8 @@ killed or stopped: its announcement lapses :data:`workers.presence.TTL_S`
 after its last), or its callback found nothing to do. Where the broker cannot
 say (its Redis unreachable, restarted less than ``TTL_S`` ago so that not
 every worker has announced itself again, or a queue too long to read), the
-rule falls back on time alone: a run with a started job, or whose next work's
-queue holds messages, is stalled only after ``visibility_timeout`` more.
+rule falls back on time alone: a run is stalled only after ``visibility_timeout``
+more (the broker would have delivered a lost worker's job again by then).
 
 :func:`heal` confirms each verdict with a second look :data:`CONFIRM_S` later
 (an announcement trails a delivery by up to a second), then :func:`heal_run`
@@ -110,16 +110,16 @@ def waits_for(run: "RunHealth") -> str:
 def stall_reason(run: "RunHealth", now: dt.datetime, rule: StallRule, view: FarmView = BLIND) -> str | None:
     """Why the quiet farm run ``run`` is stalled, in one line; None when it is not: quiet for less
     than ``rule.after_s``; a live worker holds a task of it (``view.held``); a message of it waits
-    in a queue (``view.waiting``); or, where ``view`` cannot say, a started job or a next work whose
-    queue may hold it (``view.unread``), quiet for less than ``rule.started_s``."""
+    in a queue (``view.waiting``); or, where ``view`` cannot say (who holds what unknown, or its
+    next work's queue unread: ``view.unread``), quiet for less than ``rule.started_s``."""
     quiet = (now - (max(run.updated, run.last_job) if run.last_job else run.updated)).total_seconds()
     if rule.after_s <= 0 or quiet < rule.after_s:
         return None
     if (view.held is not None and run.id in view.held) or run.id in view.waiting:
         return None
     at, since, blind = f"k={run.iteration}", _duration(quiet), quiet < rule.started_s
-    if blind and ((run.started and view.held is None) or waits_for(run) in view.unread):
-        return None  # it may be at work or waiting its turn: time alone decides, an hour on
+    if blind and (view.held is None or waits_for(run) in view.unread):
+        return None  # a worker may hold it, or it may wait its turn: time alone decides, an hour on
     if run.started:
         holder = "no live worker holds them" if view.held is not None else "the broker lost them"
         return f"{run.started} job(s) started at {at}, nothing finished for {since} ({holder})"

@@ -139,7 +139,8 @@ KNOWN = FarmView(held=frozenset(), waiting=frozenset(), unread=frozenset())  # t
 
 
 def test_the_stall_rule_says_why_and_leaves_held_waiting_and_recent_runs_alone():
-    assert stall_reason(_health("queued"), NOW, RULE, KNOWN) == "queued, its start not run for 15 min (its message lost)"
+    assert stall_reason(_health("queued"), NOW, RULE, KNOWN) == \
+        "queued, its start not run for 15 min (its message lost)"
     assert stall_reason(_health(), NOW, RULE, KNOWN) == \
         "no job queued or started at k=4 for 15 min (its callback lost, or it found nothing to do)"
     assert stall_reason(_health(unfinished=3), NOW, RULE, KNOWN) == \
@@ -171,9 +172,10 @@ def test_where_the_broker_cannot_say_the_stall_rule_falls_back_on_time():
     unread_jobs = FarmView(held=frozenset(), waiting=frozenset(), unread=frozenset({"jobs"}))
     assert stall_reason(_health(unfinished=3), NOW, RULE, unread_jobs) is None
     assert stall_reason(_health(), NOW, RULE, unread_jobs) is not None  # its callback: the control queue was read
-    no_presence = FarmView(held=None, waiting=frozenset(), unread=frozenset())
-    assert stall_reason(_health(unfinished=3, started=1), NOW, RULE, no_presence) is None
-    assert stall_reason(_health(unfinished=3), NOW, RULE, no_presence) is not None  # none started: nobody holds
+    no_presence = FarmView(held=None, waiting=frozenset(), unread=frozenset())  # who holds what: unknown
+    for kind in ({"unfinished": 3, "started": 1}, {"unfinished": 3}, {}, {"status": "queued"}):
+        assert stall_reason(_health(**kind), NOW, RULE, no_presence) is None  # a worker may hold it (prefetched)
+        assert stall_reason(_health(**kind, quiet_s=4300), NOW, RULE, no_presence) is not None
 
 
 def _stalled_farm(blobs: Path) -> dict[str, str]:
@@ -205,9 +207,11 @@ def test_a_pass_heals_only_the_runs_both_its_looks_find_stalled(tmp_path):
         assert not dispatch.queue and all(store.events(i) == [] for i in ids.values())
         healed = heal(store, dispatch, rule, by="node:7", view=lambda: KNOWN, confirm_s=0.05)
         assert {h["run_id"] for h in healed} == {ids["nojob"], ids["lost"], ids["busy"]}
-        assert all(len(store.events(ids[n])) == 1 for n in ("nojob", "lost", "busy")) and store.events(ids["local"]) == []
+        assert all(len(store.events(ids[n])) == 1 for n in ("nojob", "lost", "busy"))
+        assert store.events(ids["local"]) == []
         # recorded without an attack state (no Mitsuba here): what is sent again is their start
-        assert sorted(item[:2] for item in dispatch.queue) == sorted(("start", ids[n]) for n in ("nojob", "lost", "busy"))
+        assert sorted(item[:2] for item in dispatch.queue) == \
+            sorted(("start", ids[n]) for n in ("nojob", "lost", "busy"))
 
 
 def test_the_farm_view_reads_the_queues_across_priorities_and_the_workers_announcements():
@@ -262,7 +266,11 @@ def test_status_names_the_stalled_runs_while_every_queue_has_a_live_worker(tmp_p
     db = free_db()
     env = {"UNDREAM_BLOB_URL": str(tmp_path), "UNDREAM_BROKER_URL": f"redis://127.0.0.1:6379/{db}",
            "UNDREAM_HEAL_AFTER": "1"}
-    withdraw = announce(load_settings(env=env), "w1@host", QUEUES)
+    withdraw = announce(load_settings(env=env), "w1@host", QUEUES, holds=lambda: [ids["busy"]])  # its long job
+    from farm_support import redis_client
+    from workers.presence import SINCE_KEY
+
+    redis_client(db).set(SINCE_KEY, time.time() - 3600)  # a farm up for an hour: every worker has announced itself
     try:
         time.sleep(1.2)
         from undream.cli import main
@@ -295,7 +303,11 @@ def test_the_dashboard_shows_stalled_runs_and_a_runs_heals(tmp_path):
     env = {"UNDREAM_BLOB_URL": str(tmp_path), "UNDREAM_BROKER_URL": f"redis://127.0.0.1:6379/{db}",
            "UNDREAM_HEAL_AFTER": "1"}
     settings = load_settings(env=env)
-    withdraw = announce(settings, "w1@host", QUEUES)
+    withdraw = announce(settings, "w1@host", QUEUES, holds=lambda: [ids["busy"]])
+    from farm_support import redis_client
+    from workers.presence import SINCE_KEY
+
+    redis_client(db).set(SINCE_KEY, time.time() - 3600)  # a farm up for an hour: every worker has announced itself
     app = create_app(settings)
     try:
         time.sleep(1.2)
@@ -330,7 +342,7 @@ def test_a_stalled_run_is_healed_once_with_an_event_and_finishes(tiny, tmp_path)
     (event,) = store.events(run_id)
     assert event.by == "node:7" and event.line.startswith("healed: no job queued or started at k=0")
     assert event.line.endswith("sent again: its attack jobs without a result, then their callback")
-    assert heal(store, dispatch, rule, by="node:7", view=lambda: KNOWN) == []  # healed: quiet again only after heal_after
+    assert heal(store, dispatch, rule, by="node:7", view=lambda: KNOWN) == []  # quiet again only after heal_after
     drain(store, contexts, dispatch)
     assert store.get_run(run_id).status == "done"
     np.testing.assert_array_equal(store.final_texture(run_id), _reference(tiny, tmp_path))
