@@ -53,6 +53,7 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 HEAL_BATCH = 50  # stalled runs one pass heals at most (quiet longest first); the next pass takes the rest
+QUIET_SCAN = 1000  # quiet runs a look reads (quiet longest first): runs waiting in a queue are quiet too
 CONFIRM_S = 2.0  # s between a pass's two looks at the broker (a worker announces a task it took within 1 s)
 
 
@@ -133,12 +134,13 @@ def stall_reason(run: "RunHealth", now: dt.datetime, rule: StallRule, view: Farm
 def stalled(store: "Store", rule: StallRule, now: dt.datetime | None = None, limit: int = HEAL_BATCH,
             view: FarmView = BLIND) -> list[tuple["RunHealth", str]]:
     """The stalled farm runs (at most ``limit``, quiet longest first), each with why (``view``:
-    see :func:`stall_reason`)."""
+    see :func:`stall_reason`), among the :data:`QUIET_SCAN` runs quiet longest (a sweep's runs
+    waiting their turn in a queue are quiet too, and must not hide the stalled ones behind them)."""
     if rule.after_s <= 0:
         return []
     now = now or dt.datetime.now(dt.timezone.utc)
-    runs = store.quiet_runs(now - dt.timedelta(seconds=rule.after_s), limit)
-    return [(run, why) for run in runs if (why := stall_reason(run, now, rule, view)) is not None]
+    runs = store.quiet_runs(now - dt.timedelta(seconds=rule.after_s), max(limit, QUIET_SCAN))
+    return [(run, why) for run in runs if (why := stall_reason(run, now, rule, view)) is not None][:limit]
 
 
 def heal_run(store: "Store", run_id: str, dispatch: "Dispatch", why: str, by: str) -> str:

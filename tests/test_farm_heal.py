@@ -194,6 +194,16 @@ def _stalled_farm(blobs: Path) -> dict[str, str]:
     return ids
 
 
+def test_runs_waiting_in_a_queue_do_not_hide_a_stalled_run_behind_them(tmp_path):
+    """A pass heals at most ``limit`` runs, but it looks past the quiet runs that wait their turn."""
+    ids = _stalled_farm(tmp_path)
+    waiting = FarmView(held=frozenset(), waiting=frozenset({ids["nojob"], ids["lost"]}), unread=frozenset())
+    time.sleep(1.1)
+    with open_store(None, tmp_path) as store:
+        found = stalled(store, StallRule(after_s=1, started_s=100), limit=1, view=waiting)
+    assert [run.id for run, _ in found] == [ids["busy"]]  # the two quieter ones wait in a queue
+
+
 def test_a_pass_heals_only_the_runs_both_its_looks_find_stalled(tmp_path):
     """A task taken between the looks (its worker announces it within a second) saves its run; the
     runs stalled at both looks are healed, each with its event line; a run its own process drives never."""
