@@ -1,7 +1,9 @@
 """Shared fixtures: scene directories of every example, initialised once per session."""
 from __future__ import annotations
 
+import fcntl
 import os
+import shutil
 import socket
 import subprocess
 from pathlib import Path
@@ -115,8 +117,21 @@ def mi():
 
 @pytest.fixture(scope="session")
 def example_scenes(tmp_path_factory, mi) -> dict[str, Path]:
-    """Every example in examples/, initialised with 16-spp verification renders."""
+    """Every example in examples/, initialised with 16-spp verification renders (the tests only read
+    them). Under pytest-xdist they are written once for the whole run, by the first test process that
+    asks, in the folder its processes share; the others wait for it on a lock."""
     from undream.scenedir.init import InitOptions, init_scene
 
-    base = tmp_path_factory.mktemp("examples")
-    return {p.stem: init_scene(p, base / p.stem, InitOptions(verify_spp=16)) for p in EXAMPLES}
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        base = tmp_path_factory.mktemp("examples")
+        return {p.stem: init_scene(p, base / p.stem, InitOptions(verify_spp=16)) for p in EXAMPLES}
+    run_root = tmp_path_factory.getbasetemp().parent  # this run's pytest-N, above each process's popen-gwK
+    base, done = run_root / "examples", run_root / "examples.done"
+    with open(run_root / "examples.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+        if not done.exists():
+            shutil.rmtree(base, ignore_errors=True)  # a process that failed half-way left it
+            for p in EXAMPLES:
+                init_scene(p, base / p.stem, InitOptions(verify_spp=16))
+            done.touch()
+    return {p.stem: base / p.stem for p in EXAMPLES}
