@@ -280,12 +280,22 @@ def claim_output(out: Path, config: RunConfig, marker: str = METADATA, command: 
     failure (a full disk, a signal) while the file is written removes it, and the folder when this
     call made it."""
     out = Path(out)
-    made = not out.exists()
-    out.mkdir(parents=True, exist_ok=True)
-    try:
-        fd = os.open(out / marker, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
-    except FileExistsError:
-        raise _claimed(out, command, marker) from None
+    for _ in range(3):  # the folder may vanish between mkdir and open: a racing claim that gave it up
+        try:
+            out.mkdir(parents=True)
+            made = True
+        except FileExistsError:
+            made = False
+        try:
+            fd = os.open(out / marker, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+            break
+        except FileExistsError:
+            raise _claimed(out, command, marker) from None
+        except FileNotFoundError:
+            continue
+    else:
+        raise SpecError(f"--out {out}: other commands made and removed this folder while this {command} claimed "
+                        "it; it is left as it is; run the command again")
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as f:
             f.write(json.dumps({MARKER: command, "status": "started", "config": redact(config.to_json())},

@@ -8,7 +8,8 @@ claiming huge sizes or far too long, 16-bit and transparent PNGs, another size t
 scene's files, a user's file, a FIFO, a symbolic link, a folder, a folder that does not exist, one
 file for both), and ``--holdout`` drawn from valid and broken forms. :func:`judge_evaluate` runs it
 in-process (click's runner) in a work folder: exit 0 leaves every input byte-identical and writes
-whole JSON/CSV; anything else is exit 2 with one line naming the texture, the scene, the option or
+whole JSON/CSV (an explicit output may replace a user's regular file, never an input, a FIFO or a
+link); anything else is exit 2 with one line naming the texture, the scene, the option or
 its value, and every byte on disk as it was.
 
 Race cases: 2–6 threads claim one new output folder (``claim_output`` with a run's or a baseline's
@@ -129,6 +130,7 @@ def textures(draw: Any) -> tuple[str, str, bytes]:
     return how, draw(st.sampled_from([".npy", ".png"])), b""
 
 
+USER_FILE = '{"mine": true}\n'
 OUTPUTS = ["", "new.json", "new.csv", "TEXTURE", "SCENE/sequence.json", "SCENE/metadata.json",
            "thesis/results.json", "fifo", "link.json", "thesis", "nowhere/rows.json", "new.json"]
 HOLDOUTS = ["auto", "none", "{every: 2}", "{every: 1}", "{every: 2, offset: 1}", "{frames: [0]}",
@@ -158,7 +160,7 @@ def make_evaluate_work(root: Path, scene: Path) -> Path:
     root.mkdir(parents=True)
     shutil.copytree(scene, root / "scene")
     (root / "thesis").mkdir()
-    (root / "thesis" / "results.json").write_text('{"mine": true}\n')
+    (root / "thesis" / "results.json").write_text(USER_FILE)
     os.mkfifo(root / "fifo")
     (root / "link.json").symlink_to(root / "thesis" / "results.json")
     return root
@@ -185,24 +187,29 @@ def judge_evaluate(case: EvaluateCase, work: Path, runner: Any) -> str:
     argv += ["--csv", csv_out] if csv_out else []
     before = fingerprint(work)
     written = {p for p in (json_out, csv_out) if p and not Path(p).exists()}
+    named = {p for p in (json_out, csv_out) if p}  # may be written: a new file, or a user's file asked for
     try:
         result = runner.invoke(main, argv, catch_exceptions=True)
-        return _evaluate_verdict(result, before, work, texture, written, json_out, csv_out)
+        return _evaluate_verdict(result, before, work, texture, named, json_out, csv_out)
     finally:
         texture.unlink(missing_ok=True)
         for p in written:
             Path(p).unlink(missing_ok=True)
+        (work / "thesis" / "results.json").write_text(USER_FILE)
 
 
-def _evaluate_verdict(result: Any, before: dict[str, str], work: Path, texture: Path, written: set[str],
+def _evaluate_verdict(result: Any, before: dict[str, str], work: Path, texture: Path, named: set[str],
                       json_out: str | None, csv_out: str | None) -> str:
+    """Exit 0 may write the files named by --json and --csv (a new file, or a regular file that is
+    no input: an explicit output replaces it) and nothing else: the texture, the scene, the FIFO and
+    the symbolic link's target stay byte-identical."""
     if result.exception is not None and not isinstance(result.exception, SystemExit):
         tb = "".join(traceback.format_exception(result.exception)[-4:])
         return f"FAIL: traceback {type(result.exception).__name__}: {str(result.exception)[:300]}\n{tb[-3000:]}"
     after = fingerprint(work)
     left = changed(before, after)
     if result.exit_code == 0:
-        stray = [k for k in left if str(work / k) not in written]
+        stray = [k for k in left if str(work / k) not in named]
         if stray:
             return f"FAIL: exit 0 but changed files it must not: {stray[:5]}"
         try:

@@ -20,6 +20,7 @@ from __future__ import annotations
 import copy
 import json
 import math
+import re
 import traceback
 from dataclasses import dataclass
 from pathlib import Path
@@ -180,7 +181,11 @@ def text_break(how: str, text: str, line: int, suffix: str) -> str:
         depth = 5000 + 1000 * line
         return text.replace("0", "[" * depth + "0" + "]" * depth, 1) if suffix == ".json" else \
             text + f"zzz: {'[' * depth}1{']' * depth}\n"
-    return text.replace("0", "7" * (4400 + line), 1)  # a number of thousands of digits
+    # a number of thousands of digits, in place of a 0 that stands alone (not one inside a path:
+    # a temporary folder's name holding a 0 made the scene's path the broken value)
+    number = re.search(r"(?<![\w/.-])0(?![\w.])", text)
+    at = number.start() if number else text.index("0")
+    return text[:at] + "7" * (4400 + line) + text[at + 1:]
 
 
 @st.composite
