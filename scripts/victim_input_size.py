@@ -12,7 +12,7 @@ IoU ≥ 0.5 with its true box, after the score threshold and NMS) and their mean
 score; then times, per frame, the prediction and the loss with its backward pass
 (the run's loss) at batch sizes ``--batches`` and torch thread counts
 ``--threads``, and the same with a channels-last input. Prints a table per part
-and writes ``input_size.csv``; run it alone (the load average is printed).
+and writes ``input_size.csv`` (``found.csv`` with ``--found-only``); run it alone (the load average is printed).
 """
 from __future__ import annotations
 
@@ -21,7 +21,9 @@ import csv
 import os
 import statistics
 import time
+from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -35,11 +37,14 @@ def _parse(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--batches", type=int, nargs="+", default=[1, 4, 12])
     p.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     p.add_argument("--repeats", type=int, default=2, help="timed passes per setting (the median is kept)")
+    p.add_argument("--held-out", type=Path, help="a folder of held-out conditions' spec files (*.yaml), "
+                   "judged the same way (e.g. examples/conditions_stop)")
+    p.add_argument("--found-only", action="store_true", help="judge the frames, time nothing")
     p.add_argument("--out", default="build/victim_size")
     return p.parse_args(argv)
 
 
-def render_all(cfg, out: Path, base_dir: Path) -> tuple[list[np.ndarray], object]:
+def render_all(cfg, out: Path, base_dir: Path) -> tuple[list[np.ndarray], Any]:
     """The run context and every frame rendered whole with the scene's texture (sRGB H×W×3), cached."""
     from scheduler.local import resolve_scene
     from undream.engine.algorithm import render_frames, start_texture
@@ -113,15 +118,22 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     print(f"load average before: {os.getloadavg()[0]:.2f}", flush=True)
     images, ctx = render_all(cfg, out, (ROOT / args.config).parent)
+    judged = [("attacked", images, ctx)]
+    for spec in sorted(args.held_out.glob("*.yaml")) if args.held_out else []:
+        held, held_ctx = render_all(replace(cfg, scene=str(spec.resolve()), conditions=None),
+                                    out / "held_out" / spec.stem, spec.parent)
+        judged.append(("held-out", held, held_ctx))
     base = cfg.victim.partition("@")[0]
     rows = []
     for size in args.sizes:
         victim = load_victim(f"{base}@{size}", task="detection")
-        for name, hits, seen, score in found(ctx, victim, images):
-            rows.append({"size": size, "part": "found", "condition": name, "detected": hits, "seen": seen,
-                         "mean_score": round(score, 3)})
-            print(f"{size:5d}  {name:24s} detected {hits:3d}/{seen:<3d} mean score {score:.3f}", flush=True)
-        for threads in args.threads:
+        for kind, imgs, c in judged:
+            for name, hits, seen, score in found(c, victim, imgs):
+                rows.append({"size": size, "part": "found", "kind": kind, "condition": name, "detected": hits,
+                             "seen": seen, "mean_score": round(score, 3)})
+                print(f"{size:5d}  {kind:9s} {name:44s} detected {hits:3d}/{seen:<3d} mean score {score:.3f}",
+                      flush=True)
+        for threads in [] if args.found_only else args.threads:
             for batch in args.batches:
                 for cl in (False, True):
                     p, l = timings(ctx, victim, images, batch, threads, cl, args.repeats)
@@ -130,11 +142,12 @@ def main(argv: list[str] | None = None) -> int:
                     print(f"{size:5d}  threads {threads} batch {batch:2d} channels_last {cl!s:5s} "
                           f"predict {p:.3f} s/frame  loss+backward {l:.3f} s/frame", flush=True)
     keys = sorted({k for r in rows for k in r}, key=lambda k: list(rows[0]).index(k) if k in rows[0] else 99)
-    with open(out / "input_size.csv", "w", newline="") as f:
+    table = out / ("found.csv" if args.found_only else "input_size.csv")
+    with open(table, "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=keys)
         w.writeheader()
         w.writerows(rows)
-    print(f"load average after: {os.getloadavg()[0]:.2f}; table: {out / 'input_size.csv'}")
+    print(f"load average after: {os.getloadavg()[0]:.2f}; table: {table}")
     return 0
 
 
