@@ -337,7 +337,11 @@ def test_a_condition_in_which_the_object_is_never_seen_is_refused_naming_it(inpu
     cfg = run_config(inputs["spec"], inputs["victim"], name="unseen", steps=1)
     cfg["conditions"] = {"grid": {"camera.look_at_offset": [[0, 0.4, 0], [0, 60, 0]]}}
     out = tmp_path / "out"
-    res = _undream("run", write_yaml(tmp_path / "unseen.yaml", cfg), "--out", out, "--no-progress")
+    check = _undream("run", write_yaml(tmp_path / "unseen.yaml", cfg), "--out", out, "--check")
+    assert check.returncode == 0, check.stderr  # --check renders no masks, and says it did not look
+    assert "whether a frame (of each condition) shows the object is checked when its masks are rendered, " \
+           "not by --check" in check.stdout, check.stdout
+    res = _undream("run", tmp_path / "unseen.yaml", "--out", out, "--no-progress")
     assert res.returncode == 2, res.stderr[-3000:]
     line = res.stderr.strip()
     assert "\n" not in line and line.startswith("undream: error: condition 'look_at_offset_0_60_0': "), line

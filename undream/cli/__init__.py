@@ -64,10 +64,16 @@ def init_cmd(spec: Path, out: Path, force: bool, verify_spp: int, scene_spp: int
                         inputs=(spec,))  # the one output-folder rule
     if check:
         click.echo(f"ok: {spec} can be written to {out}: {check_init(source, out, options).describe()}; "
-                   "nothing written")
+                   f"nothing written; {UNSEEN_NOT_CHECKED}")
         return
     done = init_scene(source, out, options)
     click.echo(f"wrote {done} (contact sheet: {done / 'verify' / 'contact_sheet.png'})")
+
+
+# --check renders nothing: whether a spec's object is seen (in every condition) is known once its
+# masks are rendered, which `undream init` (and `undream run` on a spec) does before writing.
+UNSEEN_NOT_CHECKED = ("whether a frame (of each condition) shows the object is checked when its masks are "
+                      "rendered, not by --check")
 
 
 @main.command("run")
@@ -82,13 +88,16 @@ def init_cmd(spec: Path, out: Path, force: bool, verify_spp: int, scene_spp: int
 def run_cmd(run_yaml: Path, out: Path, force: bool, resume: bool, check: bool, progress: bool) -> None:
     """Run the attack of RUN_YAML in this process (embedded defaults: Mitsuba, SQLite)."""
     from scheduler.local import check_run, run_local
+    from scheduler.preflight import is_scene, scene_source
     from undream.spec.run import load_run_config
 
     config = load_run_config(run_yaml)
     local = local_settings()
     if check:
         estimate = check_run(config, out, base_dir=run_yaml.parent, force=force, source=run_yaml, local=local)
-        click.echo(f"ok: {run_yaml} is valid: {estimate.describe()}; nothing written")
+        masks = config.conditions is None and is_scene(scene_source(config, run_yaml.parent))  # rendered, checked
+        click.echo(f"ok: {run_yaml} is valid: {estimate.describe()}; nothing written"
+                   + ("" if masks else f"; {UNSEEN_NOT_CHECKED}"))
         return
     res = run_local(config, out, base_dir=run_yaml.parent, progress=progress, force=force, resume=resume,
                     source=run_yaml, local=local)
