@@ -27,7 +27,7 @@ SLOW_MODULES = {
     "test_scene_cache.py", "test_input_rules.py", "test_settings_edge.py", "test_farm_trust.py",
     "test_fuzz_inputs.py", "test_cli_errors.py", "test_patch_baseline.py", "test_dashboard_browser.py",
     "test_eot.py", "test_blender_import.py", "test_init.py", "test_holdout.py", "test_motion.py",
-    "test_coco_nanodet.py", "test_benign_cache.py",
+    "test_coco_nanodet.py", "test_benign_cache.py", "test_full_disk.py",
 }
 
 
