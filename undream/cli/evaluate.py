@@ -8,11 +8,12 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
 
 import click
+import yaml
 
 from undream.cli.errors import one_line_errors
-from undream.errors import UndreamError
 from undream.cli.farm import settings_options
 from undream.cli.options import local_settings, spp_option
+from undream.errors import UndreamError
 
 if TYPE_CHECKING:
     from undream.settings import Settings
@@ -74,8 +75,6 @@ def evaluate_cmd(texture: Path, scenes: tuple[Path, ...], victims: tuple[str, ..
 def _holdout(value: str) -> Any:
     """``--holdout`` as a run config's ``holdout``: ``auto``, ``none``, or the YAML mapping it spells
     (``{every: 2}`` was refused by a message that offered that very form: the text was never parsed)."""
-    import yaml
-
     from undream.spec.yaml_strict import load
 
     if value.strip() in ("auto", "none"):

@@ -20,7 +20,7 @@ import click
 from undream.cli.errors import one_line_errors
 from undream.cli.options import check_option, local_settings
 from undream.errors import SpecError, StoreError, UndreamError
-from undream.redact import MASK
+from undream.redact import MASK, redact_text
 from undream.runlist import MAX_PAGE, RUN_STATUSES
 
 if TYPE_CHECKING:
@@ -301,7 +301,6 @@ def _status_of_folder(out: Path, run: str | None, state: str | None, sweep: str 
     from scheduler.lease import expire_stale
     from scheduler.preflight import run_store_url
     from scheduler.query import run_rows
-    from undream.redact import redact_text
 
     if sweep:
         raise SpecError(f"--sweep {sweep}: an `undream run` output folder holds no sweep; give --out or --sweep")
