@@ -3,7 +3,7 @@
 
     .venv/bin/python scripts/crop_exactness.py --run build/crop/stop_sign_run [--out build/crop/exactness.csv]
 
-For every frame of the run's scene (``RUN/config.json`` or ``--config``, the texture
+For every frame of the run's scene (``RUN/metadata.json``'s config or ``--config``, the texture
 ``RUN/texture_final.npy`` or ``--texture``), at the run's ``sim_spp`` and one
 iteration's seed:
 
@@ -35,9 +35,10 @@ ROOT = Path(__file__).resolve().parents[1]
 def _parse(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--run", type=Path, help="an `undream run` output folder")
-    p.add_argument("--config", type=Path, help="the run config (default: RUN/config.json)")
+    p.add_argument("--config", type=Path, help="the run config (default: RUN/metadata.json's)")
     p.add_argument("--texture", type=Path, help="an sRGB H×W×3 .npy (default: RUN/texture_final.npy)")
     p.add_argument("--iteration", type=int, default=7, help="whose seeds the renders use")
+    p.add_argument("--every", type=int, default=1, help="every this-many-th frame only")
     p.add_argument("--out", type=Path, help="CSV of the rows (default: RUN/crop_exactness.csv)")
     return p.parse_args(argv)
 
@@ -68,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
         cfg = load_run_config(args.config)
         base_dir = args.config.resolve().parent
     else:
-        cfg = RunConfig.from_json(json.loads((args.run / "config.json").read_text()))
+        cfg = RunConfig.from_json(json.loads((args.run / "metadata.json").read_text())["config"])
         base_dir = Path.cwd()
     texture = np.load(args.texture or args.run / "texture_final.npy").astype(np.float32)
     work = (args.run or ROOT / "build" / "crop") / "exactness"
@@ -77,7 +78,7 @@ def main(argv: list[str] | None = None) -> int:
     ctx = build_context(cfg, scene_dir)
     print(f"load average before: {os.getloadavg()[0]:.2f}", flush=True)
     rows = []
-    for pos, index in enumerate(ctx.frame_indices):
+    for pos, index in list(enumerate(ctx.frame_indices))[::args.every]:
         window = ctx.crops.window(index)
         seed = frame_seed(cfg.seed, args.iteration, index)
         whole = linear_to_srgb(render_linear(ctx.scenes, index, texture, cfg.sim_spp, seed))
