@@ -28,10 +28,11 @@ import numpy as np
 from scheduler.iteration import worker_name
 from scheduler.state import decode_state
 from undream.color import to_uint8
+from undream.engine.job import detection_boxes
 from undream.errors import StoreError
 
 if TYPE_CHECKING:
-    from scheduler.benign import BenignCache
+    from scheduler.benign import BenignCache, CachedFrame
     from undream.engine.context import RunContext
     from undream.store import Store
 
@@ -90,11 +91,22 @@ def _judged_frames(ctx: "RunContext", positions: list[int], texture: np.ndarray,
                 for im, pred in zip(rendered, eval_predictions(ctx, rendered))]
         if benign is not None:
             benign.put(positions, kept)
-    results: list[dict[str, Any]] = [{"prediction": f.prediction} for f in kept]
+    results: list[dict[str, Any]] = [{"prediction": _drawable(ctx, p, f)} for p, f in zip(positions, kept)]
     if benign is not None:
         for result in results:
             result["benign_cache"] = {"key": benign.key, "hit": hit}
     return results, [f.image for f in kept]
+
+
+def _drawable(ctx: "RunContext", position: int, frame: "CachedFrame") -> dict[str, Any]:
+    """A frame's prediction as its job row keeps it: the victim's output (``pred.to_dict()``, what
+    the results are computed from) and, for a detector, what the dashboard draws on the frame
+    (:func:`undream.engine.job.detection_boxes`, and ``size``: the frame's width and height in px)."""
+    if ctx.victim.task == "classification":
+        return frame.prediction
+    h, w = frame.image.shape[:2]
+    drawn = detection_boxes(ctx, position, prediction_from_json("detection", frame.prediction))
+    return {**frame.prediction, **drawn, "size": [int(w), int(h)]}
 
 
 def eval_textures(store: "Store", run_id: str, phase: str, k: int,

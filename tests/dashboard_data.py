@@ -249,3 +249,40 @@ def build_farm(store: Any, seed: int = 0, frames: int = 4, steps: int = 6) -> Fa
                          sweep_id=sweep_id, holdout="auto")
         sweep_runs.append(add_run(store, shape, rng))
     return Farm(runs, sweep_id, sweep_runs)
+
+
+def _detector_prediction(f: int, px: int, found: bool) -> dict[str, Any]:
+    """A detector's evaluation prediction as a job row keeps it (scheduler.evaluation): the raw output
+    and the boxes a page draws; the object's box is the picture's textured square (:func:`_frame`)."""
+    top, left, size = px // 4, px // 3, px // 2
+    truth = [float(left), float(top), float(left + size), float(top + size)]
+    dets = [{"box": [truth[0] + 1, truth[1] + 2, truth[2] - 1, truth[3]], "score": 0.87, "label": "trash bin"},
+            {"box": [2.0, 2.0, px / 4, px / 5], "score": 0.31, "label": "car"}] if found else \
+        [{"box": [2.0, 2.0, px / 4, px / 5], "score": 0.42, "label": "umbrella"}]
+    return {"boxes": [d["box"] for d in dets], "scores": [d["score"] for d in dets],
+            "labels": [LABELS.index(d["label"].replace(" ", "_")) for d in dets], "detected": found,
+            "detections": dets, "truth_box": truth, "truth_label": "trash bin", "size": [px, px]}
+
+
+def add_detector_run(store: Any, name: str = "bin-detector", frames: int = 2, px: int = 64) -> str:
+    """A done run against a detector whose evaluation frames carry boxes: every benign frame found,
+    every adversarial one missed; returns its id."""
+    shape = RunShape(name, "done", frames=frames, steps=1, frame_px=px,
+                     extra={"victim": "coco:centernet", "loss": "vanish"})
+    T0 = _texture0(*shape.texture)
+    run_id = store.create_run(name, config(shape), frames, 0, texture0=T0, attack_state0={"t": 0},
+                              arrays0={"T0": T0})
+    store.set_status(run_id, "running")
+    store.set_status(run_id, "evaluating")
+    store.put_final_texture(run_id, T0)
+    for phase, found in (("pre", True), ("adversarial", False)):
+        store.queue_jobs(run_id, 0, range(frames), phase)
+        for f in range(frames):
+            store.job_started(run_id, 0, f, phase, worker=WORKERS[0])
+            store.eval_succeeded(run_id, 0, f, phase, {"prediction": _detector_prediction(f, px, found)},
+                                 _frame(T0, px), {"total": 0.3})
+    store.set_results(run_id, {"task": "detection", "victim": "coco:centernet", "label": "trash bin",
+                               "benign": {"metric": "ap50", "value": 1.0},
+                               "adversarial": {"metric": "ap50", "value": 0.0}})
+    store.set_status(run_id, "done")
+    return run_id

@@ -92,6 +92,7 @@ def test_pages_render(farm):
     assert 'id="cancel"' in run and 'id="resume"' not in run
     done = client.get(f"/runs/{ids.runs['done']}").get_data(as_text=True)
     assert "data-refresh" not in done and "trash_bin" in done and "umbrella" in done
+    assert 'class="boxes"' not in done and 'id="boxes-key"' not in done  # a classifier's frames: no boxes
     assert "held-out frames (1): accuracy 100.0 % → <b>100.0 %</b> · attack success 0.0 %" in done
     assert "attacked frames (3): accuracy 100.0 % → <b>0.0 %</b>" in done
     assert "100.0 % → <b>100.0 %</b> <span class=\"muted\">held-out</span>" in page

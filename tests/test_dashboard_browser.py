@@ -265,3 +265,43 @@ def test_an_active_run_page_refreshes_itself_and_cancels_with_the_token(site, br
     keep = os.environ.get("UNDREAM_DASHBOARD_SCREENS")  # a folder to copy the screenshots to, for a look
     if keep:
         shutil.copytree(shots.parent, keep, dirs_exist_ok=True)
+
+
+def test_a_detector_runs_frames_show_its_boxes_crisp_over_the_enlarged_frame(site, browser, shots):
+    """A 64-px frame shown at 256 px: the boxes are vectors in the page's pixels laid exactly over the
+    picture, in the report's colours (the object's class green, another magenta), each tagged with its
+    class and score; the true box dashed. (Runs after the tests that count the farm's runs.)"""
+    import io
+
+    from PIL import Image
+
+    from dashboard_data import add_detector_run
+    from undream.report.boxes import OBJECT_RGB, OTHER_RGB
+
+    base, _, blobs = site
+    with open_store(None, blobs) as store:
+        run_id = add_detector_run(store)
+    browser.get(f"{base}/runs/{run_id}")
+    _wait(lambda: _by(browser, "#frames"), "the detector run's frames")
+    browser.execute_script("document.getElementById('frames').scrollIntoView()")  # frames load lazily
+    _wait(lambda: _images_loaded(browser), "the frames")
+    rects = browser.execute_script(
+        "return Array.from(document.querySelectorAll('#frames figure')).map(f => [f.querySelector('img'),"
+        " f.querySelector('svg.boxes')].map(e => { const r = e.getBoundingClientRect();"
+        " return [r.left, r.top, r.width, r.height]; }));")
+    assert len(rects) == 4 and all(img == svg and img[2:] == [256, 256] for img, svg in rects), rects
+    captions = [c.text for c in _by(browser, "#frames figcaption")]
+    assert captions[0].endswith("2 detections, best 0.87, object found ✓") and captions[1].endswith("object missed ✗")
+    tags = [t.text for t in _by(browser, "#frames figure.benign svg.boxes text")]
+    assert tags[:2] == ["trash bin 0.87", "car 0.31"], tags
+    assert "trash bin" in _by(browser, "#boxes-key")[0].text
+    benign, adversarial = (np.asarray(Image.open(io.BytesIO(e.screenshot_as_png)).convert("RGB"))[:256, :256]
+                           for e in _by(browser, "#frames .pair")[0].find_elements("css selector", "figure"))
+
+    def count(img, rgb):
+        return int(np.all(img == rgb, axis=2).sum())
+    # the box lines are whole pixels of their colour (crisp, not blended), the tag fills more of them
+    assert count(benign, OBJECT_RGB) > 4 * 110 and count(benign, OTHER_RGB) > 2 * 50
+    assert count(adversarial, OBJECT_RGB) == 0 and count(adversarial, OTHER_RGB) > 2 * 50
+    _screenshot(browser, shots, "10_detector_run")
+    _no_console_errors(browser)

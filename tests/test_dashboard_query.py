@@ -248,17 +248,16 @@ def test_seen_mask_from_state_or_gradients(farm_store):
     assert images.seen_mask(store, no_state) is not None  # from state; gradients are the fallback
 
 
-def test_frame_png_draws_detector_boxes_on_an_enlarged_frame():
+def test_frame_png_is_the_frame_as_it_is():
+    """The page enlarges a frame and lays a detector's boxes over it (undream.dashboard.overlay): the
+    picture itself is never drawn on."""
     from PIL import Image
 
     frame = np.zeros((32, 32, 3), np.uint8)
-    data = images.frame_png(frame, {"boxes": [[4, 4, 20, 20]], "scores": [0.8], "labels": [1]})
-    img = np.asarray(Image.open(io.BytesIO(data)))
-    assert img.shape == (256, 256, 3) and img[32, 80].tolist() == [255, 210, 0]
-    plain = np.asarray(Image.open(io.BytesIO(images.frame_png(frame, {"label": 1}))))
-    assert plain.shape == (32, 32, 3) and plain.max() == 0  # as it is: the page scales it up
+    plain = np.asarray(Image.open(io.BytesIO(images.frame_png(frame))))
+    assert plain.shape == (32, 32, 3) and plain.max() == 0
     with pytest.raises(StoreError, match="H×W×3 uint8"):
-        images.frame_png(np.zeros((4, 4), np.float32), None)
+        images.frame_png(np.zeros((4, 4), np.float32))
 
 
 def test_charts_are_pngs_with_their_size(farm_store):

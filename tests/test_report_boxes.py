@@ -1,14 +1,19 @@
-"""A detector's boxes, from results.json to the report: a real tiny `undream run` against bundled:yolo
-(3 frames of 48 px, one attack step) and `undream report` of it, both through the command line.
+"""A detector's boxes, from results.json to the report and the dashboard: a real tiny `undream run`
+against bundled:yolo (3 frames of 48 px, one attack step), `undream report` of it through the command
+line, and its run page and JSON from the dashboard over the run's store.
 
 results.json's per-frame rows hold the detector's kept boxes (at most 5, frame pixels, class names)
-and the object's true box; the contact sheet draws them, and a run recorded before rows held boxes
-still makes a report.
+and the object's true box; the contact sheet draws them, the run page lays them over its frames,
+and a run recorded before rows held boxes still makes a report and a run page.
 """
 from __future__ import annotations
 
+import html
+import io
 import json
 import os
+import re
+import sqlite3
 import shutil
 import subprocess
 import sys
@@ -154,3 +159,89 @@ def test_a_run_recorded_before_rows_held_boxes_still_makes_a_report(run, tmp_pat
     assert all(s.truth is None and all(d.label is None for d in s.boxes) for s in sides)
     assert any(s.boxes for s in sides)  # the stored predictions' boxes, drawn without class names
     assert np.all(sheet == UNNAMED_RGB, axis=2).sum() > 100
+
+
+def _dashboard(store_dir: Path):
+    """A test client of the dashboard over the store of an `undream run` output folder."""
+    from undream.dashboard import create_app
+    from undream.settings import load_settings
+
+    return create_app(load_settings(env={"UNDREAM_BLOB_URL": str(store_dir), "UNDREAM_CONNECT_TIMEOUT": "1"}))
+
+
+def _tags(svg: str) -> list[tuple[str, str]]:
+    """(fill colour, text) of each ``label score`` tag of an overlay, in the order drawn (best first)."""
+    return [(fill, html.unescape(text)) for fill, text in
+            re.findall(r'<g class="tag"><rect [^>]*fill="(#[0-9a-f]{6})"/><text [^>]*>([^<]*)</text></g>', svg)]
+
+
+def test_the_run_page_lays_the_detectors_boxes_over_its_frames(run):
+    from undream.report.boxes import OBJECT_RGB, OTHER_RGB
+
+    app = _dashboard(run["out"] / "store")
+    client = app.test_client()
+    try:
+        (run_id,) = [r["id"] for r in client.get("/api/runs").get_json()["runs"]]
+        detail = client.get(f"/api/runs/{run_id}").get_json()
+        page = client.get(f"/runs/{run_id}").get_data(as_text=True)
+        frames = {view: [client.get(u) for u in detail["links"]["frames"][view].values()] for view in SIDES}
+    finally:
+        app.extensions["undream"].close()
+    svgs = re.findall(r'<svg class="boxes".*?</svg>', page, re.S)
+    assert len(svgs) == 2 * len(detail["frames"]) == 6 and 'id="boxes-key"' in page and "sphere" in page
+    n_tags = 0
+    for f, row in enumerate(detail["frames"]):
+        for side, svg in zip(SIDES, svgs[2 * f: 2 * f + 2]):
+            pred, kept = row[side], run["results"][side]["per_frame"][f]
+            # the JSON twin: results.json's boxes, true box and verdict, and the frame's size
+            assert pred["detections"] == kept["boxes"] and pred["truth_box"] == kept["truth_box"]
+            assert (pred["detected"], pred["truth_label"], pred["size"]) == (kept["detected"], "sphere", [SIZE, SIZE])
+            assert svg.count('<g class="truth">') == 1
+            tags = _tags(svg)
+            assert [t for _, t in tags] == [f"{d['label']} {d['score']:.2f}" for d in kept["boxes"]]
+            assert [c for c, _ in tags] == ["#{:02x}{:02x}{:02x}".format(*(OBJECT_RGB if d["label"] == "sphere"
+                                                                            else OTHER_RGB)) for d in kept["boxes"]]
+            n_tags += len(tags)
+    assert n_tags > 0, "the detector found nothing: the test would show no box"
+    for view, responses in frames.items():  # the pictures are the frames as rendered: boxes are vectors
+        for f, res in enumerate(responses):
+            drawn = np.asarray(Image.open(io.BytesIO(res.data)).convert("RGB"))
+            raw = np.asarray(Image.open(run["out"] / f"frames_{view}" / f"frame_{f:04d}.png").convert("RGB"))
+            assert drawn.shape == (SIZE, SIZE, 3) and np.array_equal(drawn, raw)
+
+
+def test_a_run_whose_job_rows_hold_no_boxes_still_shows_them(run, tmp_path):
+    """Job rows written before they kept the drawn boxes: the page takes them from results.json's rows,
+    and without those from the raw predictions (no class names, no true box)."""
+    old = tmp_path / "old"
+    shutil.copytree(run["out"] / "store", old)
+    with sqlite3.connect(old / "undream.db") as db:
+        for job_id, text in db.execute("SELECT id, result_json FROM frame_jobs WHERE phase != 'attack'").fetchall():
+            result = json.loads(text)
+            for key in ("detections", "truth_box", "truth_label", "detected", "size"):
+                result["prediction"].pop(key)
+            db.execute("UPDATE frame_jobs SET result_json = ? WHERE id = ?", (json.dumps(result), job_id))
+    app = _dashboard(old)
+    client = app.test_client()
+    try:
+        (run_id,) = [r["id"] for r in client.get("/api/runs").get_json()["runs"]]
+        named = client.get(f"/api/runs/{run_id}").get_json()["frames"]
+        store = app.extensions["undream"].store()
+        (record,) = store.runs()
+        results = json.loads(json.dumps(record.results))
+        for side in SIDES:
+            for row in results[side]["per_frame"]:
+                del row["boxes"], row["truth_box"]
+        store.set_results(record.id, results)
+        raw = client.get(f"/api/runs/{run_id}").get_json()["frames"]
+        page = client.get(f"/runs/{run_id}").get_data(as_text=True)
+    finally:
+        app.extensions["undream"].close()
+    for f, (row, bare) in enumerate(zip(named, raw)):
+        for side in SIDES:
+            kept = run["results"][side]["per_frame"][f]
+            assert row[side]["detections"] == kept["boxes"] and row[side]["truth_box"] == kept["truth_box"]
+            assert row[side]["size"] == bare[side]["size"] == [SIZE, SIZE] and bare[side]["truth_box"] is None
+            assert [(d["box"], d["score"], d["label"]) for d in bare[side]["detections"]] == \
+                [(d["box"], d["score"], None) for d in kept["boxes"]]
+    assert '<g class="truth">' not in page and "class not recorded" in page and page.count('<g class="tag">') > 0

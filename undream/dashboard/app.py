@@ -24,6 +24,7 @@ from undream.dashboard.api import api
 from undream.dashboard.artifacts import artifacts
 from undream.dashboard.errors import BadRequest, DashboardError, from_store_error
 from undream.dashboard.markup import job_grid_html
+from undream.dashboard.overlay import boxes_key, boxes_svg
 from undream.dashboard.pages import pages
 from undream.dashboard.state import EXTENSION, Farm
 from undream.errors import StoreError
@@ -153,6 +154,8 @@ def create_app(settings: "Settings", opener: Callable[[str | None, str], "Store"
     app.extensions[EXTENSION] = Farm(settings, opener)
     app.jinja_env.filters.update(filters.FILTERS)
     app.jinja_env.filters["job_grid_html"] = job_grid_html
+    app.jinja_env.filters["boxes_svg"] = boxes_svg
+    app.jinja_env.filters["boxes_key"] = boxes_key
     app.jinja_env.globals["actions_enabled"] = settings.dashboard_token is not None
     app.register_blueprint(pages)
     app.register_blueprint(api, url_prefix="/api")

@@ -62,7 +62,8 @@ def final_texture(run_id: str) -> Any:
 
 @artifacts.get("/runs/<id:run_id>/frames/<view>/<int:frame>.png")
 def frame(run_id: str, view: str, frame: int) -> Any:
-    """Evaluation frame ``frame`` of ``view`` (``benign`` or ``adversarial``), enlarged."""
+    """Evaluation frame ``frame`` of ``view`` (``benign`` or ``adversarial``) at its own size (the page
+    enlarges it and lays a detector's boxes over it)."""
     if view not in query.EVAL_VIEWS:
         raise NotFound(f"frame view {view!r}: unknown; valid views are {', '.join(query.EVAL_VIEWS)}")
     store = farm().store()
@@ -72,10 +73,8 @@ def frame(run_id: str, view: str, frame: int) -> Any:
     if not jobs:
         raise NotFound(f"run {run_id}: no {view} frame {frame}")
     job = jobs[0]
-    prediction = (job.result or {}).get("prediction")
     data = farm().cache.get(("frame", run_id, view, frame, job.finished),
-                               lambda: images.frame_png(store.blobs.get_array(job.image_ref),  # type: ignore[arg-type]
-                                                        prediction))
+                               lambda: images.frame_png(store.blobs.get_array(job.image_ref)))  # type: ignore[arg-type]
     return _png(data, IMMUTABLE)
 
 

@@ -3,16 +3,16 @@
 Textures are H×W×3 sRGB in [0, 1] (the store's convention); frames are
 H×W×3 uint8 sRGB. A texture is enlarged (nearest neighbour) to at least
 :data:`TEXTURE_SIDE` pixels so that the hatching over unseen texels fits;
-a frame goes out at its own size (the page scales it up, pixelated) unless
-a detector's boxes are drawn on it, at :data:`BOX_SIDE` pixels.
+a frame goes out at its own size (the page scales it up, pixelated, and
+lays a detector's boxes over it: :mod:`undream.dashboard.overlay`).
 """
 from __future__ import annotations
 
 import io
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
-from PIL import Image, ImageDraw
+from PIL import Image
 
 from undream.errors import StoreError
 
@@ -20,7 +20,6 @@ if TYPE_CHECKING:
     from undream.store import Store
 
 TEXTURE_SIDE = 128  # px: a texture's short side is enlarged by a whole factor to at least this
-BOX_SIDE = 256  # px: a frame with boxes drawn on it is enlarged to at least this
 UNSEEN_RGB = (255, 0, 255)  # the hatching over texels no frame sees
 HATCH = 6  # px between hatching lines
 
@@ -78,20 +77,9 @@ def texture_png(texture: np.ndarray, seen: np.ndarray | None) -> bytes:
     return _png(big)
 
 
-def frame_png(frame: np.ndarray, prediction: dict[str, Any] | None) -> bytes:
-    """An evaluation frame (H×W×3 uint8); with a detector's boxes (frame pixels) enlarged and drawn on."""
+def frame_png(frame: np.ndarray) -> bytes:
+    """An evaluation frame (H×W×3 uint8) as it is: the page enlarges it, and lays a detector's boxes
+    over it (:mod:`undream.dashboard.overlay`)."""
     if frame.dtype != np.uint8 or frame.ndim != 3 or frame.shape[2] != 3:
         raise StoreError(f"evaluation frame: expected an H×W×3 uint8 array, got {frame.dtype} {frame.shape}")
-    boxes = (prediction or {}).get("boxes") or []
-    if not boxes:
-        return _png(frame)
-    big, factor = _enlarge(frame, BOX_SIDE)
-    pic = Image.fromarray(big)
-    draw = ImageDraw.Draw(pic)
-    scores = (prediction or {}).get("scores") or [None] * len(boxes)
-    for box, score in zip(boxes, scores):
-        x0, y0, x1, y1 = (float(v) * factor for v in box)
-        draw.rectangle((x0, y0, x1, y1), outline=(255, 210, 0), width=2)
-        if score is not None:
-            draw.text((x0 + 3, y0 + 2), f"{float(score):.2f}", fill=(255, 210, 0))
-    return _png(np.asarray(pic))
+    return _png(frame)

@@ -26,6 +26,7 @@ if TYPE_CHECKING:
 Memo = Callable[[tuple[Any, ...], Callable[[], Any]], Any]  # cache.get(key, make)
 EVAL_VIEWS = {"benign": "pre", "adversarial": "adversarial"}  # URL name → job phase
 SLOW_FACTOR = 2.0  # a job this many times the run's median job time is slow
+MAX_BOXES = 5  # a detector's boxes drawn on a frame (the highest-scoring; results.json keeps as many)
 PAGE = 50  # runs in a page of the runs list unless the request asks for another ``limit``
 
 
@@ -229,12 +230,50 @@ def _class_names(run: "RunSnapshot") -> dict[int, str]:
     return names
 
 
+def _top_boxes(pred: dict[str, Any]) -> list[dict[str, Any]]:
+    """The :data:`MAX_BOXES` highest-scoring of a stored prediction's raw ``boxes``/``scores``, as
+    results.json's ``boxes`` rows with no class name (``label`` None: the store keeps class ids only)."""
+    dets = [{"box": [round(float(v), 1) for v in b], "score": round(float(s), 4), "label": None}
+            for b, s in zip(pred.get("boxes") or [], pred.get("scores") or [])]
+    return sorted(dets, key=lambda d: -d["score"])[:MAX_BOXES]
+
+
+def _with_boxes(store: "Store", run: "RunSnapshot", job: "JobSnapshot", pred: dict[str, Any],
+                row: dict[str, Any] | None) -> dict[str, Any]:
+    """A detector's evaluation prediction with what the run page draws: ``detections`` (at most
+    :data:`MAX_BOXES`, ``{box, score, label}``, frame pixels), ``truth_box``, ``truth_label``,
+    ``detected`` and ``size`` (the frame's width and height, px). Job rows written before they kept
+    these are filled from the results.json per-frame ``row`` when there is one, else from the raw
+    boxes (no class names, no true box), the size from the frame itself."""
+    if "detections" in pred and "size" in pred:
+        return pred
+    row = row or {}
+    pred["detections"] = row["boxes"] if isinstance(row.get("boxes"), list) else _top_boxes(pred)
+    pred["truth_box"] = row.get("truth_box")
+    pred["truth_label"] = (run.results or {}).get("label")
+    if isinstance(row.get("detected"), bool):
+        pred["detected"] = row["detected"]
+    if job.image_ref:
+        h, w = store.blobs.get_array(job.image_ref).shape[:2]
+        pred["size"] = [int(w), int(h)]
+    return pred
+
+
+def _per_frame(run: "RunSnapshot", view: str) -> list[dict[str, Any]]:
+    """results.json's per-frame rows of ``view`` in frame-position order (empty when they do not
+    cover every frame)."""
+    rows = ((run.results or {}).get(view) or {}).get("per_frame") or []
+    return rows if len(rows) == run.n_frames else []
+
+
 def eval_frames(store: "Store", run: "RunSnapshot") -> list[dict[str, Any]]:
-    """Per frame: the benign and adversarial predictions and whether each frame image exists."""
+    """Per frame: the benign and adversarial predictions and whether each frame image exists; a
+    detector's with its boxes (:func:`_with_boxes`)."""
     names = _class_names(run)
     label = (run.results or {}).get("label")
     views = {view: {j.frame: j for j in store.jobs(run.id, run.iteration, phase)}
              for view, phase in EVAL_VIEWS.items()}
+    per_frame = {view: _per_frame(run, view) for view in EVAL_VIEWS}
     rows = []
     for f in range(run.n_frames):
         row: dict[str, Any] = {"frame": f}
@@ -242,6 +281,8 @@ def eval_frames(store: "Store", run: "RunSnapshot") -> list[dict[str, Any]]:
             pred = _prediction(jobs.get(f), names)
             if pred is not None and label is not None and pred.get("name") is not None:
                 pred["correct"] = pred["name"] == label
+            if pred is not None and "boxes" in pred:
+                pred = _with_boxes(store, run, jobs[f], pred, per_frame[view][f] if per_frame[view] else None)
             row[view] = pred
         if row["benign"] or row["adversarial"]:
             rows.append(row)

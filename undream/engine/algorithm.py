@@ -32,7 +32,7 @@ from undream.attacks import average_frames, frame_batch
 from undream.color import linear_to_srgb, to_uint8
 from undream.engine.context import RunContext
 from undream.engine import job
-from undream.engine.job import FrameResult, class_score, frame_seed, ground_truth, top_detections
+from undream.engine.job import FrameResult, class_score, frame_seed, ground_truth, top_detections, truth_box
 from undream.metrics import accuracy, average_precision, correct, is_detected
 from undream.render.differentiable import texture_gradient
 from undream.render.loading import read_texture_srgb
@@ -198,7 +198,7 @@ def judge(ctx: RunContext, preds: list[Any], positions: list[int] | None = None)
     rows = [{"frame": f.index, "detected": bool(is_detected(p, gt, label)), "n_detections": int(len(p.scores)),
              "score": round(float(p.scores.max()), 4) if len(p.scores) else 0.0,
              "boxes": top_detections(p, ctx.victim.labels),
-             "truth_box": [round(float(v), 1) for v in ctx.targets[i].box] if ctx.targets[i].box else None}
+             "truth_box": truth_box(ctx.targets[i])}
             for i, f, p, gt in zip(keep, frames, preds, truths)]
     value = average_precision(preds, truths, label) if preds else None
     return {"metric": "ap50", "value": value, "per_frame": rows}

@@ -59,6 +59,22 @@ def top_detections(pred: Any, labels: Sequence[str], n: int = MAX_BOXES) -> list
             for i in order]
 
 
+def truth_box(target: Any) -> list[float] | None:
+    """The object's true box in one frame (its mask box, x1/y1 exclusive, frame pixels, 0.1 px);
+    None where the object is unseen."""
+    return [round(float(v), 1) for v in target.box] if target.box else None
+
+
+def detection_boxes(ctx: RunContext, position: int, pred: Any) -> dict[str, Any]:
+    """What a page needs to draw a detector's verdict on frame ``position``, as small JSON:
+    ``detected`` (as :func:`prediction_record`), ``detections`` (:func:`top_detections`),
+    ``truth_box`` (:func:`truth_box`) and ``truth_label`` (the object's class name)."""
+    target = ctx.targets[position]
+    return {"detected": bool(is_detected(pred, ground_truth(target), target.label)),
+            "detections": top_detections(pred, ctx.victim.labels), "truth_box": truth_box(target),
+            "truth_label": ctx.victim.labels[target.label]}
+
+
 def ground_truth(target: Any) -> Any:
     """The object's true box and class in one frame (:class:`undream.metrics.GroundTruth`); no box
     where the object is unseen (``target.box`` None)."""

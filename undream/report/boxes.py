@@ -60,7 +60,7 @@ def _overlaps(a: Rect, b: Rect) -> bool:
     return a[0] <= b[2] and b[0] <= a[2] and a[1] <= b[3] and b[1] <= a[3]
 
 
-def _tag_rect(box: Rect, text: str, placed: list[Rect], limit: Rect) -> Rect:
+def tag_rect(box: Rect, text: str, placed: list[Rect], limit: Rect) -> Rect:
     """Where ``text``'s tag goes: just above the box, else inside its top edge, else lower down inside
     it, the first place that covers no tag already ``placed``; all within ``limit``."""
     w, h = int(font(TAG_PX).getlength(text)) + 4, TAG_PX + 3
@@ -89,7 +89,7 @@ def draw_boxes(draw: Any, picture: Rect, factor: int, detections: list[Detection
     placed: list[Rect] = []
     for det, rect in zip(ranked, rects):
         text = tag_text(det)
-        tag = _tag_rect(rect, text, placed, limit)
+        tag = tag_rect(rect, text, placed, limit)
         placed.append(tag)
         draw.rectangle(tag, fill=box_colour(det, object_label))
         draw.text((tag[0] + 2, tag[1] + 1), text, fill=TAG_INK, font=font(TAG_PX))
