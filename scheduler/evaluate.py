@@ -21,7 +21,7 @@ import numpy as np
 
 from scheduler.preflight import is_scene
 from scheduler.scenes import unpack_scene
-from undream.engine.job import prediction_record
+from undream.engine.job import prediction_record, top_detections, truth_box
 from undream.errors import SpecError, StoreError
 from undream.scene.mesh import Mesh, read_ply
 from undream.scene.texture_file import read_image_rgb, read_npy_texture
@@ -162,18 +162,29 @@ def frame_rows(ctx: Any, parts: Any, benign: Sequence[Any], texture: Sequence[An
     empty), split (``attacked`` or ``held_out``, as :func:`split_conditions` made ``parts``) and the
     victim's verdict on it with the scene's own texture (``benign_*``) and with the texture
     (``texture_*``): a classifier's predicted class, its probability and whether it is the object's;
-    a detector's whether it found the object, its top score and its number of detections."""
+    a detector's whether it found the object, its top score and its number of detections, the top
+    detection's ``top_box`` (``[x0, y0, x1, y1]``, frame pixels) and ``top_label`` (class name; None
+    without detections) and ``boxes`` (:func:`undream.engine.job.top_detections`: at most the five
+    highest-scoring), and the frame's ``truth_box`` (the object's mask box, x1/y1 exclusive; None
+    where it is unseen)."""
     conditions = {p: part.name for part, span in ctx.sequence.condition_ranges() for p in span} \
         if ctx.sequence.conditions else {}
     held = set(parts.held)
+    detector = ctx.victim.task != "classification"
     rows = []
     for p in range(len(ctx.sequence.frames)):
         row: dict[str, Any] = {"frame": ctx.frame_indices[p], "condition": conditions.get(p, ""),
                                "split": "held_out" if p in held else "attacked"}
+        if detector:
+            row["truth_box"] = truth_box(ctx.targets[p])
         for prefix, preds in (("benign", benign), ("texture", texture)):
             record = prediction_record(ctx, p, preds[p])
             if "label" in record:
                 record["label"] = ctx.victim.labels[record["label"]]
+            if detector:
+                boxes = top_detections(preds[p], ctx.victim.labels)
+                record.update(top_box=boxes[0]["box"] if boxes else None,
+                              top_label=boxes[0]["label"] if boxes else None, boxes=boxes)
             row.update({f"{prefix}_{k}": v for k, v in record.items()})
         rows.append(row)
     return rows

@@ -77,6 +77,27 @@ def test_frames_csv_says_which_views_hold(inputs, tmp_path):
     detector = [f for f in frames if f["victim"] == "bundled:yolo"]
     assert len(detector) == 4 and all(f["texture_detected"] in ("True", "False") and f["texture_label"] == ""
                                       for f in detector)
+    assert all(f["truth_box"] == f["benign_top_box"] == "" for f in mine)  # a classifier's rows: no boxes
+    # a detector's top box, its class and score, and the object's true box; the JSON holds all its boxes
+    frames_json = [f for f in json.loads((tmp_path / "rows.json").read_text())["frames"]
+                   if f["victim"] == "bundled:yolo"]
+    assert [f["frame"] for f in frames_json] == [int(f["frame"]) for f in detector]
+    n_boxes = 0
+    for row, full in zip(detector, frames_json):
+        x0, y0, x1, y1 = map(float, row["truth_box"].split())
+        assert [x0, y0, x1, y1] == full["truth_box"] and 0 <= x0 < x1 <= 24 and 0 <= y0 < y1 <= 24
+        for prefix in ("benign", "texture"):
+            boxes = full[f"{prefix}_boxes"]
+            assert len(boxes) == min(5, full[f"{prefix}_n_detections"]) and f"{prefix}_boxes" not in row
+            assert [b["score"] for b in boxes] == sorted((b["score"] for b in boxes), reverse=True)
+            if not boxes:
+                assert row[f"{prefix}_top_box"] == row[f"{prefix}_top_label"] == "" and full[f"{prefix}_score"] == 0
+                continue
+            assert [float(v) for v in row[f"{prefix}_top_box"].split()] == boxes[0]["box"] == full[f"{prefix}_top_box"]
+            assert row[f"{prefix}_top_label"] == boxes[0]["label"]
+            assert float(row[f"{prefix}_score"]) == boxes[0]["score"]
+            n_boxes += len(boxes)
+    assert n_boxes > 0, "the detector found nothing: the test would check no box"
 
 
 def test_a_detector_judges_by_ap_against_the_objects_box(inputs, tmp_path):

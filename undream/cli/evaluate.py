@@ -38,7 +38,8 @@ DEFAULT_VICTIM = "bundled:classifier"  # a texture file names no victim
 @click.option("--csv", "csv_out", type=click.Path(path_type=Path), default=None, help="Write the rows as CSV.")
 @click.option("--frames-csv", "frames_out", type=click.Path(path_type=Path), default=None,
               help="Write one row per frame as CSV: its condition and split, and the victim's verdict with "
-                   "the scene's texture and with TEXTURE (which views still hold).")
+                   "the scene's texture and with TEXTURE (which views still hold); a detector's with its "
+                   "top box and the object's true box (--json: all its kept boxes, at most 5).")
 @settings_options
 @one_line_errors
 def evaluate_cmd(texture: Path, scenes: tuple[Path, ...], victims: tuple[str, ...], sim: str, spp: int,
@@ -53,7 +54,7 @@ def evaluate_cmd(texture: Path, scenes: tuple[Path, ...], victims: tuple[str, ..
 
     outputs = (("--json", json_out), ("--csv", csv_out), ("--frames-csv", frames_out))
     _check_outputs(outputs, texture, scenes, victims)  # before the renders, not after
-    per_frame: list[dict[str, Any]] | None = None if frames_out is None else []
+    per_frame: list[dict[str, Any]] | None = None if frames_out is None and json_out is None else []
     attacked: list[str] | None = None if victims else []  # the runs' configs read only when --victim is not given
     textures = _textures(texture, settings, attacked)
     if attacked is not None:  # judged by the victim it was made against, not silently by another
@@ -65,11 +66,12 @@ def evaluate_cmd(texture: Path, scenes: tuple[Path, ...], victims: tuple[str, ..
                     local=local_settings(), per_frame=per_frame)
     click.echo(_table(rows))
     if json_out is not None:
-        atomic_write(json_out, json.dumps({"texture": str(texture), "rows": rows}, indent=2, allow_nan=False) + "\n")
+        atomic_write(json_out, json.dumps({"texture": str(texture), "rows": rows, "frames": per_frame},
+                                          indent=2, allow_nan=False) + "\n")
     if csv_out is not None:
         atomic_write(csv_out, _csv(rows))
     if frames_out is not None and per_frame is not None:
-        atomic_write(frames_out, _csv(per_frame))
+        atomic_write(frames_out, _csv([_flat(r) for r in per_frame]))
 
 
 def _holdout(value: str) -> Any:
@@ -112,6 +114,13 @@ def _csv(rows: list[dict[str, Any]]) -> str:
     writer.writeheader()
     writer.writerows(rows)
     return buf.getvalue()
+
+
+def _flat(row: dict[str, Any]) -> dict[str, Any]:
+    """A per-frame row for the CSV: a box (``[x0, y0, x1, y1]``) as ``x0 y0 x1 y1`` in one cell, a
+    detector's list of boxes left out (the JSON keeps them)."""
+    return {k: " ".join(f"{v:g}" for v in value) if k.endswith("_box") and isinstance(value, list) else value
+            for k, value in row.items() if not k.endswith("_boxes")}
 
 
 def _textures(texture: Path, settings: Callable[..., "Settings"], victims: list[str] | None) -> dict[str, Any]:
