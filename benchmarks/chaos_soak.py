@@ -8,7 +8,7 @@ A private Redis (``redis-server`` on a free port, ``--save "" --appendonly no``:
 everything) and a private PostgreSQL (``initdb`` into a temporary folder and ``pg_ctl`` on a free
 port, run as the ``postgres`` user when this runs as root, ``fsync=off``), blobs in a temporary
 folder, ``--workers`` real ``undream worker`` processes (one process, one thread each) with the
-farm's default settings (``heal_after`` 60 s, ``heal_interval`` 15 s, ``visibility_timeout``
+farm's default settings (``heal_after`` 30 s, ``heal_interval`` 15 s, ``visibility_timeout``
 3600 s) unless given. One ``undream sweep`` of ``--runs`` tiny runs (the farm tests' 4-frame
 24 px sphere and tiny victim, PGD, seeds 0 … N−1). While runs are active, one fault every
 ``--interval`` seconds on average, in random order:

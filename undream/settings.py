@@ -100,7 +100,7 @@ class Settings:
     store_retries: int = 10  # retries of a task whose database or blob folder failed, then its run fails
     visibility_timeout: int = 3600  # s; a job unacknowledged this long is delivered again (> the longest task)
     restore_interval: int = 10  # s between sweeps that re-deliver jobs of lost workers
-    heal_after: int = 60  # s a farm run held by no live worker may make no progress before it is sent again (0: never)
+    heal_after: int = 30  # s a farm run held by no live worker may make no progress before it is sent again (0: never)
     heal_interval: int = 15  # s between the workers' checks for such runs (one worker checks at a time)
     scene_cache: int = 2  # scene directories whose Mitsuba scenes a worker process keeps loaded
     connect_timeout: float = 5.0  # s to reach the broker before giving up (CLI commands)
