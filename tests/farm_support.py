@@ -102,6 +102,22 @@ def runs_per_attack_value(tmp_path: Path, scene: Path, victim: str, field: str,
     return textures
 
 
+def claim_during_preflight(monkeypatch: Any, module: Any, out: Path, winner: dict[str, str]) -> None:
+    """Make a command's output race deterministic: when ``module.preflight`` has checked (and seen no
+    ``out``), another command claims ``out`` and writes ``winner`` (relative path → text) into it."""
+    real = module.preflight
+
+    def preflight_while_another_claims(*args: Any, **kwargs: Any) -> Any:
+        checked = real(*args, **kwargs)
+        assert not out.exists()  # this command's check saw no folder
+        for name, text in winner.items():
+            (out / name).parent.mkdir(parents=True, exist_ok=True)
+            (out / name).write_text(text)
+        return checked
+
+    monkeypatch.setattr(module, "preflight", preflight_while_another_claims)
+
+
 def redis_client(db: int = 0, server: str = REDIS_HOST):
     import redis
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from farm_support import make_scene, make_victim, run_config, write_yaml
+from farm_support import claim_during_preflight, make_scene, make_victim, run_config, write_yaml
 from undream.engine.patch import Footprint, paste
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -85,17 +85,7 @@ def test_two_baselines_on_one_new_out_the_later_refuses_and_deletes_nothing(tiny
 
     out = tmp_path / "out"
     winner = {"baseline.json": '{"undream_output": "baseline", "status": "started"}\n', "scene/sequence.json": "{}"}
-    real = scheduler.baseline.preflight
-
-    def preflight_while_the_first_baseline_claims(*args, **kwargs):
-        checked = real(*args, **kwargs)
-        assert not out.exists()  # this baseline's check saw no folder
-        for name, text in winner.items():
-            (out / name).parent.mkdir(parents=True, exist_ok=True)
-            (out / name).write_text(text)
-        return checked
-
-    monkeypatch.setattr(scheduler.baseline, "preflight", preflight_while_the_first_baseline_claims)
+    claim_during_preflight(monkeypatch, scheduler.baseline, out, winner)
     cfg = write_yaml(tmp_path / "b.yaml", run_config(tiny["scene"], tiny["victim"], name="b", steps=1))
     res = CliRunner().invoke(main, ["baseline", str(cfg), "--out", str(out), "--no-progress"],
                              env={"HF_HUB_OFFLINE": "1"})

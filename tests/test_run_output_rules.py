@@ -11,7 +11,7 @@ import yaml
 from click.testing import CliRunner
 
 import scheduler.local
-from farm_support import make_scene, make_victim, run_config, write_yaml
+from farm_support import claim_during_preflight, make_scene, make_victim, run_config, write_yaml
 from scheduler.preflight import check_output_folder, is_run_output
 from undream.cli import main
 from undream.errors import SpecError
@@ -187,17 +187,7 @@ def test_two_runs_on_one_new_out_the_later_refuses_and_deletes_nothing(tiny, tmp
     out = tmp_path / "out"
     winner = {"metadata.json": json.dumps({"undream_output": "run", "status": "started"}) + "\n",
               "store/runs.db": "the first run's store", "scene/sequence.json": "{}"}
-    real = scheduler.local.preflight
-
-    def preflight_while_the_first_run_claims(*args, **kwargs):
-        checked = real(*args, **kwargs)
-        assert not out.exists()  # this run's check saw no folder
-        for name, text in winner.items():
-            (out / name).parent.mkdir(parents=True, exist_ok=True)
-            (out / name).write_text(text)
-        return checked
-
-    monkeypatch.setattr(scheduler.local, "preflight", preflight_while_the_first_run_claims)
+    claim_during_preflight(monkeypatch, scheduler.local, out, winner)
     cfg = write_yaml(tmp_path / "run.yaml", run_config(tiny["scene"], tiny["victim"], steps=1))
     res = CliRunner().invoke(main, ["run", str(cfg), "--out", str(out), "--no-progress"],
                              env={"HF_HUB_OFFLINE": "1"})
