@@ -31,10 +31,23 @@ SLOW_MODULES = {
 }
 
 
+# The longest modules, longest first (each over 100 s of test time in the suite's first run on two
+# processes, 2026-11-29, docs/testing.md). Collected first, so that pytest-xdist (--dist loadfile
+# --no-loadscope-reorder, pyproject's addopts) hands them out first and the short ones fill the end:
+# left in name order, a long module started last kept one process busy while the other sat idle.
+LONGEST_FIRST = (
+    "test_conditions.py", "test_farm_integration.py", "test_secrets.py", "test_farm_heal.py",
+    "test_output_folders.py", "test_run_output_rules.py", "test_stale_runs.py", "test_full_disk.py",
+    "test_coco_nanodet.py", "test_coco_victim.py", "test_sim_blender.py", "test_scene_cache.py",
+)
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     for item in items:
         if item.path.name in SLOW_MODULES:
             item.add_marker(pytest.mark.slow)
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: each module keeps its order
 
 
 def service_missing(reason: str) -> None:
