@@ -109,13 +109,15 @@ def test_a_nan_image_gradient_marks_the_frame_non_finite(scene_dir, monkeypatch,
     from types import SimpleNamespace
 
     import undream.engine.job as job
+    from undream.engine.crops import CropFrames
     from undream.sim import make_backend
     from undream.spec.run import RunConfig
 
     scenes = SceneCache(scene_dir)
-    ctx = SimpleNamespace(config=RunConfig(scene=str(scene_dir), sim_spp=2, grad_spp=2), frame_indices=[0, 1],
-                          sim=make_backend("mitsuba", scene_dir, scenes=scenes),
+    ctx = SimpleNamespace(config=RunConfig(scene=str(scene_dir), sim_spp=2, grad_spp=2, crop="off"),
+                          frame_indices=[0, 1], sim=make_backend("mitsuba", scene_dir, scenes=scenes),
                           gradients=GradientPath(scenes, mode))
+    ctx.crops = CropFrames(ctx)  # crop: off renders whole frames through ctx.sim
     bad = np.full((*IMG, 3), np.nan, np.float32)
     monkeypatch.setattr(job, "victim_pass", lambda ctx, positions, images: ([0.5], [bad], [None]))
     res = job.render_and_grad(ctx, 0, np.full((8, 16, 3), 0.5, np.float32), 0)
