@@ -28,7 +28,6 @@ import numpy as np
 from scheduler.iteration import worker_name
 from scheduler.state import decode_state
 from undream.color import to_uint8
-from undream.engine.job import detection_boxes
 from undream.errors import StoreError
 
 if TYPE_CHECKING:
@@ -105,6 +104,8 @@ def _drawable(ctx: "RunContext", position: int, frame: "CachedFrame") -> dict[st
     if ctx.victim.task == "classification":
         return frame.prediction
     h, w = frame.image.shape[:2]
+    from undream.engine.job import detection_boxes  # torch: not in the worker's parent process
+
     drawn = detection_boxes(ctx, position, prediction_from_json("detection", frame.prediction))
     return {**frame.prediction, **drawn, "size": [int(w), int(h)]}
 

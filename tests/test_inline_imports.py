@@ -45,6 +45,7 @@ HEAVY_OWN = {
     "undream.victims": "torch",
     "undream.attacks": "torch (the package's names load their torch module when imported)",
     "undream.engine.context": "torch (victims, attacks)",
+    "undream.engine.job": "undream.engine.context (torch)",
     "undream.engine.algorithm": "torch (victims, attacks)",
     "undream.engine.patch": "torch",
     "undream.training": "torch, scipy",
