@@ -14,7 +14,7 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 from undream import charts as dash_charts
-from undream.report.pictures import texture_png
+from undream.report.pictures import texture_png as hatched_png
 from undream.report.data import RunData
 from undream.report.draw import INK, PAPER, caption_png, decode_png, encode_png, font, with_caption
 from undream.report.tables import SPLIT_NAMES, Point, metric_name
@@ -63,7 +63,7 @@ def texture_png(data: RunData, command: str) -> bytes:
     mask = data.seen.mask
     panels = [("initial (T0, benign)", data.texture0), ("final (adversarial)", data.texture_final),
               ("|final − T0| (white: ε)", _difference(data))]
-    pictures = [decode_png(texture_png(t, mask)) for _, t in panels]
+    pictures = [decode_png(hatched_png(t, mask)) for _, t in panels]
     h, w = pictures[0].shape[:2]
     sheet = Image.new("RGB", (3 * w + 4 * 10, h + 50), PAPER)
     draw = ImageDraw.Draw(sheet)
