@@ -16,6 +16,8 @@ adversarial object's origin plus ``look_at_offset``). Objects turn by ``yaw``
 (degrees about +Y), ``rotation`` ([x, y, z] degrees, extrinsic XYZ), or with
 ``heading: motion`` along their direction of travel (the default for moving
 paths). Parametric paths run from the first frame (u = 0) to the last (u = 1).
+An asset's ``mesh`` and its texture's ``init`` may name an object fetched at
+setup, ``asset:NAME`` (:mod:`undream.scene.fetched`).
 """
 from __future__ import annotations
 
@@ -27,7 +29,7 @@ from scipy.interpolate import CubicSpline
 from scipy.spatial.transform import Rotation, RotationSpline
 
 from undream.errors import SpecError
-from undream.scene import poses
+from undream.scene import fetched, poses
 from undream.spec import ActorPose, Asset, Camera, Environment, Frame, Sequence, TextureParam, Transform
 from undream.spec import _check as c
 from undream.spec.io import resolve_against
@@ -74,8 +76,13 @@ def _asset(d: Any, base_dir: Path | None, adversarial: bool) -> Asset:
         if adversarial and d.get("texture") is None:
             d["texture"] = TextureParam().to_json()
         mesh = d.get("mesh")
-        if isinstance(mesh, str) and not mesh.startswith("builtin:") and base_dir is not None:
+        if fetched.is_fetched(mesh):
+            d["mesh"] = fetched.resolve(mesh, "mesh")
+        elif isinstance(mesh, str) and not mesh.startswith("builtin:") and base_dir is not None:
             d["mesh"] = resolve_against(mesh, base_dir, keep_absolute=True)
+        tex = d.get("texture")
+        if isinstance(tex, Mapping) and fetched.is_fetched(tex.get("init")):
+            d["texture"] = {**tex, "init": fetched.resolve(tex["init"], "texture.init", kind="texture")}
         return Asset.from_json(d)
 
 
