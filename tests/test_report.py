@@ -81,8 +81,16 @@ def test_run_report_from_an_output_folder(farm, tmp_path):
     res = _cli(str(farm["run"]), "--out", str(out))
     assert res.exit_code == 0, res.output
     html = (out / "index.html").read_text()
-    for name in ("contact_sheet.png", "loss.png", "texture.png", "headline.csv", "frames.csv"):
+    for name in ("loss.png", "texture.png", "headline.csv", "frames.csv"):
         assert (out / name).is_file() and f'"{name}"' in html
+    for i in range(4):  # the grid: a thumbnail per frame and side, each a link to the frame's full picture
+        for name in (f"frames/frame_{i:04d}.png", f"thumbs/adversarial/frame_{i:04d}.png",
+                     f"thumbs/benign/frame_{i:04d}.png"):
+            assert (out / name).is_file() and f'"{name}"' in html, name
+    headline_html = html[html.index("<table id=headline>"):]
+    headline_html = headline_html[:headline_html.index("</table>")]
+    assert "0 2" not in headline_html and "1 3" not in headline_html  # counts in the table, lists in the CSV
+    assert "<td class=n>2</td>" in headline_html and "<td class=n>4</td>" in headline_html
     assert "<script" not in html and 'src="http' not in html and 'href="http' not in html
     assert f"undream report {farm['run']} --out {out}" in html
     headline = list(csv.DictReader(io.StringIO((out / "headline.csv").read_text())))
@@ -114,8 +122,13 @@ def test_contact_sheet_has_a_row_per_frame_with_held_out_ones_marked(farm, tmp_p
             assert tuple(pixels[by0 - 1, bx0 + 5]) == colour  # the picture's frame, in its split's colour
     out = tmp_path / "rep"
     assert _cli(str(farm["run"]), "--out", str(out)).exit_code == 0
-    written = np.asarray(Image.open(out / "contact_sheet.png").convert("RGB"))
-    assert np.array_equal(written[: pixels.shape[0], : pixels.shape[1]], pixels)  # + the caption below
+    for frame in data.frames:  # each frame's full picture is its row of the sheet
+        written = np.asarray(Image.open(out / f"frames/frame_{frame.index:04d}.png").convert("RGB"))
+        one, one_layout = contact_sheet(data, [frame])
+        (row,) = one_layout.rows
+        assert np.array_equal(written, np.asarray(one)) and row.held_out == (frame.index in HELD)
+        thumb = np.asarray(Image.open(out / f"thumbs/adversarial/frame_{frame.index:04d}.png").convert("RGB"))
+        assert np.array_equal(thumb, frame.adversarial.image)  # 16 px frames: thumbnails as they are
 
 
 def test_unseen_texels_come_from_the_scenes_visibility(farm):
@@ -140,7 +153,7 @@ def test_sweep_report(farm, tmp_path):
         (s, e, "2") for s in ("attacked", "held_out") for e in ("8.0", "64.0")}
     html = (out / "index.html").read_text()
     for i in range(4):
-        assert f'href="runs/tiny-00{i}/index.html"' in html and (out / f"runs/tiny-00{i}/contact_sheet.png").is_file()
+        assert f'href="runs/tiny-00{i}/index.html"' in html and (out / f"runs/tiny-00{i}/frames/frame_0000.png").is_file()
     assert "eps_chart.png" in html and "± one sample standard deviation" in html
     assert '<a href="../../index.html">' in (out / "runs/tiny-000/index.html").read_text()
 

@@ -44,12 +44,13 @@ def run(tmp_path_factory) -> dict:
     return {"root": root, "out": out, "results": json.loads((out / "results.json").read_text())}
 
 
-def _report(target: Path, out: Path) -> np.ndarray:
+def _report(target: Path, out: Path) -> list[np.ndarray]:
+    """The report's full-size frame pictures (one row of the contact sheet each), in frame order."""
     from undream.cli import main
 
     res = CliRunner().invoke(main, ["report", str(target), "--out", str(out)])
     assert res.exit_code == 0, res.output
-    return np.asarray(Image.open(out / "contact_sheet.png").convert("RGB"))
+    return [np.asarray(Image.open(p).convert("RGB")) for p in sorted((out / "frames").glob("frame_*.png"))]
 
 
 def _data(folder: Path, work: Path):
@@ -108,12 +109,13 @@ def test_the_contact_sheet_draws_each_box_in_its_class_colour(run, tmp_path):
     from undream.report.draw import enlarge
     from undream.report.sheet import contact_sheet
 
-    sheet = _report(run["out"], tmp_path / "rep")
+    sheets = _report(run["out"], tmp_path / "rep")
     _, data = _data(run["out"], tmp_path / "work")
-    _, layout = contact_sheet(data)
-    assert data.label == run["results"]["label"] == "sphere"
+    assert data.label == run["results"]["label"] == "sphere" and len(sheets) == len(data.frames)
     drawn = set()
-    for frame, row in zip(data.frames, layout.rows):
+    for frame, sheet in zip(data.frames, sheets):
+        _, layout = contact_sheet(data, [frame])
+        (row,) = layout.rows
         raw = {"benign": Image.open(run["out"] / "frames_benign" / f"frame_{frame.index:04d}.png"),
                "adversarial": Image.open(run["out"] / "frames_adversarial" / f"frame_{frame.index:04d}.png")}
         for name, side, box in (("benign", frame.benign, row.benign), ("adversarial", frame.adversarial,
@@ -153,12 +155,12 @@ def test_a_run_recorded_before_rows_held_boxes_still_makes_a_report(run, tmp_pat
             del row["boxes"], row["truth_box"]
     store.set_results(record.id, results)
     (old / "results.json").write_text(json.dumps(results, indent=1) + "\n")
-    sheet = _report(old, tmp_path / "rep")
+    sheet = np.concatenate([s.reshape(-1, 3) for s in _report(old, tmp_path / "rep")])
     _, data = _data(old, tmp_path / "work1")
     sides = [s for f in data.frames for s in (f.benign, f.adversarial)]
     assert all(s.truth is None and all(d.label is None for d in s.boxes) for s in sides)
     assert any(s.boxes for s in sides)  # the stored predictions' boxes, drawn without class names
-    assert np.all(sheet == UNNAMED_RGB, axis=2).sum() > 100
+    assert np.all(sheet == UNNAMED_RGB, axis=-1).sum() > 100
 
 
 def _dashboard(store_dir: Path):

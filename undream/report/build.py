@@ -24,8 +24,7 @@ from undream.spec.io import naming
 from undream.report import charts, page, tables
 from undream.report.data import RunData, load_run
 from undream.report.seen import SeenFinder
-from undream.report.sheet import contact_sheet
-from undream.report.draw import encode_png, with_caption
+from undream.report.sheet import frame_files
 
 if TYPE_CHECKING:
     from undream.store import RunSnapshot, Store, SweepSnapshot
@@ -72,7 +71,6 @@ def check_out(out: Path, force: bool) -> None:
 def run_files(data: RunData, command: str, back: str | None = None) -> dict[str, bytes]:
     """A run's report files (relative path → bytes): its page, pictures and tables."""
     headline = tables.headline_rows(data.results)
-    sheet, _ = contact_sheet(data)
     unseen = charts.unseen_sentence(data)
     conditions = tables.condition_rows(data.results)
     body = page.run_body(data, headline, unseen, command, conditions)
@@ -80,7 +78,7 @@ def run_files(data: RunData, command: str, back: str | None = None) -> dict[str,
         body = f'<p class=meta><a href="{back}">← the sweep</a></p>' + body
     return {
         "index.html": page.document(f"undream report: {data.run.name}", body).encode(),
-        "contact_sheet.png": encode_png(with_caption(sheet, charts.made_by(command))),
+        **frame_files(data),
         "loss.png": charts.loss_png(data, command),
         "texture.png": charts.texture_png(data, command),
         "headline.csv": tables.to_csv(headline).encode(),

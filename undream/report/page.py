@@ -11,19 +11,21 @@ from typing import Any, Collection, Mapping
 
 from undream.redact import redact
 from undream.report.data import RunData
+from undream.report.grid import GRID_CSS, grid_html, grid_rows
 from undream.report.sheet import ATTACKED_RGB, HELD_OUT_RGB
-from undream.report.tables import metric_name
+from undream.report.tables import metric_name, weakest_first
 
 CSS = """
-body{font:14px/1.45 system-ui,sans-serif;color:#222;margin:24px auto;max-width:1100px;padding:0 16px}
+body{font:14px/1.45 system-ui,sans-serif;color:#222;margin:24px auto;max-width:1320px;padding:0 16px}
 h1{font-size:22px;margin:0 0 4px}h2{font-size:17px;margin:28px 0 8px;border-bottom:1px solid #ddd}
 table{border-collapse:collapse;margin:6px 0}td,th{border:1px solid #ddd;padding:3px 8px;text-align:left}
-th{background:#f4f4f4}td{white-space:nowrap}td.n{text-align:right;font-variant-numeric:tabular-nums}
+th{background:#f4f4f4}td{white-space:nowrap}table.compact td,table.compact th{padding:1px 6px}td.n{text-align:right;font-variant-numeric:tabular-nums}
 figure{margin:10px 0}figcaption{color:#555;font-size:13px;max-width:900px}
 code,pre{font:12px ui-monospace,monospace;background:#f6f6f6}pre{padding:8px;overflow:auto}
 .meta{color:#555}.tag{display:inline-block;padding:0 6px;color:#fff;border-radius:3px}
-img{max-width:100%;image-rendering:pixelated}
-"""
+img{max-width:100%}.pair{display:flex;gap:16px;align-items:flex-start}
+.pair figure{min-width:0}.pair .loss{flex:0 0 40%}.pair .tex{flex:1 1 0}summary{cursor:pointer;color:#555}
+""" + GRID_CSS
 
 
 def rgb(colour: tuple[int, int, int]) -> str:
@@ -61,8 +63,9 @@ def table(rows: list[dict[str, Any]], percent: Collection[str] = (), links: Mapp
     return f"<table><tr>{head}</tr>{''.join(body)}</table>"
 
 
-def figure(src: str, alt: str, caption: str, command: str) -> str:
-    return (f'<figure><img src="{escape(src)}" alt="{escape(alt)}"><figcaption>{caption} '
+def figure(src: str, alt: str, caption: str, command: str, cls: str = "") -> str:
+    attr = f' class="{escape(cls)}"' if cls else ""
+    return (f'<figure{attr}><img src="{escape(src)}" alt="{escape(alt)}"><figcaption>{caption} '
             f"Made by <code>{escape(command)}</code>.</figcaption></figure>")
 
 
@@ -78,14 +81,19 @@ def _success_cell(row: dict[str, Any]) -> str:
     return f"{100.0 * rate:.1f} % ({row.get('n_success')} of {row.get('n_eligible')})"
 
 
+def _metric_header(rows: list[dict[str, Any]]) -> str:
+    """``accuracy: benign → adversarial`` (the rows' one metric), or plain when they differ."""
+    names = {metric_name(r.get("metric")) for r in rows if r.get("metric")}
+    return f"{escape(names.pop())}: benign → adversarial" if len(names) == 1 else "benign → adversarial"
+
+
 def headline_table(rows: list[dict[str, Any]]) -> str:
-    """Split | frames | benign → adversarial | attack success."""
-    out = ["<table><tr><th>split</th><th>frames</th><th>metric</th><th>benign → adversarial</th>"
+    """Split | frames (a count: the frame numbers are in headline.csv) | benign → adversarial | success."""
+    out = [f"<table id=headline><tr><th>split</th><th>frames</th><th>{_metric_header(rows)}</th>"
            "<th>attack success (fooled of the frames right before)</th></tr>"]
     for r in rows:
-        out.append(f"<tr><td>{escape(r['split'])}</td><td>{escape(str(r['n_frames']))}: {escape(r['frames'])}</td>"
-                   f"<td>{escape(metric_name(r['metric']))}</td>"
-                   f"<td class=n>{fmt(r['benign'], True)} → {fmt(r['adversarial'], True)}</td>"
+        out.append(f"<tr><td>{escape(r['split'])}</td><td class=n>{int(r['n_frames'])}</td>"
+                   f"<td class=n>{fmt(r['benign'], True)} → <b>{fmt(r['adversarial'], True)}</b></td>"
                    f"<td>{escape(_success_cell(r))}</td></tr>")
     return "".join(out) + "</table>"
 
@@ -106,52 +114,61 @@ def _legend() -> str:
             "never rendered for a gradient.")
 
 
+def _grid_legend(data: RunData, conditions: list[dict[str, Any]] | None) -> str:
+    verdict = ("✓ detected / ✗ missed and the best box score" if data.task == "detection" else
+               "✓ still the object's class and the confidence / ✗ the class it took the object for")
+    rows = ("One row per condition, in the run's order (views across)" if conditions else
+            "Every frame of the run, in order")
+    return (f"<p class=meta>{rows}: the adversarial frames, each framed by its split: {_legend()} "
+            f"Under each, the victim's verdict ({verdict}; hover for more). A frame opens full size: benign "
+            "and adversarial side by side, enlarged, with the victim's prediction"
+            f"{' and its boxes' if data.task == 'detection' else ''}. <i>benign row</i> shows a row's benign "
+            "frames for comparison.</p>")
+
+
 def conditions_table(rows: list[dict[str, Any]]) -> str:
-    """A multi-condition run's transfer: condition | attacked or held out | frames | benign → adversarial | success."""
-    out = ["<table><tr><th>condition</th><th></th><th>frames</th><th>metric</th><th>benign → adversarial</th>"
-           "<th>attack success</th></tr>"]
-    for r in rows:
+    """A multi-condition run's transfer, most fooled first (:func:`~undream.report.tables.weakest_first`):
+    condition | attacked or held out | frames | benign → adversarial | attack success."""
+    out = [f"<table id=conditions class=compact><tr><th>condition (most fooled first)</th><th></th>"
+           f"<th>frames</th><th>{_metric_header(rows)}</th><th>attack success</th></tr>"]
+    for r in weakest_first(rows):
         out.append(f"<tr><td>{escape(r['condition'])}</td><td>{'held out' if r['held_out'] else 'attacked'}</td>"
-                   f"<td class=n>{r['n_frames']}</td><td>{escape(metric_name(r['metric']))}</td>"
-                   f"<td class=n>{fmt(r['benign'], True)} → {fmt(r['adversarial'], True)}</td>"
+                   f"<td class=n>{int(r['n_frames'])}</td>"
+                   f"<td class=n>{fmt(r['benign'], True)} → <b>{fmt(r['adversarial'], True)}</b></td>"
                    f"<td>{escape(_success_cell(r))}</td></tr>")
     return "".join(out) + "</table>"
 
 
 def run_body(data: RunData, headline: list[dict[str, Any]], unseen: str, command: str,
              conditions: list[dict[str, Any]] | None = None) -> str:
-    """The sections of a run's page (headline, conditions of a multi-condition run, contact sheet, loss,
-    texture, config)."""
+    """The sections of a run's page (headline, conditions of a multi-condition run, the grid of frames,
+    loss and texture, config)."""
     loss = data.run.run_config.loss
     transfer = [] if not conditions else [
         "<h2>Conditions</h2>", conditions_table(conditions),
-        '<p class=meta>Every frame of each condition (scene) of the run; a condition held out was never '
-        'attacked: what the texture does where it was not optimised. <a href="conditions.csv">conditions.csv</a>'
-        '</p>']
+        '<p class=meta>Every frame of each condition (scene) of the run, the conditions where the texture fooled '
+        'the victim most first; a condition held out was never attacked: what the texture does where it was '
+        'not optimised. In the run\'s order with frame numbers: <a href="conditions.csv">conditions.csv</a>.</p>']
     return "".join([
         f"<h1>Run {escape(data.run.name)}</h1>", _meta(data),
         "<h2>Headline</h2>", headline_table(headline),
         '<p class=meta>Held-out frames say whether the texture works beyond the views it was optimised on. '
-        'Tables: <a href="headline.csv">headline.csv</a>, <a href="frames.csv">frames.csv</a> (per frame).</p>',
+        'Frame numbers of each split: <a href="headline.csv">headline.csv</a>; per frame (split'
+        f'{", condition, view" if conditions else ""}, what the victim said): <a href="frames.csv">frames.csv</a>.</p>',
         *transfer,
-        "<h2>Contact sheet</h2>",
-        figure("contact_sheet.png", "benign and adversarial frames side by side",
-               f"One row per frame: benign texture (left), adversarial texture (right), enlarged by a whole "
-               f"factor (nearest neighbour). {_legend()} Under each picture the victim's prediction: ✓ / green "
-               "still the object's class (or detected), ✗ / red not; p is the victim's confidence in the "
-               "class it predicted (a detector: its best box score). A detector's boxes (its five best): the "
-               "object's class in green, other classes in magenta, each with its class and score; the "
-               "object's true box dashed.", command),
-        "<h2>Loss per iteration</h2>",
+        "<h2>Frames</h2>", _grid_legend(data, conditions),
+        grid_html(grid_rows(data.results, [f.index for f in data.frames]), data.frames, data.task),
+        '<div class=pair>',
         figure("loss.png", "attack loss per iteration",
-               f"Mean {escape(loss)} loss over the frames of each attack step (maximised by the attack); "
-               "red points: steps that dropped a frame with a non-finite gradient.", command),
-        "<h2>Texture</h2>",
+               f"Loss per iteration: the mean {escape(loss)} loss over the frames of each attack step (maximised "
+               "by the attack); red points: steps that dropped a frame with a non-finite gradient.", command, "loss"),
         figure("texture.png", "initial and final texture",
-               f"The benign texture T0, the adversarial texture that was evaluated (both 8-bit sRGB) and "
-               f"their largest per-channel difference (white: ε). Unseen texels (hatched in magenta): "
-               f"{escape(unseen)}", command),
-        "<h2>Config</h2>", f"<pre>{escape(json.dumps(redact(data.run.config), indent=1, sort_keys=True))}</pre>",
+               f"Texture: the benign texture T0, the adversarial texture that was evaluated (both 8-bit sRGB) "
+               f"and their largest per-channel difference (white: ε). Unseen texels (hatched in magenta): "
+               f"{escape(unseen)}", command, "tex"),
+        "</div>",
+        "<h2>Config</h2>", f"<details><summary>the run's config (JSON)</summary>"
+        f"<pre>{escape(json.dumps(redact(data.run.config), indent=1, sort_keys=True))}</pre></details>",
     ])
 
 

@@ -1,4 +1,5 @@
-"""A run's contact sheet: one row per frame, benign and adversarial side by side, enlarged.
+"""A run's contact sheet: one row per frame, benign and adversarial side by side, enlarged; the
+report writes one such row per frame (``frames/``) and the grid's thumbnails (:func:`frame_files`).
 
 Each row starts with a band in the colour of its split (:data:`ATTACKED_RGB`
 for frames the attack optimised on, :data:`HELD_OUT_RGB` for held-out ones,
@@ -21,7 +22,9 @@ from PIL import Image, ImageDraw
 from undream.errors import StoreError
 from undream.report import boxes
 from undream.report.data import FrameData, RunData, Side
-from undream.report.draw import INK, PAPER, enlarge, font
+from undream.report.draw import INK, PAPER, encode_png, enlarge, font
+from undream.report.grid import THUMB_PX
+from undream.report.tables import condition_of
 
 ATTACKED_RGB = (31, 111, 178)
 HELD_OUT_RGB = (233, 160, 59)
@@ -113,15 +116,17 @@ def _key(data: RunData) -> list[tuple[str, tuple[int, int, int]]]:
     return boxes.legend(data.label, any(d.label is None for s in sides for d in s.boxes))
 
 
-def contact_sheet(data: RunData) -> tuple[Any, SheetLayout]:
-    """The sheet of ``data`` (a PIL RGB image) and its layout; frames must share one size."""
-    sizes = {f.benign.image.shape[:2] for f in data.frames} | {f.adversarial.image.shape[:2] for f in data.frames}
+def contact_sheet(data: RunData, frames: list[FrameData] | None = None, note: str = "") -> tuple[Any, SheetLayout]:
+    """The sheet of ``frames`` (default: every frame of ``data``; a PIL RGB image) and its layout;
+    frames must share one size. ``note``: added to the title line."""
+    frames = data.frames if frames is None else frames
+    sizes = {f.benign.image.shape[:2] for f in frames} | {f.adversarial.image.shape[:2] for f in frames}
     if len(sizes) != 1:
         raise StoreError(f"run {data.run.id}: frames of different sizes {sorted(sizes)}; one sheet needs one")
     (h, w), = sizes
     key = _key(data)
-    layout = _layout(data.frames, h, w, scale_factor(h, w), HEAD_H + (KEY_H if key else 0))
-    title = f"{data.run.name} · object '{data.label}' · frames ×{layout.factor}"
+    layout = _layout(frames, h, w, scale_factor(h, w), HEAD_H + (KEY_H if key else 0))
+    title = f"{data.run.name} · object '{data.label}' · {note + ' · ' if note else ''}frames ×{layout.factor}"
     key_w = sum(int(font(12).getlength(text)) for text, _ in key)
     sheet = Image.new("RGB", (max(layout.width, int(font(14).getlength(title)) + 16, key_w + 16), layout.height),
                       PAPER)
@@ -135,9 +140,35 @@ def contact_sheet(data: RunData) -> tuple[Any, SheetLayout]:
         first = layout.rows[0]
         for title, box in (("benign texture", first.benign), ("adversarial texture", first.adversarial)):
             draw.text((box[0], 26 + (KEY_H if key else 0)), title, fill=INK, font=font(13))
-    for frame, row in zip(data.frames, layout.rows):
+    for frame, row in zip(frames, layout.rows):
         colour = HELD_OUT_RGB if row.held_out else ATTACKED_RGB
         _band(draw, row)
         _picture(draw, sheet, frame.benign, row.benign, layout.factor, colour, data)
         _picture(draw, sheet, frame.adversarial, row.adversarial, layout.factor, colour, data)
     return sheet, layout
+
+
+def thumbnail(image: np.ndarray) -> Any:
+    """A frame (H×W×3 uint8 sRGB) as its grid thumbnail (PIL): as it is up to
+    :data:`~undream.report.grid.THUMB_PX` px on its long side (the page enlarges it), shrunk to that
+    (box filter) when larger."""
+    pic = Image.fromarray(np.ascontiguousarray(image))
+    side = max(pic.width, pic.height)
+    if side <= THUMB_PX:
+        return pic
+    return pic.resize((max(1, round(pic.width * THUMB_PX / side)), max(1, round(pic.height * THUMB_PX / side))),
+                      Image.Resampling.BOX)
+
+
+def frame_files(data: RunData) -> dict[str, bytes]:
+    """Per frame: ``frames/frame_NNNN.png``, its row of the contact sheet (benign and adversarial
+    enlarged, with the victim's verdict and a detector's boxes), and ``thumbs/{benign,adversarial}/
+    frame_NNNN.png``, the grid's thumbnails."""
+    files, where = {}, condition_of(data.results)
+    for frame in data.frames:
+        name = f"frame_{frame.index:04d}.png"
+        note = "condition {}, view {}".format(*where[frame.index]) if frame.index in where else ""
+        files[f"frames/{name}"] = encode_png(contact_sheet(data, [frame], note)[0])
+        for view, side in (("benign", frame.benign), ("adversarial", frame.adversarial)):
+            files[f"thumbs/{view}/{name}"] = encode_png(thumbnail(side.image))
+    return files

@@ -66,16 +66,36 @@ def _block_row(block: Mapping[str, Any]) -> dict[str, Any]:
 
 def condition_rows(results: Mapping[str, Any]) -> list[dict[str, Any]]:
     """A multi-condition run's transfer: per condition (attacked, or held out whole), its frames,
-    benign → adversarial value and attack success; [] for a run of one scene."""
+    benign → adversarial value and attack success, in the run's order; [] for a run of one scene."""
     return [{"condition": c["name"], "held_out": bool(c.get("held_out")), **_block_row(c)}
             for c in results.get("conditions") or []]
 
 
+def weakest_first(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """``rows`` (:func:`condition_rows`) most fooled first: highest attack success, then lowest
+    adversarial value; rows without a success rate (no frame right before the attack) last."""
+    def key(row: dict[str, Any]) -> tuple[Any, ...]:
+        rate, adv = row.get("success_rate"), row.get("adversarial")
+        return (rate is None, -(rate or 0.0), 2.0 if adv is None else adv, str(row.get("condition")))
+    return sorted(rows, key=key)
+
+
+def condition_of(results: Mapping[str, Any]) -> dict[int, tuple[str, int]]:
+    """Frame index → (its condition's name, its view: its place in the condition, from 0); {} for a
+    run of one scene."""
+    return {int(f): (str(c["name"]), view) for c in results.get("conditions") or []
+            for view, f in enumerate(c.get("frames") or [])}
+
+
 def frame_rows(data: RunData) -> list[dict[str, Any]]:
-    """Per frame: split and what the victim said on the benign and on the adversarial render."""
+    """Per frame: split (a multi-condition run's: condition and view too) and what the victim said on
+    the benign and on the adversarial render."""
     rows = []
+    where = condition_of(data.results)
     for f in data.frames:
         row: dict[str, Any] = {"frame": f.index, "split": "held-out" if f.held_out else "attacked"}
+        if where:
+            row["condition"], row["view"] = where.get(f.index, (None, None))
         for name, side in (("benign", f.benign), ("adversarial", f.adversarial)):
             r = side.row
             if data.task == "detection":

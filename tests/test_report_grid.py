@@ -1,0 +1,144 @@
+"""``undream report`` of a 16-condition run (384 frames of 64 px; tests/conditions_data.py, no rendering):
+the headline in counts, the conditions most fooled first, the grid of conditions × views, and the
+page's size in a real headless Chromium (1400 × 900 window: no horizontal scrolling, ≤ 5,400 px tall).
+
+Without Chromium the browser test skips saying why, and fails under ``UNDREAM_REQUIRE_SERVICES``.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import os
+import re
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from conditions_data import conditions_output  # noqa: E402
+from conftest import service_missing  # noqa: E402
+
+CONDITIONS, VIEWS, HELD = 16, 24, 4
+WINDOW = (1400, 900)
+MAX_HEIGHT = 6 * WINDOW[1]  # issue 43: at most six screen heights
+CHROMIUM, CHROMEDRIVER = "/usr/bin/chromium", "/usr/bin/chromedriver"
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory) -> dict:
+    from undream.cli import main
+
+    root = tmp_path_factory.mktemp("grid")
+    made = conditions_output(root / "run", CONDITIONS, VIEWS, 64, HELD)
+    res = CliRunner().invoke(main, ["report", str(root / "run"), "--out", str(root / "rep")])
+    assert res.exit_code == 0, res.output
+    return {**made, "out": root / "rep", "html": (root / "rep" / "index.html").read_text()}
+
+
+def _section(html: str, start: str, end: str) -> str:
+    part = html[html.index(start):]
+    return part[:part.index(end)]
+
+
+def test_the_headline_counts_frames_and_lists_none(report):
+    table = _section(report["html"], "<table id=headline>", "</table>")
+    cells = re.findall(r"<tr><td>([^<]+)</td><td class=n>(\d+)</td>", table)
+    assert cells == [("attacked frames", "216"), ("held-out frames", "72"), ("held-out conditions", "96"),
+                     ("all frames", "384")]
+    assert len(table) < 1500 and "accuracy: benign → adversarial" in table  # no frame numbers in it
+    rows = {r["split"]: r for r in csv.DictReader(io.StringIO((report["out"] / "headline.csv").read_text()))}
+    assert rows["held-out conditions"]["frames"].split() == [str(f) for f in range(288, 384)]
+
+
+def test_the_conditions_table_puts_the_most_fooled_first(report):
+    table = _section(report["html"], "<table id=conditions", "</table>")
+    shown = re.findall(r"<tr><td>([^<]+)</td><td>(attacked|held out)</td>", table)
+    success = {c["name"]: c["attack_success"]["success_rate"] for c in report["results"]["conditions"]}
+    assert sorted(name for name, _ in shown) == sorted(success)
+    rates = [success[name] for name, _ in shown]
+    assert rates == sorted(rates, reverse=True) and rates[0] > rates[-1]
+    held = {c["name"] for c in report["results"]["conditions"] if c["held_out"]}
+    assert {name for name, tag in shown if tag == "held out"} == held and len(held) == HELD
+    listed = list(csv.DictReader(io.StringIO((report["out"] / "conditions.csv").read_text())))
+    assert [r["condition"] for r in listed] == [c["name"] for c in report["results"]["conditions"]]  # run order
+
+
+def test_the_grid_has_a_row_per_condition_and_a_linked_thumbnail_per_view(report):
+    html, out = report["html"], report["out"]
+    rows = re.split(r'<div class=cond id="row-\d+">', _section(html, "<div class=grid>", "<h2>"))[1:]
+    conditions = report["results"]["conditions"]
+    assert len(rows) == CONDITIONS
+    held_views = set(report["results"]["held_out"]["frames"])
+    per_frame = report["results"]["adversarial"]["per_frame"]
+    for row, cond in zip(rows, conditions):
+        assert f"<b>{cond['name']}</b>" in row and ("held out</span>" in row) == cond["held_out"]
+        adversarial = row[:row.index('class="cells benign"')]
+        cells = re.findall(r'<a class="cell (a|h) (ok|no)" href="(frames/frame_(\d{4})\.png)"[^>]*>'
+                           r'<img src="(thumbs/adversarial/frame_\d{4}\.png)"', adversarial)
+        assert [int(c[3]) for c in cells] == cond["frames"]  # views across, in order
+        for split, state, link, index, thumb in cells:
+            f = int(index)
+            assert split == ("h" if cond["held_out"] or f in held_views else "a")
+            assert state == ("ok" if per_frame[f]["correct"] else "no")
+            assert (out / link).is_file() and (out / thumb).is_file()
+        benign = row[row.index('class="cells benign"'):]
+        assert len(re.findall(r'src="thumbs/benign/frame_\d{4}\.png"', benign)) == VIEWS
+    frames = list(csv.DictReader(io.StringIO((out / "frames.csv").read_text())))
+    assert (frames[30]["condition"], frames[30]["view"]) == (conditions[1]["name"], "6")
+
+
+@pytest.fixture(scope="module")
+def browser(tmp_path_factory):
+    missing = [p for p in (CHROMIUM, CHROMEDRIVER) if not os.access(p, os.X_OK)]
+    if missing:
+        service_missing(f"{' and '.join(missing)} missing (apt-get install chromium chromium-driver; "
+                        "deploy/setup.sh does)")
+    pytest.importorskip("selenium", reason="selenium not installed (pip install 'undream[test]')")
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    options = webdriver.ChromeOptions()
+    options.binary_location = CHROMIUM
+    for flag in ("--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+                 "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                 "--no-first-run", f"--user-data-dir={tmp_path_factory.mktemp('chromium-profile')}"):
+        options.add_argument(flag)
+    driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=options)
+    driver.set_page_load_timeout(60)
+    # the viewport itself is 1400 × 900 (a window of that size holds less with the browser's frame)
+    driver.execute_cdp_cmd("Emulation.setDeviceMetricsOverride",
+                           {"width": WINDOW[0], "height": WINDOW[1], "deviceScaleFactor": 1, "mobile": False})
+    yield driver
+    driver.quit()
+
+
+def page_size(driver, url: str) -> dict:
+    """Load ``url`` and measure it: the document's scroll width and height, the viewport's width
+    without its scroll bar. Thumbnails load lazily; their width and height attributes hold their place."""
+    driver.get(url)
+    end = time.monotonic() + 30
+    while driver.execute_script("return document.readyState;") != "complete":
+        assert time.monotonic() < end, f"{url}: still loading after 30 s"
+        time.sleep(0.1)
+    return driver.execute_script(
+        "const e = document.documentElement; return {scroll_w: e.scrollWidth, client_w: e.clientWidth, "
+        "height: e.scrollHeight, inner_w: window.innerWidth, inner_h: window.innerHeight};")
+
+
+def test_the_report_fits_the_window_and_six_screens(report, browser, tmp_path):
+    url = (report["out"] / "index.html").as_uri()
+    size = page_size(browser, url)
+    assert (size["inner_w"], size["inner_h"]) == WINDOW
+    assert size["scroll_w"] <= size["client_w"], size  # no horizontal scrolling
+    assert size["height"] <= MAX_HEIGHT, size
+    print(f"report of {CONDITIONS} conditions × {VIEWS} views: {size}")
+    images = browser.execute_script("return document.images.length;")
+    assert images >= CONDITIONS * VIEWS  # every adversarial thumbnail is on the page
+    browser.get(url + "#benign-3")  # a row's benign frames, shown without a script
+    shown = browser.execute_script("return getComputedStyle(document.getElementById('benign-3')).display;")
+    hidden = browser.execute_script("return getComputedStyle(document.getElementById('benign-4')).display;")
+    assert (shown, hidden) == ("grid", "none")
+    browser.save_screenshot(str(tmp_path / "report.png"))
