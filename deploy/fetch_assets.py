@@ -15,13 +15,15 @@ the baked colour of an actor). Converted:
   by :mod:`undream.scene.ac3d`, 4.60 m long, front towards +Z, on the ground
   (y = 0), its livery (512², the ``.rgb``'s colour) as the texture;
   ``p406_wheels``: four plain tyres (the model has none), an actor.
-- ``person_shirt``: the T-shirt of MORSE's MakeHuman man
-  (``morse-simulator-data``, BSD-3), its 1024² texture; ``person_body``,
-  ``person_jeans``, ``person_shoes``, ``person_hair``, ``person_eyes``: the
-  rest of him, actors, each with one colour baked from its texture (the
-  texture's mean over the part's surface). 1.75 m tall, facing +Z, feet at
-  y = 0, in the pose the file holds. Blender's interpreter
-  (``.venv-blender``) reads the ``.blend`` (``deploy/blend_parts.py``).
+- ``person_clothes``: the T-shirt and jeans of MORSE's MakeHuman man
+  (``morse-simulator-data``, BSD-3) as one mesh with one atlas texture
+  (1024² each, side by side); ``person_body``, ``person_shoes``,
+  ``person_hair``, ``person_eyes``: the rest of him, actors, each with one
+  colour baked from its texture (the texture's mean over the part's
+  surface); ``person_shirt`` (with its texture) and ``person_jeans`` alone
+  too. 1.75 m tall, facing +Z, feet at y = 0, in the pose the file holds.
+  Blender's interpreter (``.venv-blender``) reads the ``.blend``
+  (``deploy/blend_parts.py``).
 
 An asset whose ``asset.json`` records the same sources and recipe is not
 converted again; a conversion is written to a temporary folder and moved into
@@ -162,19 +164,37 @@ def convert_person(src: Path, python: Path = BLENDER_PYTHON) -> dict[str, dict[s
         placed = mesh.transformed(offset=-centre).scaled(k).transformed(FACE_Z)
         entry: dict[str, Any] = {"mesh": placed, "scale": k}
         if name == "person_shirt":
-            entry.update(texture=_opaque(images[name]), about="the MakeHuman man's T-shirt (the attacked object)")
+            entry.update(texture=_opaque(images[name]), about="the MakeHuman man's T-shirt alone, its texture")
         else:
             entry.update(color=_baked_colour(mesh, images[name]),
                          about=f"the MakeHuman man's {name.split('_')[1]}, one colour baked from its texture (an actor)")
         out[name] = entry
+    out["person_clothes"] = _clothes(out["person_shirt"]["mesh"], out["person_jeans"]["mesh"],
+                                     images["person_shirt"], images["person_jeans"], k)
     return out
+
+
+def _clothes(shirt: Mesh, jeans: Mesh, shirt_image: Image.Image, jeans_image: Image.Image, k: float) -> dict[str, Any]:
+    """T-shirt and jeans as one mesh with one texture: an atlas 2·S wide and S tall (S: the shirt
+    texture's side), the shirt's texture in its left half (u ∈ [0, ½]), the jeans' resampled into its
+    right half. Their box is most of the person's (shoulders to ankles), which a detector's person box
+    overlaps at IoU ≥ 0.5; the T-shirt's alone is not."""
+    side = shirt_image.size[1]
+    atlas = np.concatenate([_opaque(shirt_image.resize((side, side), Image.BILINEAR)),
+                            _opaque(jeans_image.resize((side, side), Image.BILINEAR))], axis=1)
+    halves = [Mesh(m.vertices, m.faces, np.c_[np.clip(m.uvs[:, 0], 0, 1) / 2 + offset, np.clip(m.uvs[:, 1], 0, 1)],
+                   m.normals) for m, offset in ((shirt, 0.0), (jeans, 0.5))]
+    return {"mesh": concat_meshes(halves), "texture": atlas, "scale": k,
+            "about": "the MakeHuman man's T-shirt and jeans, one atlas texture (shirt left, jeans right): "
+                     "the attacked object"}
 
 
 # --- writing ---------------------------------------------------------------------------------------
 
 CONVERTERS: dict[str, Callable[[Path], dict[str, dict[str, Any]]]] = {
     "torcs-data": convert_car, "morse-simulator-data": convert_person}
-PRODUCES = {"torcs-data": ("p406", "p406_wheels"), "morse-simulator-data": tuple(PERSON_PARTS)}
+NEEDS_BLENDER = ("morse-simulator-data",)
+PRODUCES = {"torcs-data": ("p406", "p406_wheels"), "morse-simulator-data": ("person_clothes", *PERSON_PARTS)}
 
 
 def _stamp(pkg: dict[str, Any]) -> dict[str, Any]:
@@ -244,9 +264,15 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cache", type=Path, default=None, help="cache folder (default $XDG_CACHE_HOME/undream)")
     ap.add_argument("--check", action="store_true", help="only say what is missing; exit 1 if anything is")
+    ap.add_argument("--skip-blender", action="store_true",
+                    help="leave out what needs Blender's Python to convert (the person)")
     args = ap.parse_args(argv)
     cache = args.cache or default_cache()
     packages = json.loads(LOCK.read_text(encoding="utf-8"))["packages"]
+    if args.skip_blender:
+        for pkg in (p for p in packages if p["package"] in NEEDS_BLENDER):
+            print(f"fetch_assets: {pkg['package']}: left out (--skip-blender: converting it needs Blender's Python)")
+        packages = [p for p in packages if p["package"] not in NEEDS_BLENDER]
     if args.check:
         gaps = [f"{p['package']}: {src}" for p in packages for src in missing(p, cache)]
         gaps += [f"{p['package']}: not converted" for p in packages if not up_to_date(p, assets_root(cache))]

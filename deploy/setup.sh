@@ -4,7 +4,8 @@
 # environment in .venv, the CPU build of torch 2.13.0 and the project with its
 # test extras, and Blender (bpy 5.0.1) in .venv-blender for the `blender`
 # simulator, and the real COCO detector's weights and photographs (deploy/fetch_models.py)
-# with the TF.js runtime its parity test compares against. Safe to run again.
+# with the TF.js runtime its parity test compares against, and realistic objects (a car, a
+# person) for scenes (deploy/fetch_assets.py). Safe to run again.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -62,5 +63,14 @@ if [ "${UNDREAM_SKIP_BLENDER:-0}" != 1 ]; then
             libxkbcommon0 libxext6 libsm6 libgl1 >/dev/null
     fi
     .venv-blender/bin/python -c "import bpy; print('setup: ready (.venv-blender, Blender', bpy.app.version_string + ')')"
+fi
+
+# Realistic objects for scenes (asset:p406, asset:person_clothes, ...): Debian packages at pinned versions
+# with checksums (deploy/assets.lock.json; GPL-2+ and BSD-3 data, fetched, never committed), converted
+# into $XDG_CACHE_HOME/undream/assets; the person needs .venv-blender. Done once; a rerun checks and skips.
+if [ "${UNDREAM_SKIP_BLENDER:-0}" != 1 ]; then
+    .venv/bin/python deploy/fetch_assets.py
+else
+    .venv/bin/python deploy/fetch_assets.py --skip-blender
 fi
 echo "setup: ready (.venv)"
