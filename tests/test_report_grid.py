@@ -8,23 +8,18 @@ from __future__ import annotations
 
 import csv
 import io
-import os
 import re
 import sys
-import time
 from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from browser_support import assert_fits, chromium, page_size  # noqa: E402
 from conditions_data import conditions_output  # noqa: E402
-from conftest import service_missing  # noqa: E402
 
 CONDITIONS, VIEWS, HELD = 16, 24, 4
-WINDOW = (1400, 900)
-MAX_HEIGHT = 6 * WINDOW[1]  # issue 43: at most six screen heights
-CHROMIUM, CHROMEDRIVER = "/usr/bin/chromium", "/usr/bin/chromedriver"
 
 
 @pytest.fixture(scope="module")
@@ -92,48 +87,13 @@ def test_the_grid_has_a_row_per_condition_and_a_linked_thumbnail_per_view(report
 
 @pytest.fixture(scope="module")
 def browser(tmp_path_factory):
-    missing = [p for p in (CHROMIUM, CHROMEDRIVER) if not os.access(p, os.X_OK)]
-    if missing:
-        service_missing(f"{' and '.join(missing)} missing (apt-get install chromium chromium-driver; "
-                        "deploy/setup.sh does)")
-    pytest.importorskip("selenium", reason="selenium not installed (pip install 'undream[test]')")
-    from selenium import webdriver
-    from selenium.webdriver.chrome.service import Service
-
-    options = webdriver.ChromeOptions()
-    options.binary_location = CHROMIUM
-    for flag in ("--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
-                 "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                 "--no-first-run", f"--user-data-dir={tmp_path_factory.mktemp('chromium-profile')}"):
-        options.add_argument(flag)
-    driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=options)
-    driver.set_page_load_timeout(60)
-    # the viewport itself is 1400 × 900 (a window of that size holds less with the browser's frame)
-    driver.execute_cdp_cmd("Emulation.setDeviceMetricsOverride",
-                           {"width": WINDOW[0], "height": WINDOW[1], "deviceScaleFactor": 1, "mobile": False})
-    yield driver
-    driver.quit()
-
-
-def page_size(driver, url: str) -> dict:
-    """Load ``url`` and measure it: the document's scroll width and height, the viewport's width
-    without its scroll bar. Thumbnails load lazily; their width and height attributes hold their place."""
-    driver.get(url)
-    end = time.monotonic() + 30
-    while driver.execute_script("return document.readyState;") != "complete":
-        assert time.monotonic() < end, f"{url}: still loading after 30 s"
-        time.sleep(0.1)
-    return driver.execute_script(
-        "const e = document.documentElement; return {scroll_w: e.scrollWidth, client_w: e.clientWidth, "
-        "height: e.scrollHeight, inner_w: window.innerWidth, inner_h: window.innerHeight};")
+    yield from chromium(tmp_path_factory.mktemp("chromium-profile"))
 
 
 def test_the_report_fits_the_window_and_six_screens(report, browser, tmp_path):
     url = (report["out"] / "index.html").as_uri()
     size = page_size(browser, url)
-    assert (size["inner_w"], size["inner_h"]) == WINDOW
-    assert size["scroll_w"] <= size["client_w"], size  # no horizontal scrolling
-    assert size["height"] <= MAX_HEIGHT, size
+    assert_fits(size)
     print(f"report of {CONDITIONS} conditions × {VIEWS} views: {size}")
     images = browser.execute_script("return document.images.length;")
     assert images >= CONDITIONS * VIEWS  # every adversarial thumbnail is on the page

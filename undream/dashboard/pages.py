@@ -11,7 +11,7 @@ from typing import Any
 
 from flask import Blueprint, redirect, render_template, request, url_for
 
-from undream.dashboard import fleet, query, sweeps
+from undream.dashboard import fleet, framegrid, query, sweeps
 from undream.dashboard.actions import act
 from undream.dashboard.state import farm
 from undream.store import RUN_STATUSES
@@ -41,12 +41,17 @@ def runs() -> Any:
 
 @pages.get("/runs/<id:run_id>")
 def run(run_id: str) -> Any:
+    """A run's page; its frames a page at a time (``?page=N``), ``?frame=F`` shown full size."""
     store = farm().store()
     detail = query.run_detail(store, run_id)
     sweep = store.find_sweep(detail["sweep_id"]) if detail["sweep_id"] else None
     active = detail["status"] in query.ACTIVE_STATUSES
     events = store.events(detail["id"], limit=EVENTS_SHOWN)  # what the farm did to it by itself (heals)
-    return render_template("run.html", run=detail, grid=farm().grid(run_id), sweep=sweep, events=events,
+    view = framegrid.frames_view(detail, store.get_run(detail["id"]).results,
+                                 framegrid.check_number("page", request.args.get("page")),
+                                 framegrid.check_number("frame", request.args.get("frame"), 0),
+                                 framegrid.frame_size(store, detail["id"]) if detail["frames"] else None)
+    return render_template("run.html", run=detail, grid=farm().grid(run_id), sweep=sweep, events=events, view=view,
                            version=f"{detail['updated']}-{detail['iteration']}",
                            refresh=REFRESH_S if active else None)
 

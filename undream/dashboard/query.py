@@ -164,13 +164,14 @@ def _split(res: dict[str, Any], name: str) -> dict[str, Any] | None:
 
 def _evaluation(run: "RunSnapshot") -> dict[str, Any]:
     """The evaluation's headline numbers (every frame at ``eval_spp``) and its ``attacked`` /
-    ``held_out`` splits (see :func:`_split`)."""
+    ``held_out`` / ``held_out_conditions`` splits (see :func:`_split`)."""
     res = run.results or {}
     benign, adv = res.get("benign") or {}, res.get("adversarial") or {}
     success = ((res.get("attack_success") or {}).get("aggregate") or {}).get("success_rate")
     return {"metric": benign.get("metric"), "benign": benign.get("value"),
             "adversarial": adv.get("value"), "success_rate": success, "label": res.get("label"),
-            "attacked": _split(res, "attacked"), "held_out": _split(res, "held_out")}
+            "attacked": _split(res, "attacked"), "held_out": _split(res, "held_out"),
+            "held_out_conditions": _split(res, "held_out_conditions")}
 
 
 def _verdict(job: "JobLine | JobSnapshot") -> bool | None:

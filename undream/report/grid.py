@@ -50,12 +50,21 @@ def grid_rows(results: Mapping[str, Any], indices: Sequence[int]) -> list[GridRo
             for row, block in zip(conditions, blocks)]
 
 
+def _parts(row: GridRow, most: int) -> list[GridRow]:
+    """``row`` cut into rows of at most ``most`` frames, each named with the views it holds."""
+    if len(row.positions) <= most:
+        return [row]
+    return [GridRow(f"{row.name} (views {i}–{min(i + most, len(row.positions)) - 1})", row.held_out,
+                    row.positions[i:i + most], row.numbers) for i in range(0, len(row.positions), most)]
+
+
 def page_of(rows: list[GridRow], page: int, per_page: int) -> tuple[list[GridRow], int]:
-    """Page ``page`` (from 1) of ``rows`` holding about ``per_page`` frames, whole conditions only (a
-    row longer than that is a page of its own); and the number of pages."""
+    """Page ``page`` (from 1, clamped to the pages there are) of ``rows`` holding at most ``per_page``
+    frames, whole conditions where they fit (a longer row is cut into pages of its own); and the
+    number of pages."""
     pages: list[list[GridRow]] = [[]]
     count = 0
-    for row in rows:
+    for row in (part for r in rows for part in _parts(r, per_page)):
         if pages[-1] and count + len(row.positions) > per_page:
             pages.append([])
             count = 0
