@@ -228,3 +228,56 @@ def test_a_finished_sweep_read_with_another_blob_folder_says_where_it_looked(far
     assert res.exit_code == 2 and res.stderr.count("\n") == 1, res.stderr
     assert f"no final texture under {elsewhere}" in res.stderr and "UNDREAM_BLOB_URL / --blobs" in res.stderr
     _nothing_written(tmp_path, tmp_path / "rep")
+
+
+def test_a_run_report_shows_what_undream_evaluate_measured_beside_its_own_numbers(farm, tmp_path):
+    from undream.cli import main
+
+    files = []
+    for holdout in ("auto", "none"):  # the run's texture judged again on its scene, two ways
+        files.append(tmp_path / f"ev_{holdout}.json")
+        res = CliRunner().invoke(main, ["evaluate", str(farm["run"]), str(farm["root"] / "scene"), "--spp", "2",
+                                        "--holdout", holdout, "--json", str(files[-1])])
+        assert res.exit_code == 0, res.output
+    out = tmp_path / "rep"
+    res = _cli(str(farm["run"]), "--out", str(out), *[p for f in files for p in ("--evaluation", str(f))])
+    assert res.exit_code == 0, res.output
+    html = (out / "index.html").read_text()
+    table = html[html.index("<table id=transfer"):]
+    table, legend = table[:table.index("</table>")], table[table.index("</table>"):table.index("</p>")]
+    assert f"[1] <code>{files[0]}</code>: texture" in legend and f"[2] <code>{files[1]}</code>" in legend
+    rows = list(csv.DictReader(io.StringIO((out / "transfer.csv").read_text())))
+    assert [r["source"] for r in rows] == ["this run (results.json)", str(files[0]), str(files[1])]
+    results = json.loads((farm["run"] / "results.json").read_text())
+    assert float(rows[0]["held_out_adversarial"]) == results["held_out"]["adversarial"]["value"]
+    assert rows[0]["held_out_frames"] == "2" and rows[0]["all_frames"] == "4"
+    for row, path in zip(rows[1:], files):
+        judged = {r["split"]: r for r in json.loads(path.read_text())["rows"]}
+        assert float(row["all_adversarial"]) == pytest.approx(judged["all"]["adversarial"])
+        assert float(row["all_benign"]) == pytest.approx(judged["all"]["benign"])
+        assert row["attacked_frames"] == str(judged["attacked"]["frames"])
+    assert rows[1]["held_out_frames"] == "1" and rows[2]["held_out_frames"] == ""  # auto: every 4th of 4; none
+    assert table.count("<tr>") == 4 and "<td>this run</td>" in table and "<td>[2]</td>" in table
+    assert f"--evaluation {files[0]} --evaluation {files[1]}" in html  # the command under the charts
+
+
+@pytest.mark.parametrize("content, words", [
+    ("not json", "not JSON"),
+    ('{"texture": "t.npy"}', "no list of rows"),
+    ('{"rows": [{"scene": "s"}]}', "rows[0] lacks victim, split, frames, metric, benign, adversarial"),
+])
+def test_a_bad_evaluation_file_is_one_line_and_writes_nothing(farm, tmp_path, content, words):
+    bad = tmp_path / "bad.json"
+    bad.write_text(content)
+    res = _cli(str(farm["run"]), "--out", str(tmp_path / "rep"), "--evaluation", str(bad))
+    assert res.exit_code == 2 and res.stderr.count("\n") == 1 and f"--evaluation {bad}: " in res.stderr, res.stderr
+    assert words in res.stderr, res.stderr
+    _nothing_written(tmp_path, tmp_path / "rep")
+
+
+def test_evaluations_go_beside_a_run_not_a_sweep(farm, tmp_path):
+    ev = tmp_path / "ev.json"
+    ev.write_text('{"texture": "t.npy", "rows": []}')
+    res = _cli("tiny", "--out", str(tmp_path / "rep"), "--evaluation", str(ev), *farm["db"])
+    assert res.exit_code == 2 and "is a sweep" in res.stderr, res.stderr
+    _nothing_written(tmp_path, tmp_path / "rep")

@@ -1,6 +1,6 @@
-"""``undream report`` of a 16-condition run (384 frames of 64 px; tests/conditions_data.py, no rendering):
-the headline in counts, the conditions most fooled first, the grid of conditions × views, and the
-page's size in a real headless Chromium (1400 × 900 window: no horizontal scrolling, ≤ 5,400 px tall).
+"""``undream report`` of a 16-condition run (384 frames of 64 px; tests/conditions_data.py, no rendering)
+with an `undream evaluate --json` file of 8 other scenes: the headline in counts, the conditions most
+fooled first, the grid of conditions × views, the transfer table, and the page's size in a real headless Chromium (1400 × 900 window: no horizontal scrolling, ≤ 5,400 px tall).
 
 Without Chromium the browser test skips saying why, and fails under ``UNDREAM_REQUIRE_SERVICES``.
 """
@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import io
+import json
 import re
 import sys
 from pathlib import Path
@@ -28,7 +29,13 @@ def report(tmp_path_factory) -> dict:
 
     root = tmp_path_factory.mktemp("grid")
     made = conditions_output(root / "run", CONDITIONS, VIEWS, 64, HELD)
-    res = CliRunner().invoke(main, ["report", str(root / "run"), "--out", str(root / "rep")])
+    evaluation = root / "evaluate.json"  # as `undream evaluate --json` writes it: 8 held-out condition specs
+    evaluation.write_text(json.dumps({"texture": str(root / "run"), "frames": None, "rows": [
+        {"scene": f"examples/conditions/held_out_{i}.yaml", "victim": "bundled:classifier", "sim": "mitsuba",
+         "texture": str(root / "run"), "split": split, "frames": n, "metric": "accuracy", "benign": 0.9,
+         "adversarial": 0.1 * i} for i in range(8) for split, n in (("all", 24), ("attacked", 18), ("held_out", 6))]}))
+    res = CliRunner().invoke(main, ["report", str(root / "run"), "--out", str(root / "rep"),
+                                    "--evaluation", str(evaluation)])
     assert res.exit_code == 0, res.output
     return {**made, "out": root / "rep", "html": (root / "rep" / "index.html").read_text()}
 
@@ -88,6 +95,11 @@ def test_the_grid_has_a_row_per_condition_and_a_linked_thumbnail_per_view(report
 @pytest.fixture(scope="module")
 def browser(tmp_path_factory):
     yield from chromium(tmp_path_factory.mktemp("chromium-profile"))
+
+
+def test_the_transfer_table_has_a_row_per_evaluated_scene(report):
+    table = _section(report["html"], "<table id=transfer", "</table>")
+    assert table.count("<tr>") == 1 + 1 + 8 and "held_out_7.yaml" in table and table.count("<td>[1]</td>") == 8
 
 
 def test_the_report_fits_the_window_and_six_screens(report, browser, tmp_path):

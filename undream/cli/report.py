@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import shlex
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
 
@@ -71,21 +72,28 @@ def _command(target: str, out: Path) -> str:
     params = click.get_current_context().params
     flags = [part for name, flag in SETTINGS_FLAGS if params.get(name) is not None
              for part in (flag, str(redact(str(params[name]))))]
-    return shlex.join(["undream", "report", target, "--out", str(out), *flags])
+    measured = [part for path in params.get("evaluations") or () for part in ("--evaluation", str(path))]
+    return shlex.join(["undream", "report", target, "--out", str(out), *measured, *flags])
 
 
 @click.command("report")
 @click.argument("target")
 @out_option("Report folder to write: index.html, PNG charts and pictures, CSV tables.")
 @click.option("--force", is_flag=True, help="Replace OUT when it holds an earlier report (never anything else).")
+@click.option("--evaluation", "evaluations", multiple=True, type=click.Path(path_type=Path),
+              help="A JSON file of `undream evaluate --json`: its transfer table beside the run's own numbers; "
+                   "repeat for several.")
 @settings_options
 @one_line_errors
-def report_cmd(target: str, out: Path, force: bool, settings: Callable[..., "Settings"]) -> None:
+def report_cmd(target: str, out: Path, force: bool, evaluations: tuple[Path, ...],
+               settings: Callable[..., "Settings"]) -> None:
     """Write the report of TARGET: an `undream run` output folder, or a run id or sweep id/name on the farm."""
     from undream.report import build_report
+    from undream.report.transfer import load_evaluation
     from undream.store import mask_url
 
     command = _command(target, out)
+    measured = tuple(load_evaluation(path) for path in evaluations)  # every file checked before any reading
     folder = Path(target)
     if folder.is_dir():
         found = _folder_target(folder, settings().database_url)
@@ -95,7 +103,7 @@ def report_cmd(target: str, out: Path, force: bool, settings: Callable[..., "Set
         cfg = settings()
         where = mask_url(cfg.database_url) if cfg.database_url else f"the SQLite store in {cfg.blob_url}"
         found = _store_target(_store(cfg, create=False), target, where)
-    page = build_report(found, out, force, command)
+    page = build_report(replace(found, evaluations=measured), out, force, command)
     what: Any = found.run or found.sweep
     click.echo(f"wrote {page} ({'run' if found.run else 'sweep'} {what.name})")
 

@@ -25,6 +25,7 @@ from undream.report import charts, page, tables
 from undream.report.data import RunData, load_run
 from undream.report.seen import SeenFinder
 from undream.report.sheet import frame_files
+from undream.report.transfer import Evaluation, csv_rows, transfer_rows
 
 if TYPE_CHECKING:
     from undream.store import RunSnapshot, Store, SweepSnapshot
@@ -36,12 +37,14 @@ SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$")
 @dataclass(frozen=True)
 class Target:
     """What to report: one run (``folder``: its `undream run` output folder, if that is how it was
-    named) or one sweep, with the store that holds it."""
+    named; ``evaluations``: what `undream evaluate` measured of its texture elsewhere) or one sweep,
+    with the store that holds it."""
 
     store: "Store"
     run: "RunSnapshot | None" = None
     sweep: "SweepSnapshot | None" = None
     folder: Path | None = None
+    evaluations: tuple[Evaluation, ...] = ()  # `undream evaluate --json` files shown beside a run's numbers
 
 
 def is_report(folder: Path) -> bool:
@@ -68,12 +71,15 @@ def check_out(out: Path, force: bool) -> None:
         raise SpecError(f"--out {out}: {parent} is not a writable folder")
 
 
-def run_files(data: RunData, command: str, back: str | None = None) -> dict[str, bytes]:
-    """A run's report files (relative path → bytes): its page, pictures and tables."""
+def run_files(data: RunData, command: str, back: str | None = None,
+              evaluations: tuple[Evaluation, ...] = ()) -> dict[str, bytes]:
+    """A run's report files (relative path → bytes): its page, pictures and tables; with
+    ``evaluations``, the transfer table (``transfer.csv``)."""
     headline = tables.headline_rows(data.results)
     unseen = charts.unseen_sentence(data)
     conditions = tables.condition_rows(data.results)
-    body = page.run_body(data, headline, unseen, command, conditions)
+    moved = transfer_rows(data.results, data.run.config, list(evaluations)) if evaluations else []
+    body = page.run_body(data, headline, unseen, command, conditions, moved)
     if back is not None:
         body = f'<p class=meta><a href="{back}">← the sweep</a></p>' + body
     return {
@@ -84,6 +90,7 @@ def run_files(data: RunData, command: str, back: str | None = None) -> dict[str,
         "headline.csv": tables.to_csv(headline).encode(),
         "frames.csv": tables.to_csv(tables.frame_rows(data)).encode(),
         **({"conditions.csv": tables.to_csv(conditions).encode()} if conditions else {}),
+        **({"transfer.csv": tables.to_csv(csv_rows(moved)).encode()} if moved else {}),
     }
 
 
@@ -118,9 +125,12 @@ def _load(target: Target, work: Path, command: str) -> dict[str, bytes]:
     try:
         if target.run is not None:
             data = load_run(target.store, target.run, partial(finder, folder=target.folder))
-            return run_files(data, command)
+            return run_files(data, command, evaluations=target.evaluations)
         if target.sweep is None:
             raise SpecError("report: give a run or a sweep")
+        if target.evaluations:
+            raise SpecError(f"--evaluation: shown beside one run's numbers; {target.sweep.name!r} is a sweep "
+                            "(report one of its runs by id)")
         runs = target.store.runs(sweep_id=target.sweep.id)
         loaded = {r.id: load_run(target.store, r, finder) for r in runs if r.status == "done"}
         return sweep_files(target.store, target.sweep, runs, loaded, command)

@@ -14,12 +14,13 @@ from undream.report.data import RunData
 from undream.report.grid import GRID_CSS, grid_html, grid_rows
 from undream.report.sheet import ATTACKED_RGB, HELD_OUT_RGB
 from undream.report.tables import metric_name, weakest_first
+from undream.report.transfer import transfer_html
 
 CSS = """
 body{font:14px/1.45 system-ui,sans-serif;color:#222;margin:24px auto;max-width:1320px;padding:0 16px}
 h1{font-size:22px;margin:0 0 4px}h2{font-size:17px;margin:28px 0 8px;border-bottom:1px solid #ddd}
 table{border-collapse:collapse;margin:6px 0}td,th{border:1px solid #ddd;padding:3px 8px;text-align:left}
-th{background:#f4f4f4}td{white-space:nowrap}table.compact td,table.compact th{padding:1px 6px}td.n{text-align:right;font-variant-numeric:tabular-nums}
+th{background:#f4f4f4}td{white-space:nowrap}table.compact td,table.compact th{padding:1px 6px}td.wrap{white-space:normal;overflow-wrap:anywhere;max-width:420px}td.n{text-align:right;font-variant-numeric:tabular-nums}
 figure{margin:10px 0}figcaption{color:#555;font-size:13px;max-width:900px}
 code,pre{font:12px ui-monospace,monospace;background:#f6f6f6}pre{padding:8px;overflow:auto}
 .meta{color:#555}.tag{display:inline-block;padding:0 6px;color:#fff;border-radius:3px}
@@ -140,7 +141,7 @@ def conditions_table(rows: list[dict[str, Any]]) -> str:
 
 
 def run_body(data: RunData, headline: list[dict[str, Any]], unseen: str, command: str,
-             conditions: list[dict[str, Any]] | None = None) -> str:
+             conditions: list[dict[str, Any]] | None = None, moved: list[dict[str, Any]] | None = None) -> str:
     """The sections of a run's page (headline, conditions of a multi-condition run, the grid of frames,
     loss and texture, config)."""
     loss = data.run.run_config.loss
@@ -149,13 +150,21 @@ def run_body(data: RunData, headline: list[dict[str, Any]], unseen: str, command
         '<p class=meta>Every frame of each condition (scene) of the run, the conditions where the texture fooled '
         'the victim most first; a condition held out was never attacked: what the texture does where it was '
         'not optimised. In the run\'s order with frame numbers: <a href="conditions.csv">conditions.csv</a>.</p>']
+    elsewhere = [] if not moved else [
+        "<h2>Transfer: the texture elsewhere</h2>", transfer_html(moved),
+        "<p class=meta>The run's own evaluation (first row) beside what <code>undream evaluate --json</code> "
+        "measured of a texture on other scenes, conditions, victims or simulators (one row per file [n], scene "
+        "and condition, victim, simulator and texture): benign → adversarial value and frames on every "
+        "frame and on the frames a run would attack and hold out (its <code>--holdout</code>; the run's "
+        'held-out frames are its held-out views and conditions together). <a href="transfer.csv">transfer.csv'
+        "</a>.</p>"]
     return "".join([
         f"<h1>Run {escape(data.run.name)}</h1>", _meta(data),
         "<h2>Headline</h2>", headline_table(headline),
         '<p class=meta>Held-out frames say whether the texture works beyond the views it was optimised on. '
         'Frame numbers of each split: <a href="headline.csv">headline.csv</a>; per frame (split'
         f'{", condition, view" if conditions else ""}, what the victim said): <a href="frames.csv">frames.csv</a>.</p>',
-        *transfer,
+        *transfer, *elsewhere,
         "<h2>Frames</h2>", _grid_legend(data, conditions),
         grid_html(grid_rows(data.results, [f.index for f in data.frames]), data.frames, data.task),
         '<div class=pair>',
