@@ -80,6 +80,19 @@ def test_a_chosen_frame_is_shown_full_size_on_its_page(run, client):
     assert "Pick a frame in the grid" in client.get(f"/runs/{run['run_id']}").get_data(as_text=True)
 
 
+def test_a_detector_runs_grid_names_what_it_saw_instead(run, client):
+    from dashboard_data import add_detector_run
+    from undream.store import open_store
+
+    with open_store(None, run["store"]) as store:
+        run_id = add_detector_run(store)  # every adversarial frame missed, an umbrella its best box
+    text = client.get(f"/runs/{run_id}").get_data(as_text=True)
+    cells = re.findall(r'<a class="cell (a|h) (ok|no)[^>]*title="([^"]*)".*?<span>([^<]*)</span>', text)
+    assert [c[1:] for c in cells] == [("no", f"frame {f} · attacked · adversarial: missed, best box umbrella 0.42",
+                                       "✗ umbrella") for f in range(2)]
+    assert len(re.findall(r'class="pair"', text)) == 2  # two frames: both pairs full size, boxes over them
+
+
 @pytest.mark.parametrize("query, words", [("page=0", "page '0': must be a whole number from 1"),
                                           ("page=x", "page 'x': must be a whole number from 1"),
                                           ("page=5", "page 5: the run's frames fill 4 pages"),

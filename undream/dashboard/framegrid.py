@@ -45,7 +45,8 @@ def _short(pred: Mapping[str, Any] | None, task: str) -> tuple[bool | None, str,
         return None, "–", "no frame yet"
     if task == "detection":
         scores = pred.get("scores") or []
-        row = {"detected": pred.get("detected"), "score": max(scores) if scores else None}
+        row = {"detected": pred.get("detected"), "score": max(scores) if scores else None,
+               "boxes": sorted(pred.get("detections") or [], key=lambda d: -float(d.get("score") or 0))}
     else:
         row = {"correct": pred.get("correct"), "class": pred.get("name") or f"class {pred.get('label')}",
                "score": pred.get("score")}

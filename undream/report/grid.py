@@ -90,15 +90,20 @@ def columns(n: int, thumb_w: int, width: int = CELLS_W) -> int:
 
 
 def verdict(row: Mapping[str, Any], task: str) -> tuple[bool | None, str, str]:
-    """(still right?, a short cell text, a longer one) for the victim's verdict on one frame:
-    a classifier's class and confidence, a detector's detected or missed and its best score."""
+    """(still right?, a short cell text, a longer one) for the victim's verdict on one frame (a
+    results.json per-frame row): a classifier's class and confidence, a detector's detected or
+    missed, its best box's score, and when missed the class of its best box."""
     score = row.get("score")
     shown = "" if score is None else f"{float(score):.2f}"
     if task == "detection":
         ok = row.get("detected")
         ok = None if ok is None else bool(ok)
         mark = {True: "✓", False: "✗", None: "?"}[ok]
-        return ok, f"{mark} {shown.lstrip('0')}", f"{'detected' if ok else 'missed'}, best box {shown or '–'}"
+        boxes = row.get("boxes") or []
+        seen = boxes[0].get("label") if boxes and isinstance(boxes[0], Mapping) else None
+        short = f"{mark} {seen}" if ok is False and seen else f"{mark} {shown.lstrip('0')}"
+        best = f"{seen} {shown}" if seen else shown or "–"
+        return ok, short, f"{'detected' if ok else 'missed'}, best box {best}"
     ok = row.get("correct")
     ok = None if ok is None else bool(ok)
     mark = {True: "✓", False: "✗", None: "?"}[ok]
