@@ -17,7 +17,7 @@ the baked colour of an actor). Converted:
   ``p406_wheels``: four plain tyres (the model has none), an actor.
 - ``person_clothes``: the T-shirt and jeans of MORSE's MakeHuman man
   (``morse-simulator-data``, BSD-3) as one mesh with one atlas texture
-  (1024² each, side by side); ``person_body``, ``person_shoes``,
+  (1024×512: their textures resampled to 512² each, side by side); ``person_body``, ``person_shoes``,
   ``person_hair``, ``person_eyes``: the rest of him, actors, each with one
   colour baked from its texture (the texture's mean over the part's
   surface); ``person_shirt`` (with its texture) and ``person_jeans`` alone
@@ -56,10 +56,11 @@ from undream.scene.fetched import ASSET_FILE, MESH_FILE, TEXTURE_FILE, assets_ro
 from undream.scene.mesh import Mesh, concat_meshes, write_ply  # noqa: E402
 
 LOCK = HERE / "assets.lock.json"
-RECIPE = 1  # raise when a conversion changes: every asset is converted again
+RECIPE = 2  # raise when a conversion changes: every asset is converted again
 BLENDER_PYTHON = HERE.parent / ".venv-blender" / "bin" / "python"
 CAR_LENGTH_M = 4.60
 PERSON_HEIGHT_M = 1.75
+CLOTHES_SIDE = 512  # texels: the clothes' atlas is 1024×512 (plenty for a person 150 px tall)
 # TORCS's p406.xml: axles at x = ±1.37 m, wheels at ±0.75/0.78 m; 16-inch rims, 235/55 tyres.
 WHEEL_X_M, WHEEL_Z_M, WHEEL_RADIUS_M, WHEEL_WIDTH_M = 1.37, 0.765, 0.33, 0.22
 PERSON_PARTS = {  # asset name → (MakeHuman object, its packed image)
@@ -175,11 +176,11 @@ def convert_person(src: Path, python: Path = BLENDER_PYTHON) -> dict[str, dict[s
 
 
 def _clothes(shirt: Mesh, jeans: Mesh, shirt_image: Image.Image, jeans_image: Image.Image, k: float) -> dict[str, Any]:
-    """T-shirt and jeans as one mesh with one texture: an atlas 2·S wide and S tall (S: the shirt
-    texture's side), the shirt's texture in its left half (u ∈ [0, ½]), the jeans' resampled into its
-    right half. Their box is most of the person's (shoulders to ankles), which a detector's person box
+    """T-shirt and jeans as one mesh with one texture: an atlas 2·S wide and S tall (S:
+    :data:`CLOTHES_SIDE`), the shirt's texture resampled into its left half (u ∈ [0, ½]), the jeans'
+    into its right half. Their box is most of the person's (shoulders to ankles), which a detector's person box
     overlaps at IoU ≥ 0.5; the T-shirt's alone is not."""
-    side = shirt_image.size[1]
+    side = CLOTHES_SIDE
     atlas = np.concatenate([_opaque(shirt_image.resize((side, side), Image.BILINEAR)),
                             _opaque(jeans_image.resize((side, side), Image.BILINEAR))], axis=1)
     halves = [Mesh(m.vertices, m.faces, np.c_[np.clip(m.uvs[:, 0], 0, 1) / 2 + offset, np.clip(m.uvs[:, 1], 0, 1)],
