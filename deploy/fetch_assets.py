@@ -46,7 +46,7 @@ from PIL import Image
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from fetch_models import FetchError, default_cache, fetch, missing, sha256  # noqa: E402
+from fetch_models import FetchError, default_cache, fetch, missing  # noqa: E402
 
 from undream.color import linear_to_srgb, srgb_to_linear  # noqa: E402
 from undream.errors import UndreamError  # noqa: E402
@@ -72,7 +72,7 @@ PERSON_PARTS = {  # asset name → (MakeHuman object, its packed image)
     "person_eyes": ("MakeHuman skeleton_man1-eyes", "brown_eye.png"),
 }
 C = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])  # canonical → Blender; Blender → canonical is C.T
-FACE_Z = np.array([[0.0, 0, -1], [0, 1, 0], [1, 0, 0]])  # a quarter turn about +Y: +X → +Z (both face +X)
+FACE_Z = np.array([[0.0, 0, -1], [0, 1, 0], [1, 0, 0]])  # a quarter turn about +Y, +X → +Z: the car and the man face +X in their files
 
 
 class ConvertError(FetchError):
@@ -108,8 +108,11 @@ def _blend_parts(blend: Path, out: Path, python: Path) -> Any:
     if not python.is_file():
         raise ConvertError(f"{blend.name}: reading it needs Blender's Python ({python} not found); "
                            "run ./deploy/setup.sh without UNDREAM_SKIP_BLENDER")
-    done = subprocess.run([str(python), str(HERE / "blend_parts.py"), str(blend), str(out)],
-                          capture_output=True, text=True, timeout=600)
+    try:
+        done = subprocess.run([str(python), str(HERE / "blend_parts.py"), str(blend), str(out)],
+                              capture_output=True, text=True, timeout=600)
+    except subprocess.TimeoutExpired:
+        raise ConvertError(f"{blend.name}: Blender's export did not finish in 600 s") from None
     if done.returncode or not (out / "parts.npz").is_file():
         tail = (done.stderr.strip().splitlines() or ["(no output)"])[-1]
         raise ConvertError(f"{blend.name}: Blender's export failed (exit {done.returncode}): {tail}")
