@@ -114,3 +114,49 @@ def test_the_report_fits_the_window_and_six_screens(report, browser, tmp_path):
     hidden = browser.execute_script("return getComputedStyle(document.getElementById('benign-4')).display;")
     assert (shown, hidden) == ("grid", "none")
     browser.save_screenshot(str(tmp_path / "report.png"))
+
+
+SPEC = {  # a tiny ball in a park, orbited: 4 frames of 16 px per condition
+    "name": "ball", "seed": 3, "frames": 4, "fps": 4,
+    "camera": {"fov": 40, "resolution": [16, 16],
+               "path": {"type": "orbit", "center": [0, 0, 0], "radius": 2.6, "height": 1.0,
+                        "start_deg": 0, "end_deg": 90},
+               "look_at": "object", "look_at_offset": [0, 0.4, 0]},
+    "object": {"asset": {"name": "ball", "mesh": "builtin:sphere",
+                         "texture": {"resolution": [16, 8], "init": [0.5, 0.5, 0.5]}},
+               "path": {"type": "static", "position": [0, 0, 0]}},
+    "environment": {"weather": "clear", "time_of_day": 14.0, "background": "park"},
+}
+
+
+def test_a_real_multi_condition_run_reports_its_conditions_as_grid_rows(tmp_path, mi):
+    """`undream run` over 3 conditions (one held out whole, every 4th view of the others held out),
+    then `undream report`: the grid's rows are results.json's conditions, cells its frames in order."""
+    import subprocess
+
+    from farm_support import make_victim, run_config, write_yaml
+    from undream.cli import main
+
+    cfg = run_config(write_yaml(tmp_path / "ball.yaml", SPEC), make_victim(tmp_path / "victim"), name="grid",
+                     steps=1, holdout="auto",
+                     conditions={"grid": {"environment.weather": ["clear", "fog", "rain"]}, "holdout": ["weather_rain"]})
+    out = tmp_path / "out"
+    res = subprocess.run([sys.executable, "-m", "undream.cli", "run", str(write_yaml(tmp_path / "run.yaml", cfg)),
+                          "--out", str(out), "--no-progress"], capture_output=True, text=True,
+                         cwd=Path(__file__).resolve().parents[1])
+    assert res.returncode == 0, res.stderr
+    results = json.loads((out / "results.json").read_text())
+    res = CliRunner().invoke(main, ["report", str(out), "--out", str(tmp_path / "rep")])
+    assert res.exit_code == 0, res.output
+    html = (tmp_path / "rep" / "index.html").read_text()
+    rows = re.split(r'<div class=cond id="row-\d+">', _section(html, "<div class=grid>", "<h2>"))[1:]
+    assert len(rows) == len(results["conditions"]) == 3
+    held = set(results["held_out"]["frames"]) | set(results["held_out_conditions"]["frames"])
+    for row, cond in zip(rows, results["conditions"]):
+        adversarial = row[:row.index('class="cells benign"')]
+        cells = [(split, int(f)) for split, f in re.findall(r'<a class="cell (a|h) \w+" href="frames/frame_(\d{4})\.png"',
+                                                               adversarial)]
+        assert [f for _, f in cells] == cond["frames"] and len(cells) == 4
+        assert [split for split, _ in cells] == ["h" if f in held else "a" for f in cond["frames"]]
+        assert ("held out</span>" in row) == cond["held_out"] == (cond["name"] == "weather_rain")
+    assert (tmp_path / "rep" / "conditions.csv").is_file()
