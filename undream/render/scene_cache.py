@@ -32,6 +32,7 @@ from undream.render.loading import load_scene, texture_param_key
 from undream.scene.layout import frame_xml
 from undream.variant import mitsuba
 
+FROZEN_WARN_AFTER = 64  # Dr.Jit warns when one frozen function was recorded more often than this
 KINDS = ("sim", "grad", "mask")  # mask: the init's visibility scenes (frames/mask_NNNN.xml while it verifies)
 
 # Numbers in these elements become traversable parameters once loaded (transforms,
@@ -154,7 +155,11 @@ class SceneCache:
 
         key = (name, None if scene is None else id(scene))
         if key not in self._frozen:
-            self._frozen[key] = dr.freeze(fn)
+            # Conditions of one structure share a loaded scene, and Dr.Jit records again when the
+            # values it saw as constants change (auto_opaque): the evaluation of
+            # examples/runs/stop_sign_main.yaml (10 conditions) recorded its render 12 times, and
+            # the default warning after 10 printed a paragraph into the main job's output.
+            self._frozen[key] = dr.freeze(fn, warn_after=FROZEN_WARN_AFTER)
         with interrupts.held():
             return self._frozen[key](*args)
 
