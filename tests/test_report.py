@@ -148,22 +148,22 @@ def test_sweep_report(farm, tmp_path):
     rows = list(csv.DictReader(io.StringIO((out / "results.csv").read_text())))
     assert [(r["attack.eps"], r["seed"]) for r in rows] == [("8", "0"), ("8", "1"), ("64", "0"), ("64", "1")]
     assert all(r["status"] == "done" and r["held_out_adversarial"] != "" for r in rows)
-    points = list(csv.DictReader(io.StringIO((out / "eps_chart.csv").read_text())))
-    assert {(p["split"], p["eps"], p["n_seeds"]) for p in points} == {
-        (s, e, "2") for s in ("attacked", "held_out") for e in ("8.0", "64.0")}
+    cells = list(csv.DictReader(io.StringIO((out / "comparison.csv").read_text())))
+    assert {(c["metric"], c["x"], c["n_seeds"]) for c in cells if c["metric"] != "success"} == {
+        (s, e, "2") for s in ("attacked", "held_out") for e in ("8", "64")}
     html = (out / "index.html").read_text()
     for i in range(4):
         assert f'href="runs/tiny-00{i}/index.html"' in html and (out / f"runs/tiny-00{i}/frames/frame_0000.png").is_file()
-    assert "eps_chart.png" in html and "± one sample standard deviation" in html
+    assert "compare_held_out.png" in html and "All 4 runs finished" in html
     assert '<a href="../../index.html">' in (out / "runs/tiny-000/index.html").read_text()
 
 
-def test_points_average_over_seeds():
-    from undream.report.tables import Point
+def test_cells_average_over_seeds():
+    from undream.report.compare import Cell
 
-    p = Point(("pgd",), "held_out", 8.0, (0.25, 0.75))
-    assert p.mean == pytest.approx(0.5) and p.std == pytest.approx(0.3535534, rel=1e-6)
-    assert Point(("pgd",), "attacked", 8.0, (0.5,)).std is None
+    c = Cell("pgd", 8, "held_out", (0.25, 0.75), 2)
+    assert c.mean == pytest.approx(0.5) and c.std == pytest.approx(0.3535534, rel=1e-6)
+    assert Cell("pgd", 8, "attacked", (0.5,), 3).std is None and Cell("pgd", 8, "attacked", (), 3).mean is None
 
 
 def _nothing_written(parent: Path, out: Path) -> None:

@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any
 from undream.errors import SpecError
 from undream.spec.io import naming
 from undream.report import charts, page, tables
+from undream.report.compare import cell_rows, compare
 from undream.report.data import RunData, load_run
 from undream.report.seen import SeenFinder
 from undream.report.sheet import frame_files
@@ -101,12 +102,13 @@ def run_dir(run: "RunSnapshot") -> str:
 
 def sweep_files(store: "Store", sweep: "SweepSnapshot", runs: list["RunSnapshot"],
                 loaded: dict[str, RunData], command: str) -> dict[str, bytes]:
-    """A sweep's report files: its page, results.csv, the ε chart and its points, one folder per run."""
+    """A sweep's report files: its page, results.csv, the runs side by side (a chart per metric,
+    comparison.csv), one folder per finished run."""
     rows = tables.sweep_rows(sweep, runs)
-    series = tables.eps_points(sweep, runs)
+    side = compare(sweep, runs)
     files = {"results.csv": tables.to_csv(rows).encode(),
-             "eps_chart.csv": tables.to_csv(tables.point_rows(series)).encode(),
-             "eps_chart.png": charts.eps_png(series, charts.chart_metric(rows), command)}
+             "comparison.csv": tables.to_csv(cell_rows(side)).encode(),
+             **{f"compare_{metric}.png": charts.compare_png(side, metric, command) for metric in side.cells}}
     links = {}
     for run, row in zip(runs, rows):
         if run.id in loaded:
@@ -115,7 +117,7 @@ def sweep_files(store: "Store", sweep: "SweepSnapshot", runs: list["RunSnapshot"
             files.update({f"{folder}/{name}": data
                           for name, data in run_files(loaded[run.id], command, "../../index.html").items()})
     files["index.html"] = page.document(f"undream report: sweep {sweep.name}",
-                                        page.sweep_body(sweep, rows, series, links, command)).encode()
+                                        page.sweep_body(sweep, rows, side, links, command)).encode()
     return files
 
 

@@ -1,14 +1,12 @@
 """The report's charts as PNG bytes, each with a caption naming the command that made it.
 
 The loss chart and the texture pictures are the dashboard's own
-(:mod:`undream.charts`, :mod:`undream.dashboard.images`); the
-sweep's chart adds what the dashboard's lacks: one line per attack *and*
-split (attacked, held-out) with mean ± standard deviation over seeds.
+(:mod:`undream.charts`, :mod:`undream.dashboard.images`); a sweep's charts
+add what the dashboard's lacks: one chart per metric (a split's adversarial
+value, attack success) with every seed shown and its spread.
 Metric values are fractions in [0, 1], drawn as %; ε in 0–255 sRGB units.
 """
 from __future__ import annotations
-
-from typing import Any
 
 import numpy as np
 from PIL import Image, ImageDraw
@@ -17,10 +15,10 @@ from undream import charts as dash_charts
 from undream.report.pictures import texture_png as hatched_png
 from undream.report.data import RunData
 from undream.report.draw import INK, PAPER, caption_png, decode_png, encode_png, font, with_caption
-from undream.report.tables import SPLIT_NAMES, Point, metric_name
+from undream.report.compare import Cell, Comparison, numeric_x
 
 LOSS_UNITS = {"ce": "nats", "targeted_ce": "nats", "margin": "logits"}  # every other loss is unitless
-SPLIT_STYLE = {"attacked": "-", "held_out": "--"}
+X_LABELS = {"attack.eps": "ε (0–255 sRGB units)"}
 
 
 def made_by(command: str) -> str:
@@ -77,37 +75,42 @@ def texture_png(data: RunData, command: str) -> bytes:
     return encode_png(with_caption(sheet, made_by(command)))
 
 
-def _series_label(key: tuple[str, ...], split: str) -> str:
-    return f"{' '.join(key)}, {SPLIT_NAMES[split]}"
-
-
-def eps_png(series: dict[tuple[str, ...], list[Point]], metric: str | None, command: str) -> bytes:
-    """Adversarial metric (%) against ε, one line per series and split; error bars: ± one standard
-    deviation over the seeds of a point (none with one seed)."""
+def compare_png(comparison: Comparison, metric: str, command: str) -> bytes:
+    """One metric of a sweep (%) against the grid's x, one series per attack (and other non-seed
+    values): each cell's mean over seeds joined by a line, its min–max as an error bar and each seed
+    as a dot; the mean benign value as a grey dashed line."""
     fig, ax = dash_charts.new_figure()
-    name = metric_name(metric)
-    for (key, points), color in zip(series.items(), dash_charts.COLORS * 4):
-        for split in SPLIT_STYLE:
-            pts = [p for p in points if p.split == split and p.mean is not None]
-            if not pts:
-                continue
-            ax.errorbar([p.eps for p in pts], [100.0 * p.mean for p in pts],  # type: ignore[operator]
-                        yerr=[100.0 * (p.std or 0.0) for p in pts], color=color, linestyle=SPLIT_STYLE[split],
-                        marker="o" if split == "attacked" else "s", markersize=4, capsize=3, linewidth=1.3,
-                        label=_series_label(key, split))
-    if series:
+    by_series: dict[str, list[Cell]] = {}
+    for cell in comparison.cells.get(metric, []):
+        by_series.setdefault(cell.series, []).append(cell)
+    numeric = numeric_x(comparison)
+    ticks = list(dict.fromkeys(c.x for cells in comparison.cells.values() for c in cells))
+    span = (max(map(float, ticks)) - min(map(float, ticks)) or 1.0) if numeric and ticks else float(len(ticks) or 1)
+    for i, ((name, cells), color) in enumerate(zip(by_series.items(), dash_charts.COLORS * 4)):
+        shift = 0.012 * span * (i - (len(by_series) - 1) / 2)  # series side by side, not on top of each other
+        pts = [c for c in cells if c.values]
+        xs = [(float(c.x) if numeric else ticks.index(c.x)) + shift for c in pts]
+        means = [100.0 * c.mean for c in pts]  # type: ignore[operator]
+        bars = [[m - 100.0 * min(c.values) for m, c in zip(means, pts)],
+                [100.0 * max(c.values) - m for m, c in zip(means, pts)]]
+        ax.errorbar(xs, means, yerr=bars, color=color, marker="o", markersize=4, capsize=3, linewidth=1.3,
+                    label=name)
+        seeds = [(x, 100.0 * v) for x, c in zip(xs, pts) for v in c.values]
+        ax.scatter(*zip(*seeds), color=color, s=9, alpha=0.55, zorder=3, linewidths=0)
+    if metric in comparison.benign:
+        ax.axhline(100.0 * comparison.benign[metric], color="#999", linestyle="--", linewidth=1, label="benign")
+    if by_series:
         ax.legend(fontsize=7, frameon=False)
     else:
-        dash_charts.empty_axes(ax, "no run of this sweep has results")
+        dash_charts.empty_axes(ax, "no run of this sweep has finished")
+    if not numeric:
+        ax.set_xticks(range(len(ticks)), [str(t) for t in ticks])
     ax.set_ylim(-5, 105)
-    ax.xaxis.get_major_locator().set_params(integer=False)
-    ax.set_xlabel("ε (0–255 sRGB units)", fontsize=9)
-    ax.set_ylabel(f"adversarial {name} (%)", fontsize=9)
-    ax.set_title(f"adversarial {name} against ε (mean ± std over seeds)", fontsize=10)
+    if numeric:
+        ax.xaxis.get_major_locator().set_params(integer=False)
+    ax.set_xlabel(X_LABELS.get(comparison.x_axis or "", comparison.x_axis or "(seeds only)"), fontsize=9)
+    ax.set_ylabel("attack success (%)" if metric == "success" else f"adversarial {comparison.metric_name} (%)",
+                  fontsize=9)
+    ax.set_title(f"{comparison.title(metric)} ({comparison.finished} of {comparison.total} runs finished)",
+                 fontsize=10)
     return caption_png(dash_charts.figure_png(fig), made_by(command))
-
-
-def chart_metric(rows: list[dict[str, Any]]) -> str | None:
-    """The one metric of the rows (accuracy or ap50), None when mixed or none."""
-    found = {r.get("metric") for r in rows if r.get("metric")}
-    return found.pop() if len(found) == 1 else None

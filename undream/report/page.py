@@ -10,6 +10,7 @@ from html import escape
 from typing import Any, Collection, Mapping
 
 from undream.redact import redact
+from undream.report.compare import Cell, Comparison
 from undream.report.data import RunData
 from undream.report.grid import GRID_CSS, grid_html, grid_rows
 from undream.report.sheet import ATTACKED_RGB, HELD_OUT_RGB
@@ -25,6 +26,7 @@ figure{margin:10px 0}figcaption{color:#555;font-size:13px;max-width:900px}
 code,pre{font:12px ui-monospace,monospace;background:#f6f6f6}pre{padding:8px;overflow:auto}
 .meta{color:#555}.tag{display:inline-block;padding:0 6px;color:#fff;border-radius:3px}
 img{max-width:100%}.pair{display:flex;gap:16px;align-items:flex-start}
+.charts{display:flex;flex-wrap:wrap;gap:0 16px}.charts figure{flex:0 1 560px}
 .pair figure{min-width:0}.pair .loss{flex:0 0 40%}.pair .tex{flex:1 1 0}summary{cursor:pointer;color:#555}
 """ + GRID_CSS
 
@@ -199,32 +201,76 @@ def compact_rows(rows: list[dict[str, Any]], grid: list[str]) -> list[dict[str, 
             for r in rows]
 
 
-def sweep_body(sweep: Any, rows: list[dict[str, Any]], series: Mapping[Any, Any], links: Mapping[str, str],
+def progress(side: Comparison) -> str:
+    """How many of the sweep's runs finished, and what the others are doing (one sentence)."""
+    others = ", ".join(f"{n} {status}" for status, n in sorted(side.statuses.items()) if status != "done")
+    if not others:
+        return f"All {side.total} runs finished."
+    return (f"{side.finished} of {side.total} runs finished ({others}): the charts and the table show the finished "
+            "runs only, a cell's seeds are its finished runs; the results table lists every run with its status.")
+
+
+def _spread(cell: Cell) -> str:
+    if not cell.values:
+        return f"– <span class=meta>(0 of {cell.runs})</span>"
+    sd = "" if cell.std is None else f" ± {100.0 * cell.std:.1f}"
+    seeds = f"{len(cell.values)}" if len(cell.values) == cell.runs else f"{len(cell.values)} of {cell.runs}"
+    return f"{100.0 * cell.mean:.1f}{sd} % <span class=meta>({seeds})</span>"  # type: ignore[operator]
+
+
+def comparison_table(side: Comparison) -> str:
+    """One row per cell (series, x), one column per metric: mean ± sample sd over seeds (seeds)."""
+    if not side.cells:
+        return "<p class=meta>(no run of this sweep has finished yet)</p>"
+    metrics = list(side.cells)
+    head = "".join(f"<th>{escape(side.title(m))}</th>" for m in metrics)
+    x_name = escape(side.x_axis or "")
+    rows = []
+    for i, first in enumerate(side.cells[metrics[0]]):
+        cells = "".join(f"<td class=n>{_spread(side.cells[m][i])}</td>" for m in metrics)
+        x = f"<td class=n>{escape(fmt(first.x))}</td>" if side.x_axis else ""
+        rows.append(f"<tr><td>{escape(first.series)}</td>{x}{cells}</tr>")
+    return (f"<table id=comparison class=compact><tr><th>series</th>{f'<th>{x_name}</th>' if x_name else ''}"
+            f"{head}</tr>{''.join(rows)}</table>")
+
+
+def _compare_section(side: Comparison, command: str) -> list[str]:
+    seeds = " and ".join(side.seed_axes) or "none (one run per cell: no spread)"
+    charts = "".join(
+        figure(f"compare_{m}.png", side.title(m),
+               f"{escape(side.title(m))} (%) per cell: the mean over seeds (line), min–max (bar) and each seed "
+               "(dot); grey dashed: the benign value (mean over the finished runs).", command)
+        for m in side.cells)
+    return ["<h2>Runs side by side</h2>",
+            f"<p class=meta>{escape(progress(side))} x: {escape(side.x_axis or '(none)')}; series: "
+            f"{escape(', '.join(side.series_axes) or 'the attack')}; seeds (the spread): {escape(seeds)}.</p>",
+            f"<div class=charts>{charts}</div>" if charts else "",
+            comparison_table(side),
+            "<p class=meta>Each cell: mean ± one sample standard deviation over its seeds, in %, and (the seeds: "
+            "its finished runs, of its runs when some have not finished). Every cell with its min, max and "
+            'values: <a href="comparison.csv">comparison.csv</a>.</p>']
+
+
+def sweep_body(sweep: Any, rows: list[dict[str, Any]], side: Comparison, links: Mapping[str, str],
                command: str) -> str:
-    """The sections of a sweep's page (results table, ε chart, runs)."""
-    seeds = any(len(p.values) > 1 for points in series.values() for p in points)
-    spread = ("Error bars: ± one sample standard deviation over the seeds of each point."
-              if seeds else "One run per point (no seed axis in the grid): no error bars.")
+    """The sections of a sweep's page (the runs side by side, the results table, the runs)."""
     unfinished = [r for r in rows if r["run"] not in links]
     return "".join([
         f"<h1>Sweep {escape(sweep.name)}</h1>",
         f"<p class=meta>sweep <code>{escape(sweep.id)}</code> · {len(rows)} runs · grid: {_grid(sweep.spec)}</p>",
-        "<h2>Results</h2>",
+        *_compare_section(side, command),
+        "<h2>Results per run</h2>",
         table(compact_rows(rows, [str(k) for k in sweep.spec.get("grid") or {}]), {"held-out success"},
               links, "run"),
         '<p class=meta>Metric values in %; success: fooled of the held-out frames the victim got right before '
         'the attack; final loss in the run\'s loss. Every column (all frames too) in '
         '<a href="results.csv">results.csv</a>.</p>',
-        "<h2>Adversarial metric against ε</h2>",
-        figure("eps_chart.png", "adversarial metric against epsilon",
-               "Adversarial accuracy (or AP@0.5) of each attack on the frames it optimised on (solid) and on "
-               f"held-out frames (dashed), against the budget ε in 0–255 sRGB units. {spread} Points: "
-               '<a href="eps_chart.csv">eps_chart.csv</a>.', command),
         "<h2>Runs</h2><ul>",
         "".join(f'<li><a href="{escape(links[r["run"]])}">{escape(r["name"])}</a> ({escape(r["run"])}): '
                 f"{escape(fmt(r.get('held_out_adversarial'), True))} held-out adversarial</li>"
                 for r in rows if r["run"] in links),
-        "".join(f"<li>{escape(r['name'])} ({escape(r['run'])}): {escape(r['status'])}, no report</li>"
+        "".join(f"<li>{escape(r['name'])} ({escape(r['run'])}): {escape(r['status'])}: no page (a page needs a "
+                "finished run)</li>"
                 for r in unfinished),
         "</ul>",
     ])

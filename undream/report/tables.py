@@ -9,12 +9,9 @@ from __future__ import annotations
 
 import csv
 import io
-import statistics
-from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Mapping
 
 from scheduler.query import result_rows
-from scheduler.sweep import grid_values
 from undream.report.data import SPLITS, RunData
 
 if TYPE_CHECKING:
@@ -22,8 +19,6 @@ if TYPE_CHECKING:
 
 SPLIT_NAMES = {"attacked": "attacked frames", "held_out": "held-out frames",
                "held_out_conditions": "held-out conditions", "all": "all frames"}
-SEED_AXES = ("seed", "attack.seed")  # grid fields whose values are repeats, averaged in the chart
-X_AXIS = "attack.eps"
 
 
 def metric_name(metric: str | None) -> str:
@@ -127,53 +122,3 @@ def to_csv(rows: list[dict[str, Any]]) -> str:
     writer.writeheader()
     writer.writerows([{k: "" if v is None else v for k, v in row.items()} for row in rows])
     return buf.getvalue()
-
-
-@dataclass(frozen=True)
-class Point:
-    """One point of the sweep chart: a series, a split, an ε, and the adversarial metric over seeds."""
-
-    series: tuple[str, ...]
-    split: str
-    eps: float
-    values: tuple[float, ...]  # one per seed, fractions in [0, 1]
-
-    @property
-    def mean(self) -> float | None:
-        return statistics.fmean(self.values) if self.values else None
-
-    @property
-    def std(self) -> float | None:
-        """Sample standard deviation over seeds; None with fewer than two."""
-        return statistics.stdev(self.values) if len(self.values) > 1 else None
-
-
-def _series_key(run: "RunSnapshot", grid: list[str], values: Mapping[str, Any]) -> tuple[str, ...]:
-    attack = run.run_config.attack.name
-    others = [f"{k}={values[k]}" for k in grid if k not in (X_AXIS, "attack.name", *SEED_AXES)]
-    return (attack, *others)
-
-
-def eps_points(sweep: "SweepSnapshot", runs: list["RunSnapshot"]) -> dict[tuple[str, ...], list[Point]]:
-    """Series (attack name and every grid value but ε and seeds) → points by split and ε."""
-    grid = [str(k) for k in (sweep.spec.get("grid") or {})]
-    found: dict[tuple[tuple[str, ...], str, float], list[float]] = {}
-    for run in runs:
-        res, eps = run.results or {}, run.run_config.attack.eps
-        if run.status != "done":
-            continue
-        key = _series_key(run, grid, grid_values(sweep.spec, run.config))
-        for split in SPLITS:
-            value = _value((res.get(split) or {}).get("adversarial"))
-            if value is not None:
-                found.setdefault((key, split, float(eps)), []).append(value)
-    series: dict[tuple[str, ...], list[Point]] = {}
-    for (key, split, eps), values in sorted(found.items()):
-        series.setdefault(key, []).append(Point(key, split, eps, tuple(values)))
-    return series
-
-
-def point_rows(series: dict[tuple[str, ...], list[Point]]) -> list[dict[str, Any]]:
-    """The chart's points as table rows (eps_chart.csv)."""
-    return [{"series": " ".join(p.series), "split": p.split, "eps": p.eps, "n_seeds": len(p.values),
-             "mean": p.mean, "std": p.std} for points in series.values() for p in points]

@@ -1,0 +1,119 @@
+"""``undream report SWEEP``: the runs side by side. A sweep (attack.name × attack.eps × seed, 2 × 3 × 3
+runs of 4 frames, built through the Store API: tests/dashboard_data.py, no rendering) whose seeds
+differ and some of whose runs have not finished: one chart per metric, a table of mean ± sd per
+cell over the finished seeds, comparison.csv, and the unfinished runs said to be unfinished."""
+from __future__ import annotations
+
+import csv
+import io
+import re
+import statistics
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from dashboard_data import RunShape, add_run  # noqa: E402
+
+ATTACKS, EPS, SEEDS = ("pgd", "apgd"), (8, 16, 32), (0, 1, 2)
+UNFINISHED = {("apgd", 32, 2): "running", ("apgd", 32, 1): "failed"}  # (attack, ε, seed) → status
+
+
+def _held_out_value(attack: str, eps: int, seed: int) -> float:
+    """The synthetic held-out adversarial accuracy: falls with ε, a little lower for apgd, varies by seed."""
+    return round(max(0.0, 0.9 - eps / 40 - (0.1 if attack == "apgd" else 0.0) + 0.05 * (seed - 1)), 4)
+
+
+@pytest.fixture(scope="module")
+def sweep(tmp_path_factory) -> dict:
+    from undream.store import open_store
+
+    root = tmp_path_factory.mktemp("sweep")
+    store = open_store(None, root / "blobs")
+    spec = {"name": "budget", "run": "runs/bin_park_pgd.yaml",
+            "grid": {"attack.name": list(ATTACKS), "attack.eps": list(EPS), "seed": list(SEEDS)}}
+    sweep_id = store.create_sweep("budget", spec)
+    rng = np.random.default_rng(0)
+    try:
+        for i, (attack, eps, seed) in enumerate((a, e, s) for a in ATTACKS for e in EPS for s in SEEDS):
+            status = UNFINISHED.get((attack, eps, seed), "done")
+            shape = RunShape(f"budget-{i:03d}", status, 4, 2, 2 if status == "done" else 1, attack=attack,
+                             eps=float(eps), sweep_id=sweep_id, holdout="auto", extra={"seed": seed})
+            run_id = add_run(store, shape, rng)
+            if status == "done":
+                results = store.get_run(run_id).results
+                results["held_out"]["adversarial"]["value"] = _held_out_value(attack, eps, seed)
+                store.set_results(run_id, results)
+    finally:
+        store.close()
+    out = root / "rep"
+    from undream.cli import main
+
+    res = CliRunner().invoke(main, ["report", "budget", "--out", str(out), "--blobs", str(root / "blobs")],
+                             env={"UNDREAM_DATABASE_URL": ""})
+    assert res.exit_code == 0, res.output
+    return {"out": out, "html": (out / "index.html").read_text()}
+
+
+def test_one_chart_per_metric_with_the_progress_in_its_title(sweep):
+    out, html = sweep["out"], sweep["html"]
+    for metric in ("attacked", "held_out", "success"):
+        assert f'src="compare_{metric}.png"' in html and (out / f"compare_{metric}.png").is_file()
+    assert not (out / "compare_held_out_conditions.png").exists()  # no run holds a condition out
+    assert "16 of 18 runs finished (1 failed, 1 running)" in html
+    from PIL import Image
+
+    with Image.open(out / "compare_held_out.png") as img:
+        assert img.width == 560 and img.height > 270  # the chart and the command under it
+
+
+def test_the_table_has_mean_and_sd_over_the_finished_seeds_per_cell(sweep):
+    html = sweep["html"]
+    table = html[html.index("<table id=comparison"):]
+    table = table[:table.index("</table>")]
+    rows = re.findall(r"<tr><td>(\w+)</td><td class=n>(\d+)</td>(.*?)</tr>", table)
+    assert [(a, int(e)) for a, e, _ in rows] == [(a, e) for a in ATTACKS for e in EPS]
+    for attack, eps, cells in rows:
+        seeds = [s for s in SEEDS if (attack, int(eps), s) not in UNFINISHED]
+        values = [100 * _held_out_value(attack, int(eps), s) for s in seeds]
+        held = re.findall(r"<td class=n>(.*?)</td>", cells)[1]  # attacked, held out, success
+        sd = f" ± {statistics.stdev(values):.1f}" if len(values) > 1 else ""
+        count = "3" if len(seeds) == 3 else f"{len(seeds)} of 3"
+        assert held == f"{statistics.fmean(values):.1f}{sd} % <span class=meta>({count})</span>", (attack, eps)
+
+
+def test_comparison_csv_has_every_seed(sweep):
+    rows = list(csv.DictReader(io.StringIO((sweep["out"] / "comparison.csv").read_text())))
+    held = {(r["series"], r["x"]): r for r in rows if r["metric"] == "held_out"}
+    assert len(held) == 6 and {r["x_axis"] for r in rows} == {"attack.eps"}
+    cell = held[("pgd", "16")]
+    assert [float(v) for v in cell["values"].split()] == [_held_out_value("pgd", 16, s) for s in SEEDS]
+    assert float(cell["min"]) == _held_out_value("pgd", 16, 0) and float(cell["max"]) == _held_out_value("pgd", 16, 2)
+    assert (held[("apgd", "32")]["n_seeds"], held[("apgd", "32")]["n_runs"]) == ("1", "3")
+
+
+def test_unfinished_runs_are_listed_with_their_status_and_no_page(sweep):
+    html, out = sweep["html"], sweep["out"]
+    assert "budget-017" in html and "running: no page (a page needs a finished run)" in html
+    assert "failed: no page" in html
+    assert len(list((out / "runs").iterdir())) == 16
+
+
+def test_a_sweep_of_seeds_only_is_one_cell(tmp_path):
+    from undream.report.compare import compare
+    from undream.store import open_store
+
+    store = open_store(None, tmp_path / "blobs")
+    spec = {"name": "seeds", "run": "r.yaml", "grid": {"seed": [0, 1]}}
+    sweep_id = store.create_sweep("seeds", spec)
+    rng = np.random.default_rng(0)
+    for s in (0, 1):
+        add_run(store, RunShape(f"seeds-{s}", "done", 4, 2, 2, sweep_id=sweep_id, holdout="auto",
+                                extra={"seed": s}), rng)
+    side = compare(store.find_sweep(sweep_id), store.runs(sweep_id=sweep_id))
+    store.close()
+    assert side.x_axis is None and side.seed_axes == ("seed",)
+    assert [(c.series, c.x, len(c.values)) for c in side.cells["held_out"]] == [("pgd", "all", 2)]
