@@ -100,6 +100,11 @@ def browser(tmp_path_factory):
 def test_the_transfer_table_has_a_row_per_evaluated_scene(report):
     table = _section(report["html"], "<table id=transfer", "</table>")
     assert table.count("<tr>") == 1 + 1 + 8 and "held_out_7.yaml" in table and table.count("<td>[1]</td>") == 8
+    from PIL import Image
+
+    assert 'src="transfer.png"' in report["html"]
+    with Image.open(report["out"] / "transfer.png") as chart:  # a pair of bars per row: taller with more rows
+        assert chart.width == 700 and chart.height > 100 * (0.9 + 0.24 * 9)
 
 
 def test_the_report_fits_the_window_and_six_screens(report, browser, tmp_path):

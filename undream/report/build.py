@@ -91,7 +91,8 @@ def run_files(data: RunData, command: str, back: str | None = None,
         "headline.csv": tables.to_csv(headline).encode(),
         "frames.csv": tables.to_csv(tables.frame_rows(data)).encode(),
         **({"conditions.csv": tables.to_csv(conditions).encode()} if conditions else {}),
-        **({"transfer.csv": tables.to_csv(csv_rows(moved)).encode()} if moved else {}),
+        **({"transfer.csv": tables.to_csv(csv_rows(moved)).encode(),
+            "transfer.png": charts.transfer_png(moved, command)} if moved else {}),
     }
 
 

@@ -8,6 +8,9 @@ Metric values are fractions in [0, 1], drawn as %; ε in 0–255 sRGB units.
 """
 from __future__ import annotations
 
+from pathlib import PurePath
+from typing import Any
+
 import numpy as np
 from PIL import Image, ImageDraw
 
@@ -16,9 +19,11 @@ from undream.report.pictures import texture_png as hatched_png
 from undream.report.data import RunData
 from undream.report.draw import INK, PAPER, caption_png, decode_png, encode_png, font, with_caption
 from undream.report.compare import Cell, Comparison, numeric_x
+from undream.report.tables import metric_name
 
 LOSS_UNITS = {"ce": "nats", "targeted_ce": "nats", "margin": "logits"}  # every other loss is unitless
 X_LABELS = {"attack.eps": "ε (0–255 sRGB units)"}
+TRANSFER_IN = (0.9, 0.24)  # the transfer chart's height in inches: axes and labels, and per row
 
 
 def made_by(command: str) -> str:
@@ -113,4 +118,35 @@ def compare_png(comparison: Comparison, metric: str, command: str) -> bytes:
                   fontsize=9)
     ax.set_title(f"{comparison.title(metric)} ({comparison.finished} of {comparison.total} runs finished)",
                  fontsize=10)
+    return caption_png(dash_charts.figure_png(fig), made_by(command))
+
+
+def _transfer_label(row: dict[str, Any], n: int) -> str:
+    """``this run`` or ``[n] scene (condition) · victim · sim`` with the scene's file name only."""
+    if n == 0:
+        return "this run"
+    scene = PurePath(str(row["scene"])).stem or str(row["scene"])
+    condition = f" ({row['condition']})" if row.get("condition") else ""
+    return f"[{n}] {scene}{condition} · {row['victim']} · {row['sim']}"
+
+
+def transfer_png(rows: list[dict[str, Any]], command: str) -> bytes:
+    """The transfer table's rows (:func:`undream.report.transfer.transfer_rows`) as grouped bars: per
+    row, benign and adversarial value (%) on all its frames, the run's own row first (at the top)."""
+    fig, ax = dash_charts.new_figure()
+    sources = list(dict.fromkeys(r["source"] for r in rows))
+    shown = [(r, (r.get("all") or (None, None, None))) for r in rows]
+    height = TRANSFER_IN[0] + TRANSFER_IN[1] * len(rows)
+    fig.set_size_inches(dash_charts.SIZE_IN[0] * 1.25, height)
+    fig.subplots_adjust(left=0.42, right=0.97, bottom=0.55 / height, top=1 - 0.3 / height)
+    ys = np.arange(len(shown))[::-1].astype(float)
+    for offset, side, color, name in ((0.19, 0, "#9a9a9a", "benign"), (-0.19, 1, dash_charts.COLORS[1], "adversarial")):
+        values = [100.0 * v[side] if v[side] is not None else np.nan for _, v in shown]  # none: no bar
+        ax.barh(ys + offset, values, height=0.36, color=color, label=name)
+    ax.set_yticks(ys, [_transfer_label(r, sources.index(r["source"])) for r, _ in shown], fontsize=7)
+    ax.yaxis.grid(False)
+    names = sorted({metric_name(r.get("metric")) for r in rows})
+    ax.set_xlim(0, 100)
+    ax.set_xlabel(f"{' / '.join(names)} on all frames (%)", fontsize=9)
+    ax.legend(fontsize=7, frameon=False, loc="lower right", ncols=2, bbox_to_anchor=(1.0, 1.0))
     return caption_png(dash_charts.figure_png(fig), made_by(command))

@@ -159,7 +159,10 @@ def run_body(data: RunData, headline: list[dict[str, Any]], unseen: str, command
         "and condition, victim, simulator and texture): benign → adversarial value and frames on every "
         "frame and on the frames a run would attack and hold out (its <code>--holdout</code>; the run's "
         'held-out frames are its held-out views and conditions together). <a href="transfer.csv">transfer.csv'
-        "</a>.</p>"]
+        "</a>.</p>",
+        figure("transfer.png", "benign and adversarial value per evaluation",
+               "Transfer at a glance: benign (grey) and adversarial (red) value on all frames of each row of the "
+               "table, the run's own first.", command)]
     return "".join([
         f"<h1>Run {escape(data.run.name)}</h1>", _meta(data),
         "<h2>Headline</h2>", headline_table(headline),
