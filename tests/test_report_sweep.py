@@ -98,6 +98,7 @@ def test_comparison_csv_has_every_seed(sweep):
 def test_unfinished_runs_are_listed_with_their_status_and_no_page(sweep):
     html, out = sweep["html"], sweep["out"]
     assert "budget-017" in html and "running: no page (a page needs a finished run)" in html
+    assert "<td>running (step 1/2)</td>" in html  # the results table: how far an unfinished run got
     assert "failed: no page" in html
     assert len(list((out / "runs").iterdir())) == 16
 
@@ -117,3 +118,21 @@ def test_a_sweep_of_seeds_only_is_one_cell(tmp_path):
     store.close()
     assert side.x_axis is None and side.seed_axes == ("seed",)
     assert [(c.series, c.x, len(c.values)) for c in side.cells["held_out"]] == [("pgd", "all", 2)]
+
+
+def test_a_sweep_with_no_finished_run_says_so(tmp_path):
+    from undream.cli import main
+    from undream.store import open_store
+
+    store = open_store(None, tmp_path / "blobs")
+    sweep_id = store.create_sweep("early", {"name": "early", "run": "r.yaml", "grid": {"attack.eps": [8, 16]}})
+    for i, eps in enumerate((8, 16)):
+        add_run(store, RunShape(f"early-{i}", "running", 4, 3, 1, eps=float(eps), sweep_id=sweep_id),
+                np.random.default_rng(i))
+    store.close()
+    res = CliRunner().invoke(main, ["report", "early", "--out", str(tmp_path / "rep"), "--blobs",
+                                    str(tmp_path / "blobs")], env={"UNDREAM_DATABASE_URL": ""})
+    assert res.exit_code == 0, res.output
+    html = (tmp_path / "rep" / "index.html").read_text()
+    assert "0 of 2 runs finished (2 running)" in html and "No run of this sweep has finished yet" in html
+    assert "<img" not in html and html.count("<td>running (step 1/3)</td>") == 2

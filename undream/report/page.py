@@ -196,8 +196,10 @@ def _arrow(row: Mapping[str, Any], prefix: str) -> str:
 
 
 def compact_rows(rows: list[dict[str, Any]], grid: list[str]) -> list[dict[str, Any]]:
-    """The results table as shown on the page: benign → adversarial per split in one cell each."""
-    return [{"run": r["run"], "name": r["name"], **{k: r.get(k) for k in grid}, "status": r["status"],
+    """The results table as shown on the page: benign → adversarial per split in one cell each, an
+    unfinished run's status with the attack steps it took."""
+    return [{"run": r["run"], "name": r["name"], **{k: r.get(k) for k in grid},
+             "status": r["status"] if r["status"] == "done" else f"{r['status']} (step {r.get('steps_done')})",
              "metric": metric_name(r.get("metric")) if r.get("metric") else None,
              "attacked: benign → adv.": _arrow(r, "attacked_"), "held-out: benign → adv.": _arrow(r, "held_out_"),
              "held-out success": r.get("held_out_success_rate"), "final loss": r.get("final_loss")}
@@ -223,8 +225,6 @@ def _spread(cell: Cell) -> str:
 
 def comparison_table(side: Comparison) -> str:
     """One row per cell (series, x), one column per metric: mean ± sample sd over seeds (seeds)."""
-    if not side.cells:
-        return "<p class=meta>(no run of this sweep has finished yet)</p>"
     metrics = list(side.cells)
     head = "".join(f"<th>{escape(side.title(m))}</th>" for m in metrics)
     x_name = escape(side.x_axis or "")
@@ -239,19 +239,22 @@ def comparison_table(side: Comparison) -> str:
 
 def _compare_section(side: Comparison, command: str) -> list[str]:
     seeds = " and ".join(side.seed_axes) or "none (one run per cell: no spread)"
+    status = [f"<h2>Runs side by side</h2><p class=meta>{escape(progress(side))} x: "
+              f"{escape(side.x_axis or '(none)')}; series: {escape(', '.join(side.series_axes) or 'the attack')}; "
+              f"seeds (the spread): {escape(seeds)}.</p>"]
+    if not side.cells:
+        return status + ["<p class=meta>No run of this sweep has finished yet: its charts and table come with the "
+                         "first finished run.</p>"]
     charts = "".join(
         figure(f"compare_{m}.png", side.title(m),
                f"{escape(side.title(m))} (%) per cell: the mean over seeds (line), min–max (bar) and each seed "
                "(dot); grey dashed: the benign value (mean over the finished runs).", command)
         for m in side.cells)
-    return ["<h2>Runs side by side</h2>",
-            f"<p class=meta>{escape(progress(side))} x: {escape(side.x_axis or '(none)')}; series: "
-            f"{escape(', '.join(side.series_axes) or 'the attack')}; seeds (the spread): {escape(seeds)}.</p>",
-            f"<div class=charts>{charts}</div>" if charts else "",
-            comparison_table(side),
-            "<p class=meta>Each cell: mean ± one sample standard deviation over its seeds, in %, and (the seeds: "
-            "its finished runs, of its runs when some have not finished). Every cell with its min, max and "
-            'values: <a href="comparison.csv">comparison.csv</a>.</p>']
+    return status + [
+        f"<div class=charts>{charts}</div>", comparison_table(side),
+        "<p class=meta>Each cell: mean ± one sample standard deviation over its seeds, in %, and (the seeds: "
+        "its finished runs, of its runs when some have not finished). Every cell with its min, max and "
+        'values: <a href="comparison.csv">comparison.csv</a>.</p>']
 
 
 def sweep_body(sweep: Any, rows: list[dict[str, Any]], side: Comparison, links: Mapping[str, str],

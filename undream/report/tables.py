@@ -103,7 +103,8 @@ def frame_rows(data: RunData) -> list[dict[str, Any]]:
 
 
 def sweep_rows(sweep: "SweepSnapshot", runs: list["RunSnapshot"]) -> list[dict[str, Any]]:
-    """One row per run of the sweep (:func:`scheduler.query.result_rows`), with the split numbers added."""
+    """One row per run of the sweep (:func:`scheduler.query.result_rows`), with the split numbers and the
+    attack steps taken (``steps_done``, k/N) added."""
     rows = result_rows(sweep.spec, runs)
     for row, run in zip(rows, runs):
         res = run.results or {}
@@ -112,6 +113,7 @@ def sweep_rows(sweep: "SweepSnapshot", runs: list["RunSnapshot"]) -> list[dict[s
             row[f"{split}_benign"] = _value(block.get("benign"))
             row[f"{split}_adversarial"] = _value(block.get("adversarial"))
         row["held_out_success_rate"] = ((res.get("held_out") or {}).get("attack_success") or {}).get("success_rate")
+        row["steps_done"] = f"{run.iteration}/{run.run_config.attack.steps}"  # attack steps taken
     return rows
 
 
