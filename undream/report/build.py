@@ -17,7 +17,7 @@ import tempfile
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Callable
 
 from undream.errors import SpecError
 from undream.spec.io import naming
@@ -101,10 +101,11 @@ def run_dir(run: "RunSnapshot") -> str:
     return f"runs/{run.name if SAFE_NAME.match(run.name) else run.id}"
 
 
-def sweep_files(store: "Store", sweep: "SweepSnapshot", runs: list["RunSnapshot"],
-                loaded: dict[str, RunData], command: str) -> dict[str, bytes]:
+def sweep_files(sweep: "SweepSnapshot", runs: list["RunSnapshot"], load: Callable[["RunSnapshot"], RunData],
+                command: str) -> dict[str, bytes]:
     """A sweep's report files: its page, results.csv, the runs side by side (a chart per metric,
-    comparison.csv), one folder per finished run."""
+    comparison.csv), one folder per finished run (``load``: its data, read one run at a time and
+    dropped once drawn, so that a sweep of many runs holds one run's frames at a time)."""
     rows = tables.sweep_rows(sweep, runs)
     side = compare(sweep, runs)
     files = {"results.csv": tables.to_csv(rows).encode(),
@@ -112,11 +113,11 @@ def sweep_files(store: "Store", sweep: "SweepSnapshot", runs: list["RunSnapshot"
              **{f"compare_{metric}.png": charts.compare_png(side, metric, command) for metric in side.cells}}
     links = {}
     for run, row in zip(runs, rows):
-        if run.id in loaded:
+        if run.status == "done":
             folder = run_dir(run)
             links[row["run"]] = f"{folder}/index.html"
             files.update({f"{folder}/{name}": data
-                          for name, data in run_files(loaded[run.id], command, "../../index.html").items()})
+                          for name, data in run_files(load(run), command, "../../index.html").items()})
     files["index.html"] = page.document(f"undream report: sweep {sweep.name}",
                                         page.sweep_body(sweep, rows, side, links, command)).encode()
     return files
@@ -135,8 +136,7 @@ def _load(target: Target, work: Path, command: str) -> dict[str, bytes]:
             raise SpecError(f"--evaluation: shown beside one run's numbers; {target.sweep.name!r} is a sweep "
                             "(report one of its runs by id)")
         runs = target.store.runs(sweep_id=target.sweep.id)
-        loaded = {r.id: load_run(target.store, r, finder) for r in runs if r.status == "done"}
-        return sweep_files(target.store, target.sweep, runs, loaded, command)
+        return sweep_files(target.sweep, runs, partial(load_run, target.store, seen_of=finder), command)
     finally:
         finder.close()
 
