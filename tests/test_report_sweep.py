@@ -136,3 +136,23 @@ def test_a_sweep_with_no_finished_run_says_so(tmp_path):
     html = (tmp_path / "rep" / "index.html").read_text()
     assert "0 of 2 runs finished (2 running)" in html and "No run of this sweep has finished yet" in html
     assert "<img" not in html and html.count("<td>running (step 1/3)</td>") == 2
+
+
+def test_a_grid_without_eps_puts_its_last_field_along_x_in_grid_order(tmp_path):
+    from undream.report.charts import compare_png
+    from undream.report.compare import compare, numeric_x
+    from undream.store import open_store
+
+    store = open_store(None, tmp_path / "blobs")
+    spec = {"name": "losses", "run": "r.yaml", "grid": {"attack.name": ["pgd", "mifgsm"], "loss": ["margin", "ce"]}}
+    sweep_id = store.create_sweep("losses", spec)
+    for attack in ("pgd", "mifgsm"):
+        for loss in ("margin", "ce"):
+            add_run(store, RunShape(f"l-{attack}-{loss}", "done", 4, 2, 2, attack=attack, sweep_id=sweep_id,
+                                    holdout="auto", extra={"loss": loss}), np.random.default_rng(0))
+    side = compare(store.find_sweep(sweep_id), store.runs(sweep_id=sweep_id))
+    store.close()
+    assert (side.x_axis, side.series_axes, side.seed_axes) == ("loss", ("attack.name",), ())
+    assert [(c.series, c.x) for c in side.cells["attacked"]] == [
+        ("pgd", "margin"), ("pgd", "ce"), ("mifgsm", "margin"), ("mifgsm", "ce")]
+    assert not numeric_x(side) and compare_png(side, "attacked", "undream report losses").startswith(b"\x89PNG")
