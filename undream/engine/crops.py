@@ -7,6 +7,12 @@ light in this render, the object in the frame's mask, a window over at most
 half the frame. Elsewhere, and with ``crop: off``, the frame is rendered whole
 as before. The final evaluation always renders whole frames.
 
+``media: auto`` (the default) renders the window of a frame whose simulation
+scene holds a medium (fog, rain's and snow's haze) without it, through the
+frame's gradient scene, mapped into the medium's look (:mod:`undream.render.media`;
+the image gradient scaled by the same ``α``, :meth:`CropFrames.scale_gradient`);
+``media: exact`` path traces the medium in every window.
+
 A base is rendered once per process, scene, frame and samples per pixel (kept
 beside the loaded scenes, so the runs of a sweep that a worker serves share
 them), with the scene directory's own texture and a seed of the frame alone.
@@ -22,6 +28,7 @@ from undream.engine.seeds import frame_seed
 from undream.render.crop import PAD, Window, composite, crop_window
 from undream.render.differentiable import render_linear
 from undream.render.loading import read_texture_srgb
+from undream.render.media import MediumModel, fit_medium, render_clear, scale_gradient, sigma_t_of
 from undream.scenedir.verify import read_mask
 
 BASE_ITERATION = 10**6 + 1  # the bases' seeds never coincide with an attack's or an evaluation's render
@@ -34,6 +41,7 @@ class CropFrames:
 
     ctx: Any  # the RunContext
     _windows: dict[int, Window | None] = field(default_factory=dict)
+    _media: dict[tuple[int, int], MediumModel | None] = field(default_factory=dict)  # (index, spp) → model
 
     @property
     def enabled(self) -> bool:
@@ -56,15 +64,52 @@ class CropFrames:
         base = self.base(index, spp)
         h, w = base.shape[:2]
         rendered = window.grown(PAD, h, w)
+        model = self.medium(index, spp)
+        if model is not None:
+            change = model.window(render_clear(self.ctx.scenes, index, model, texture, spp))
+            return composite(base, window, base[rendered.slices] + change, rendered)
         crop = render_linear(self.ctx.scenes, index, texture, spp, seed, window=rendered)
         return composite(base, window, crop, rendered)
+
+    def medium(self, index: int, spp: int) -> MediumModel | None:
+        """Frame ``index``'s medium model at ``spp`` (fitted once per process), or None where its
+        window is path traced as it is: ``media: exact``, no medium, no window."""
+        if self.ctx.config.media != "auto" or not self.enabled:
+            return None
+        key = (index, spp)
+        if key not in self._media:
+            window = self.window(index)
+            sigma_t = sigma_t_of(self._frame(index).environment)
+            if window is None or sigma_t is None:
+                self._media[key] = None
+            else:
+                base = self.base(index, spp)
+                rendered = window.grown(PAD, *base.shape[:2])
+                self._media[key] = fit_medium(self.ctx.scenes, index, rendered, self._texture(), sigma_t, spp,
+                                              frame_seed(BASE_SEED, BASE_ITERATION, index))
+        return self._media[key]
+
+    def scale_gradient(self, index: int, spp: int, grad_linear_image: np.ndarray, conditions: Any = None) -> np.ndarray:
+        """d(loss)/d(linear frame) carried to the gradient scene's image: unchanged, or where the
+        frame's window was mapped into its medium, ``α`` times it inside the window and 0 outside."""
+        model = self.medium(index, spp) if conditions is None else None
+        window = self.window(index) if model is not None else None
+        if model is None or window is None:
+            return grad_linear_image
+        return scale_gradient(model, window, grad_linear_image)
+
+    def _frame(self, index: int) -> Any:
+        return next(f for f in self.ctx.sequence.frames if f.index == index)
+
+    def _texture(self) -> np.ndarray:
+        return read_texture_srgb(self.ctx.scenes.mi, self.ctx.scene_dir / "textures" /
+                                 f"{self.ctx.sequence.texture.name}.exr")
 
     def base(self, index: int, spp: int) -> np.ndarray:
         """Frame ``index`` rendered whole with the scene's own texture at ``spp`` (once per process)."""
         scenes = self.ctx.scenes
         key = (index, spp)
         if key not in scenes.bases:
-            texture = read_texture_srgb(scenes.mi, self.ctx.scene_dir / "textures" /
-                                        f"{self.ctx.sequence.texture.name}.exr")
-            scenes.bases[key] = render_linear(scenes, index, texture, spp, frame_seed(BASE_SEED, BASE_ITERATION, index))
+            scenes.bases[key] = render_linear(scenes, index, self._texture(), spp,
+                                              frame_seed(BASE_SEED, BASE_ITERATION, index))
         return scenes.bases[key]

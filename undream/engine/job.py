@@ -185,7 +185,7 @@ def render_and_grad_many(ctx: RunContext, positions: Sequence[int], texture: np.
     out = []
     for i, (index, seed, cond) in enumerate(zip(indices, seeds, conditions)):
         t0 = time.perf_counter()
-        g_linear = srgb_encode_grad(linear[i], g_images[i])
+        g_linear = ctx.crops.scale_gradient(index, cfg.sim_spp, srgb_encode_grad(linear[i], g_images[i]), cond)
         grad = ctx.gradients.texture_gradient(index, texture, g_linear, cfg.grad_spp, iteration, seed, cond)
         t_grad = time.perf_counter() - t0
         # A NaN in the victim's image gradient must not hide behind the renderer: Mitsuba's
