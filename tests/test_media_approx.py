@@ -17,7 +17,7 @@ from undream.engine.context import build_context
 from undream.engine.crops import BASE_ITERATION, BASE_SEED
 from undream.engine.job import frame_seed
 from undream.render.differentiable import render_linear
-from undream.render.media import fit_gain, transmittance
+from undream.render.media import fit_gain, nearest_within, transmittance
 from undream.scene.poses import look_at
 from undream.scenedir.init import InitOptions, init_scene
 from undream.spec import Asset, Camera, Environment, Frame, Sequence, TextureParam, Transform
@@ -128,7 +128,7 @@ def test_exact_and_clear_scenes_keep_volpath_windows(scene_dir, victim_dir, tmp_
     assert _context(clear, victim_dir).crops.medium(0, 4) is None
 
 
-def test_fit_gain_and_transmittance():
+def test_fit_gain_transmittance_and_the_rim_distance():
     rng = np.random.default_rng(3)
     dg = rng.random((6, 5, 3))
     trans = transmittance(rng.uniform(1, 30, (6, 5)), 0.05)
@@ -136,6 +136,9 @@ def test_fit_gain_and_transmittance():
     assert np.allclose(fit_gain(dv, dg, trans), (0.4, 0.5, 0.6))
     assert fit_gain(dv, np.zeros_like(dg), trans) == (1.0, 1.0, 1.0)
     assert transmittance(np.array([np.inf]), 0.1)[0] == 0.0
+    d = np.full((6, 6), np.inf)
+    d[3, 3] = 4.0  # the object in one pixel: its rim within the filter's reach takes its distance
+    assert nearest_within(d, 2)[1, 1] == 4.0 and nearest_within(d, 2)[0, 0] == np.inf
 
 
 def test_bad_media_value_is_one_line_naming_the_field(scene_dir):

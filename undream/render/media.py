@@ -13,7 +13,9 @@ gradient back) and mapped into the medium's look by a per-pixel affine model::
 ``G`` the gradient scene's window rendered at one fixed seed (so the base
 texture reproduces ``V_base`` exactly), and ``α = k · T(d)``: ``T(d) =
 exp(−σt · d)`` the medium's transmittance over the camera-to-surface distance
-``d`` of each pixel (rays cast into the gradient scene), ``k`` (per colour
+``d`` of each pixel (rays cast into the gradient scene through pixel centres; the
+nearest within the film filter's reach, so that the object's rim pixels take
+the object's distance), ``k`` (per colour
 channel) the ratio of the light on the object in the medium to the
 gradient scene's direct light, fitted once per frame by least squares from two
 volpath renders of the window (the base texture and a black one) against the
@@ -35,6 +37,7 @@ from undream.scene import environment
 from undream.spec import Environment
 
 MODES = ("auto", "exact")
+FILTER_REACH = 2  # px: the film's gaussian filter spreads a sample this far (undream.render.crop.PAD)
 REACH = 1e-4  # |G_base − G_black| (linear) above which a pixel counts as reached by the texture in the fit
 
 
@@ -58,6 +61,14 @@ def transmittance(distance: np.ndarray, sigma_t: float) -> np.ndarray:
     """``exp(−σt · d)`` for distances in metres (inf: 0), extinction ``sigma_t`` in 1/m."""
     d = np.asarray(distance, np.float64)
     return np.where(np.isfinite(d), np.exp(-float(sigma_t) * np.where(np.isfinite(d), d, 0.0)), 0.0)
+
+
+def nearest_within(distance: np.ndarray, px: int) -> np.ndarray:
+    """The least of ``distance`` (h×w) within ``px`` pixels of each pixel: the object's distance on its
+    rim, where a pixel centre sees what lies behind but the filter brings the object's samples in."""
+    from scipy.ndimage import minimum_filter
+
+    return minimum_filter(np.asarray(distance, np.float64), size=2 * px + 1, mode="nearest")
 
 
 def camera_distance(scenes: SceneCache, index: int, window: Window) -> np.ndarray:
@@ -102,7 +113,7 @@ def fit_medium(scenes: SceneCache, index: int, rendered: Window, texture_srgb: n
     v_black = render_linear(scenes, index, black, spp, seed, window=rendered)
     g_base = render_linear(scenes, index, texture_srgb, spp, seed, kind="grad", window=rendered)
     g_black = render_linear(scenes, index, black, spp, seed, kind="grad", window=rendered)
-    trans = transmittance(camera_distance(scenes, index, rendered), sigma_t)
+    trans = transmittance(nearest_within(camera_distance(scenes, index, rendered), FILTER_REACH), sigma_t)
     gain = fit_gain(v_base - v_black, g_base - g_black, trans)
     alpha = (trans[..., None] * np.asarray(gain, np.float64)).astype(np.float32)
     return MediumModel(rendered, alpha, g_base, seed, gain)

@@ -53,6 +53,10 @@ class RunConfig:
     attack and the evaluation (a job's frames in order; results agree to float
     rounding whatever the batches). ``conditions``: attack one texture over
     several scenes of the object at once (:class:`ConditionsConfig`).
+    ``media``: with the crop, ``auto`` renders an attack window in fog, rain or
+    snow without the medium and maps it into the medium's look
+    (:mod:`undream.render.media`), ``exact`` path traces the medium; the
+    evaluation renders whole frames with the medium either way.
     """
 
     scene: str
