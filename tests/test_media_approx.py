@@ -48,9 +48,12 @@ def _context(scene_dir, victim_dir, **kw):
     return build_context(cfg, scene_dir)
 
 
-def _reached(model) -> np.ndarray:
-    """The rendered window's pixels the texture reaches in the gradient scene (α's support)."""
-    return (np.abs(model.g_base) > 0).any(axis=2)
+def _reached(ctx, index: int, model) -> np.ndarray:
+    """The rendered window's pixels the texture reaches in the gradient scene: where a black texture
+    changes its render (the object and the filter's reach around it)."""
+    black = render_linear(ctx.scenes, index, np.zeros((8, 16, 3), np.float32), 4, model.seed, kind="grad",
+                          window=model.rendered)
+    return (black != model.g_base).any(axis=2)
 
 
 def test_with_the_base_texture_the_composite_is_the_base(scene_dir, victim_dir):
@@ -73,7 +76,9 @@ def test_the_map_changes_only_what_the_texture_reaches(scene_dir, victim_dir):
     frame = ctx.crops.render(0, texture, 4, 777)
     model = ctx.crops.medium(0, 4)
     far = np.ones(frame.shape[:2], bool)
-    far[model.rendered.slices] = ~_reached(model)
+    reached = _reached(ctx, 0, model)
+    assert 0 < reached.mean() < 0.8, reached.mean()  # the sphere and its rim, not the ground around it
+    far[model.rendered.slices] = ~reached
     assert np.array_equal(frame[far], base[far])
     exact = render_linear(ctx.scenes, 0, texture, 4, frame_seed(BASE_SEED, BASE_ITERATION, 0))
     outside = np.ones(frame.shape[:2], bool)

@@ -57,7 +57,9 @@ class CropFrames:
 
     def render(self, index: int, texture: np.ndarray, spp: int, seed: int, conditions: Any = None) -> np.ndarray:
         """Frame ``index`` with ``texture`` (sRGB H×W×3) as the victim sees it this iteration:
-        H×W×3 linear radiance, the window rendered with ``seed`` on the base, or the whole frame."""
+        H×W×3 linear radiance, the window rendered with ``seed`` on the base, or the whole frame; in a
+        medium with ``media: auto``, the window mapped from the gradient scene's at the frame's own
+        fixed seed (:meth:`medium`; ``seed`` unused)."""
         window = self.window(index) if self.enabled and conditions is None else None
         if window is None:
             return self.ctx.sim.render(index, texture, spp, seed, conditions=conditions)
