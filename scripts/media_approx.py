@@ -1,10 +1,13 @@
 #!/usr/bin/env python
 """What ``media: auto`` costs and how close it looks: mapped windows against volpath, per weather.
 
-    .venv/bin/python scripts/media_approx.py [--case NAME,SPEC,TEXTURE,VICTIM,LOSS ...] [--every 3]
+    .venv/bin/undream run examples/runs/bin_orbit_snow.yaml --out build/media_approx/bin_snow_auto
+    .venv/bin/python scripts/media_approx.py [--case NAME,SPEC[@WEATHER],TEXTURE,VICTIM,LOSS ...] [--every 3]
 
-For each case (a scene spec with a medium: fog, rain or snow; an attacked sRGB
-texture ``.npy``; the victim and its loss), on every ``--every``-th frame, at
+For each case (a scene spec with a medium: fog, rain or snow, or ``@WEATHER``
+to set one; an attacked sRGB texture ``.npy``: by default the stop sign's of
+``examples/runs/stop_sign_main.yaml`` at /tmp/mj/b, and the bin's of the run
+above; the victim and its loss), on every ``--every``-th frame, at
 ``--spp`` samples per pixel, medians of ``--reps`` renders after a warm-up:
 
 - seconds per window (the crop's window, composited on the base) and per whole
@@ -42,7 +45,7 @@ STOP_TEXTURE = "/tmp/mj/b/texture_final.npy"
 DEFAULT_CASES = (
     f"stop_fog,examples/conditions_stop/stop_sign_fog.yaml,{STOP_TEXTURE},coco:centernet@256,vanish",
     f"stop_rain,examples/conditions_stop/stop_sign_rain.yaml,{STOP_TEXTURE},coco:centernet@256,vanish",
-    "bin_snow,build/media_approx/bin_orbit_snow.yaml,build/media_approx/bin_snow_auto/texture_final.npy,"
+    "bin_snow,examples/bin_orbit.yaml@snow,build/media_approx/bin_snow_auto/texture_final.npy,"
     "bundled:classifier-v3,ce",
 )
 
@@ -77,14 +80,14 @@ def timed(fn, reps: int) -> tuple[float, object]:
     return statistics.median(times), out
 
 
-def clear_spec(spec: Path, work: Path) -> Path:
-    """``spec`` with ``environment.weather: clear``, written under ``work`` (relative file paths made absolute)."""
+def weather_spec(spec: Path, weather: str, work: Path) -> Path:
+    """``spec`` with ``environment.weather: WEATHER``, written under ``work`` (relative file paths made absolute)."""
     from undream.spec.io import read_yaml
     import yaml
 
     data = read_yaml(spec)
-    data["environment"] = {**data.get("environment", {}), "weather": "clear"}
-    data["name"] = f"{data['name']}_clear"
+    data["environment"] = {**data.get("environment", {}), "weather": weather}
+    data["name"] = f"{data['name']}_{weather}"
     tex = data.get("object", {}).get("asset", {}).get("texture", {})
     if isinstance(tex.get("init"), str) and not os.path.isabs(tex["init"]):
         tex["init"] = str((spec.parent / tex["init"]).resolve())
@@ -173,7 +176,7 @@ def measure_case(name: str, spec: Path, texture_path: Path, victim: str, loss: s
     scenes.close()
     del ctx, scenes, crops
     gc.collect()
-    clear_dir = resolve_scene(config(clear_spec(spec, work)), work / f"{name}_clear", ROOT, reuse=True)
+    clear_dir = resolve_scene(config(weather_spec(spec, "clear", work)), work / f"{name}_clear", ROOT, reuse=True)
     cctx = build_context(config(clear_dir), clear_dir, victim=victim_model)
     for row in rows:
         index = row["index"]
@@ -224,7 +227,11 @@ def main(argv: list[str] | None = None) -> int:
     all_rows, lines = [], []
     for case in args.case or DEFAULT_CASES:
         name, spec, tex, victim, loss = case.split(",")
-        rows = measure_case(name, (ROOT / spec).resolve(), (ROOT / tex).resolve(), victim, loss, args, work)
+        spec, _, weather = spec.partition("@")
+        spec_path = (ROOT / spec).resolve()
+        if weather:
+            spec_path = weather_spec(spec_path, weather, work)
+        rows = measure_case(name, spec_path, (ROOT / tex).resolve(), victim, loss, args, work)
         all_rows += rows
         lines += summary(rows)
         print(f"load average after {name}: {' '.join(f'{x:.2f}' for x in os.getloadavg())}", flush=True)
