@@ -156,3 +156,13 @@ def test_a_grid_without_eps_puts_its_last_field_along_x_in_grid_order(tmp_path):
     assert [(c.series, c.x) for c in side.cells["attacked"]] == [
         ("pgd", "margin"), ("pgd", "ce"), ("mifgsm", "margin"), ("mifgsm", "ce")]
     assert not numeric_x(side) and compare_png(side, "attacked", "undream report losses").startswith(b"\x89PNG")
+
+
+def test_a_series_with_no_finished_run_is_left_out_of_its_chart():
+    from undream.report.charts import compare_png
+    from undream.report.compare import Cell, Comparison
+
+    cells = [Cell("pgd", 16, "held_out", (0.5, 0.25), 3), Cell("apgd", 16, "held_out", (), 3)]
+    side = Comparison("attack.eps", ("attack.name",), ("seed",), "ap50", {"held_out": cells}, {},
+                      {"done": 2, "running": 4})
+    assert compare_png(side, "held_out", "undream report s").startswith(b"\x89PNG")

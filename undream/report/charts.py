@@ -94,6 +94,8 @@ def compare_png(comparison: Comparison, metric: str, command: str) -> bytes:
     for i, ((name, cells), color) in enumerate(zip(by_series.items(), dash_charts.COLORS * 4)):
         shift = 0.012 * span * (i - (len(by_series) - 1) / 2)  # series side by side, not on top of each other
         pts = [c for c in cells if c.values]
+        if not pts:
+            continue  # no run of this series has finished
         xs = [(float(c.x) if numeric else ticks.index(c.x)) + shift for c in pts]
         means = [100.0 * c.mean for c in pts]  # type: ignore[operator]
         bars = [[m - 100.0 * min(c.values) for m, c in zip(means, pts)],
