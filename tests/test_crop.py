@@ -157,7 +157,9 @@ def test_a_run_renders_windows_in_its_iterations_and_whole_frames_in_its_evaluat
     again = run_local(_config(scene_dir, victim_dir), tmp_path / "again", progress=False)
     assert np.array_equal(np.load(tmp_path / "crop" / "texture_final.npy"),
                           np.load(tmp_path / "again" / "texture_final.npy"))
-    assert again["loss_per_iteration"] == res["loss_per_iteration"]
+    # the film sums samples with parallel atomics: losses agree to float32 rounding, not bit for bit
+    # (docs/runs.md, "Reproducibility"); exact equality failed about one run in three
+    assert np.allclose(again["loss_per_iteration"], res["loss_per_iteration"], rtol=1e-6, atol=0)
 
 
 @pytest.mark.parametrize("extra", [{"crop": "off"}, {"eot": {"camera_turn_deg": 2.0}}], ids=["off", "eot"])
