@@ -139,7 +139,7 @@ from undream.cli import main
 
 real_freeze, sent = dr.freeze, []
 
-def freeze(fn):
+def freeze(fn, **options):
     def recorded(*args, **kwargs):
         if not sent:
             sent.append(1)
@@ -147,7 +147,7 @@ def freeze(fn):
             os.kill(os.getpid(), signal.{signal})
             sum(range(1000))  # bytecode for the handler to run in, inside the recording
         return fn(*args, **kwargs)
-    return real_freeze(recorded)
+    return real_freeze(recorded, **options)
 
 dr.freeze = freeze
 sys.argv = ["undream", *sys.argv[1:]]
