@@ -137,6 +137,10 @@ import os, signal, sys
 import drjit as dr
 from undream.cli import main
 
+# The command takes SIGHUP only where it is not ignored (under nohup it is, and stays so, rightly):
+# the test runs it as a shell would, with the default disposition, whatever ran the suite.
+signal.signal(signal.SIGHUP, signal.SIG_DFL)
+
 real_freeze, sent = dr.freeze, []
 
 def freeze(fn, **options):

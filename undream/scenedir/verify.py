@@ -13,6 +13,7 @@ from typing import Any, Iterator
 import numpy as np
 from PIL import Image, ImageDraw
 
+from undream import interrupts
 from undream.color import linear_to_srgb, to_uint8
 from undream.errors import SpecError
 from undream.render.differentiable import render_frozen
@@ -56,6 +57,9 @@ def render_frames(mi: ModuleType, scene_dir: Path, indices: list[int], spp: int,
                 white[shape] = mi.TensorXf(np.ones(shape, dtype=np.float32))
             img = render_frozen(scenes, "sim", scenes.frame("sim", index, texture=white[shape]), spp, 0)
             cover = render_frozen(scenes, "mask", scenes.frame("mask", index), spp, 0)
+            # a signal whose exception was dropped on its way out (raised in a callback Dr.Jit or
+            # Python swallowed) ends the init here: tests/test_interrupts.py saw `init` finish with 0
+            interrupts.check()
             yield index, img, cover.mean(axis=2) > 0.5
     finally:
         scenes.close()
