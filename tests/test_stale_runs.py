@@ -149,7 +149,8 @@ JOB_INDEXES = ["ix_frame_jobs_failed", "ix_frame_jobs_run_k_status"]
 @pytest.mark.parametrize("backend", ["sqlite", "postgresql"])
 def test_an_older_database_is_upgraded_in_place(backend, version, tmp_path):
     """A database undream wrote with schema 2 (no leases) or 3 (no list indexes, no alembic) opens
-    as schema 4: columns added by the hand-written step, indexes by alembic's revision 0004."""
+    as schema 5: columns added by the hand-written step, indexes by alembic's revision 0004, the
+    iterations' terms column by 0005."""
     drop = None
     if backend == "sqlite":
         url = f"sqlite:///{tmp_path / 'old.db'}"
@@ -171,6 +172,7 @@ def _downgrade_and_reopen(url: str, tmp_path: Path, version: int) -> None:
                 conn.execute(text(f"DROP INDEX {name}"))
             conn.execute(text("DROP TABLE alembic_version"))
             conn.execute(text("DROP TABLE blobs"))
+            conn.execute(text("ALTER TABLE iterations DROP COLUMN terms_json"))
             if version == 2:
                 conn.execute(text("ALTER TABLE runs DROP COLUMN owner"))
                 conn.execute(text("ALTER TABLE runs DROP COLUMN heartbeat"))
@@ -178,17 +180,41 @@ def _downgrade_and_reopen(url: str, tmp_path: Path, version: int) -> None:
             conn.execute(text(f"INSERT INTO undream_schema (version) VALUES ({version})"))
     with open_store(url, tmp_path / "blobs") as s:
         with s.engine.connect() as conn:
-            assert conn.scalar(text("SELECT max(version) FROM undream_schema")) == 4
-            assert conn.scalar(text("SELECT version_num FROM alembic_version")) == "0004"
+            assert conn.scalar(text("SELECT max(version) FROM undream_schema")) == 5
+            assert conn.scalar(text("SELECT version_num FROM alembic_version")) == "0005"
         assert LIST_INDEXES <= {ix["name"] for ix in inspect(s.engine).get_indexes("runs")}
         assert set(JOB_INDEXES) <= {ix["name"] for ix in inspect(s.engine).get_indexes("frame_jobs")}
         assert "blobs" in inspect(s.engine).get_table_names()
+        assert "terms_json" in {c["name"] for c in inspect(s.engine).get_columns("iterations")}
         run = s.get_run(run_id)
         assert (run.name, run.config, run.owner, run.heartbeat) == ("old", {"a": 1}, None, None)
         assert s.claim(run_id, "h:1") and s.get_run(run_id).owner == "h:1"
     with open_store(url, tmp_path / "blobs") as s:  # opened again: nothing left to do
         with s.engine.connect() as conn:
-            assert conn.scalar(text("SELECT count(*) FROM undream_schema WHERE version = 4")) == 1
+            assert conn.scalar(text("SELECT count(*) FROM undream_schema WHERE version = 5")) == 1
+
+
+def test_a_schema_4_database_gains_the_terms_column(tmp_path):
+    """Schema 4 (alembic 0004, no iterations.terms_json) opens as 5; its steps read back without terms."""
+    url = f"sqlite:///{tmp_path / 'v4.db'}"
+    with open_store(url, tmp_path / "blobs") as s:
+        run_id = s.create_run("old", {"a": 1}, n_frames=2, seed=3)
+        T = np.zeros((2, 2, 3), np.float32)
+        s.put_texture(run_id, 0, T)
+        assert s.advance(run_id, 0, T, {}, {"loss_mean": 1.5})
+        with s.engine.begin() as conn:
+            conn.execute(text("ALTER TABLE iterations DROP COLUMN terms_json"))
+            conn.execute(text("UPDATE alembic_version SET version_num = '0004'"))
+            conn.execute(text("DELETE FROM undream_schema"))
+            conn.execute(text("INSERT INTO undream_schema (version) VALUES (4)"))
+    with open_store(url, tmp_path / "blobs") as s:
+        with s.engine.connect() as conn:
+            assert conn.scalar(text("SELECT version_num FROM alembic_version")) == "0005"
+        (rec,) = s.iterations(run_id)
+        assert (rec.loss_mean, rec.terms) == (1.5, {})
+        T1 = np.ones((2, 2, 3), np.float32)
+        assert s.advance(run_id, 1, T1, {}, {"loss_mean": 1.0, "terms": {"reg_tv": 0.25}})
+        assert s.iterations(run_id)[1].terms == {"reg_tv": 0.25}
 
 
 # -- end to end: SIGKILL, status, resume ------------------------------------------------------------

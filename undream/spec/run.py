@@ -17,6 +17,7 @@ from undream.spec import _check as c
 from undream.spec.attack import AttackConfig
 from undream.spec.io import read_yaml
 from undream.spec.limits import MAX_FRAMES, bounded
+from undream.spec.physical import PrintEotConfig, RegulariseConfig, typed
 
 TASK_LOSSES = {"classification": ("ce", "targeted_ce", "dlr", "margin"), "detection": ("vanish", "mislabel", "box")}
 ALL_LOSSES = tuple(k for kinds in TASK_LOSSES.values() for k in kinds)
@@ -57,6 +58,9 @@ class RunConfig:
     snow without the medium and maps it into the medium's look
     (:mod:`undream.render.media`), ``exact`` path traces the medium; the
     evaluation renders whole frames with the medium either way.
+    ``regularise``: regularisers subtracted from the victim's loss (smoothness, printability,
+    camouflage; :class:`undream.spec.physical.RegulariseConfig`); ``eot_print``: per-frame draws of
+    a print's colour shift and blur and of camera noise (:class:`undream.spec.physical.PrintEotConfig`).
     """
 
     scene: str
@@ -86,6 +90,9 @@ class RunConfig:
     sim: str = "mitsuba"  # the simulator backend: one of SIMULATORS
     # A mapping (as in RUN.yaml) is parsed into a ConditionsConfig; None: the one scene.
     conditions: "ConditionsConfig | None" = None
+    # Mappings (as in RUN.yaml) are parsed into these; None: no regulariser, no print-and-capture EOT.
+    regularise: RegulariseConfig | None = None
+    eot_print: PrintEotConfig | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.scene, str) or not self.scene:
@@ -125,6 +132,8 @@ class RunConfig:
         c.choice("sim", self.sim, SIMULATORS)
         if self.conditions is not None and not isinstance(self.conditions, ConditionsConfig):
             object.__setattr__(self, "conditions", ConditionsConfig.from_json(self.conditions))
+        object.__setattr__(self, "regularise", typed(RegulariseConfig, self.regularise))
+        object.__setattr__(self, "eot_print", typed(PrintEotConfig, self.eot_print))
 
     def _typed_attack(self) -> AttackConfig:
         if isinstance(self.attack, AttackConfig):
@@ -138,6 +147,9 @@ class RunConfig:
         """Every field, the attack block complete (its defaults filled in): what the store keeps."""
         d = asdict(self)
         d["conditions"] = None if self.conditions is None else self.conditions.to_json()
+        for name in ("regularise", "eot_print"):
+            part = getattr(self, name)
+            d[name] = None if part is None else part.to_json()
         return d
 
     def split(self, sequence: Any) -> "Split":
@@ -390,6 +402,8 @@ def load_run_config(path: str | Path) -> RunConfig:
     path = Path(path)
     data = read_yaml(path)
     try:
+        if isinstance(data, Mapping) and isinstance(data.get("regularise"), Mapping):  # palettes beside the file
+            data = {**data, "regularise": RegulariseConfig.from_json(data["regularise"], base_dir=path.parent)}
         config = RunConfig.from_json(data)
     except SpecError as err:
         raise SpecError(f"{path}: {err}") from None

@@ -9,7 +9,7 @@ from undream.errors import StoreError
 from undream.store.snapshots import dumps, finite_or_none
 
 RECORD_FIELDS = ("loss_mean", "n_ok", "n_bad", "dropped_frames", "grad_norm", "step_seconds",
-                 "per_frame")
+                 "per_frame", "terms")
 MAX_SEED = 2**63 - 1
 
 
@@ -70,4 +70,11 @@ def record_values(record: Mapping[str, Any]) -> dict[str, Any]:
         "step_seconds": number("record.step_seconds", record.get("step_seconds")),
         "dropped_json": dumps("record.dropped_frames", _frames(record.get("dropped_frames", []))),
         "per_frame_json": dumps("record.per_frame", record.get("per_frame", [])),
+        "terms_json": dumps("record.terms", _terms(record.get("terms", {}))),
     }
+
+
+def _terms(value: Any) -> dict[str, float | None]:
+    """The objective's named terms of one step (``loss_victim``, ``loss_total``, ``reg_tv``, ...)."""
+    terms = mapping("record.terms", value, " of term name → number")
+    return {str(k): number(f"record.terms.{k}", v) for k, v in terms.items()}

@@ -39,10 +39,11 @@ from undream.runlist import RUN_STATUSES
 
 JOB_STATUSES = ("queued", "started", "succeeded", "failed", "retried")
 JOB_PHASES = ("attack", "pre", "adversarial")  # iteration jobs; evaluation before and after the final pick
-SCHEMA_VERSION = 4  # 1: runs, iterations, frame_jobs without phases; 2: the farm (sweeps, scenes, phases);
+SCHEMA_VERSION = 5  # 1: runs, iterations, frame_jobs without phases; 2: the farm (sweeps, scenes, phases);
 #                    3: run leases (runs.owner, runs.heartbeat; migrated in place from 2);
 #                    4: the control plane's indexes and the blobs table (alembic revision 0004,
 #                       undream/store/migrations)
+#                    5: iterations.terms_json, the objective's named terms (alembic revision 0005)
 
 _NAMING = {
     "ix": "ix_%(column_0_label)s",
@@ -133,7 +134,9 @@ class IterationRecord(Base):
     """Metrics of step ``k`` (gradients of texture ``k`` reduced, texture ``k+1`` made).
 
     ``n_ok``/``n_bad``: frames kept/dropped (non-finite or failed); ``dropped_json``
-    the dropped frame indexes; ``per_frame_json`` any per-frame detail the caller keeps.
+    the dropped frame indexes; ``per_frame_json`` any per-frame detail the caller keeps;
+    ``terms_json`` the objective's named terms when it has regularisers (``loss_victim``,
+    ``loss_total``, ``reg_tv``, ...; :func:`undream.attacks.regularise.objective`).
     """
 
     __tablename__ = "iterations"
@@ -149,6 +152,7 @@ class IterationRecord(Base):
     grad_norm: Mapped[float | None] = mapped_column(Float)
     step_seconds: Mapped[float | None] = mapped_column(Float)
     per_frame_json: Mapped[str] = mapped_column(Text, default="[]")
+    terms_json: Mapped[str | None] = mapped_column(Text, nullable=True)
     created: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
 
 

@@ -203,6 +203,7 @@ class IterationSnapshot:
     step_seconds: float | None
     per_frame: Any
     created: dt.datetime
+    terms: dict[str, float | None] = field(default_factory=dict)  # the objective's named terms
 
     @classmethod
     def of(cls, row: IterationRecord) -> "IterationSnapshot":
@@ -210,7 +211,7 @@ class IterationSnapshot:
                    n_bad=row.n_bad, dropped_frames=loads(row.dropped_json) or [],
                    grad_norm=row.grad_norm, step_seconds=row.step_seconds,
                    per_frame=loads(row.per_frame_json),
-                   created=_utc(row.created))  # type: ignore[arg-type]
+                   created=_utc(row.created), terms=loads(row.terms_json) or {})  # type: ignore[arg-type]
 
 
 class FrameGrad(NamedTuple):
