@@ -65,6 +65,10 @@ if [ "${UNDREAM_SKIP_BLENDER:-0}" != 1 ]; then
     .venv-blender/bin/python -c "import bpy; print('setup: ready (.venv-blender, Blender', bpy.app.version_string + ')')"
 fi
 
+# The CMYK print profile of `gamut: default` and `undream export` (Ghostscript's, AGPL-3+, from libgs-common at a
+# pinned version with checksums) into $XDG_CACHE_HOME/undream/profiles (docs/printing.md).
+.venv/bin/python deploy/fetch_profiles.py
+
 # Realistic objects for scenes (asset:p406, asset:person_clothes, ...): Debian packages at pinned versions
 # with checksums (deploy/assets.lock.json; GPL-2+ and BSD-3 data, fetched, never committed), converted
 # into $XDG_CACHE_HOME/undream/assets; the person needs .venv-blender. Done once; a rerun checks and skips.
