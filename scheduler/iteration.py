@@ -88,7 +88,8 @@ def reduce_and_step(store: "Store", attack: "Attack", run_id: str, k: int) -> bo
     none is left the run fails with :class:`AllFramesFailed`. Returns False
     when the run is no longer at iteration ``k`` or no longer active (the
     callback already ran, or the run was cancelled): calling it twice never
-    steps twice.
+    steps twice. The attack steps on the run's objective (:func:`undream.engine.algorithm.objective`:
+    the victim's loss less its regularisers), whose named terms the iteration record keeps.
 
     Once it advanced the run, iteration ``k``'s gradients are transient: the
     caller deletes them (:func:`drop_gradients`) once the next iteration's jobs
@@ -98,7 +99,7 @@ def reduce_and_step(store: "Store", attack: "Attack", run_id: str, k: int) -> bo
     killed between the advance and the deletion leaves garbage only: a retry
     finds the run past ``k``, needs no gradient, and deletes them.
     """
-    from undream.engine.algorithm import reduce, step
+    from undream.engine.algorithm import objective, reduce, step
     from undream.store import ACTIVE
 
     run = store.get_run(run_id)
@@ -128,10 +129,12 @@ def reduce_and_step(store: "Store", attack: "Attack", run_id: str, k: int) -> bo
     if dropped:
         log.warning("iteration %d: dropped %d frame(s) with non-finite gradients: %s", k, len(dropped), dropped)
     state = decode_state(store.attack_state(run_id, k) or {})
-    T_next, state = step(attack, store.texture(run_id, k), G, loss, state)
+    texture = store.texture(run_id, k)
+    G, value, terms = objective(run.run_config, texture, G, loss, state)  # the regularisers subtracted
+    T_next, state = step(attack, texture, G, value, state)
     scalars, arrays = encode_state(state)
     record = {"loss_mean": loss, "n_ok": len(kept), "n_bad": len(dropped), "dropped_frames": dropped,
-              "grad_norm": float(G.norm()), "step_seconds": time.perf_counter() - t0}
+              "grad_norm": float(G.norm()), "step_seconds": time.perf_counter() - t0, "terms": terms}
     if k == 0:
         seen = seen_texels([rows[f].grad for f in expected])
         if seen is not None:

@@ -79,10 +79,21 @@ def results(store: "Store", ctx: "RunContext", run: "RunSnapshot", k: int) -> di
         "attack": {**ctx.attack.config.to_dict()}, "label": ctx.victim.labels[ctx.targets[0].label],
         "benign": benign, "adversarial": adv, "attack_success": report.to_dict(), **splits,
         "loss_per_iteration": [r.loss_mean for r in iters],
+        **objective_terms(iters),
         "frames_dropped_per_iteration": [r.n_bad for r in iters],
         "wall_time_seconds": times,
         "benign_cache": benign_cache_record([j.result or {} for j in pre]),
     }
+
+
+def objective_terms(iters: list[Any]) -> dict[str, Any]:
+    """``objective_per_iteration``: each named term of the objective (``loss_victim``, ``loss_total``,
+    ``reg_tv``, ...; :func:`undream.engine.algorithm.objective`) → its value per iteration, for a
+    run with regularisers; nothing for a run without."""
+    names = sorted({name for r in iters for name in r.terms})
+    if not names:
+        return {}
+    return {"objective_per_iteration": {name: [r.terms.get(name) for r in iters] for name in names}}
 
 
 def benign_cache_record(pre: list[dict[str, Any]]) -> dict[str, Any] | None:

@@ -199,7 +199,8 @@ def _iteration_rows(run: "RunSnapshot", iters: list["IterationSnapshot"]) -> lis
     stamps = [run.created] + [r.created for r in iters]
     return [{"k": r.k, "loss_mean": r.loss_mean, "n_ok": r.n_ok, "n_bad": r.n_bad,
              "dropped_frames": r.dropped_frames, "grad_norm": r.grad_norm, "step_seconds": r.step_seconds,
-             "seconds": (stamps[i + 1] - stamps[i]).total_seconds(), "finished": iso(r.created)}
+             "seconds": (stamps[i + 1] - stamps[i]).total_seconds(), "finished": iso(r.created),
+             **({"terms": r.terms} if r.terms else {})}  # the objective's named terms, with regularisers
             for i, r in enumerate(iters)]
 
 

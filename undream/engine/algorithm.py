@@ -12,7 +12,7 @@ only reads and writes run state.
 3. **per-frame job**: :func:`frame_jobs` (simulator render → victim loss → texture gradient, the
    victim once per batch of frames; :func:`frame_job` for one frame);
 4. **reduce**: :func:`reduce` (mean gradient and loss over the finite frames, the gradients
-   weighted by ``attack.frame_weights``);
+   weighted by ``attack.frame_weights``), then :func:`objective` (the run's regularisers subtracted);
 5. **step**: :func:`step` (the attack's projected step);
 6. **evaluate**: :func:`quantise` (the 8-bit texture), :func:`eval_render` per frame,
    :func:`eval_predictions` and :func:`eval_losses` (the victim once per batch of frames;
@@ -29,6 +29,8 @@ import torch
 from PIL import Image
 
 from undream.attacks import average_frames, frame_batch
+from undream.attacks.regularise import Regularisers
+from undream.attacks.regularise import objective as regularised
 from undream.color import linear_to_srgb, to_uint8
 from undream.engine.context import RunContext
 from undream.engine import job
@@ -101,6 +103,19 @@ def reduce(grads: Sequence[np.ndarray], losses: Sequence[float | None], finite: 
     not recorded otherwise), and the indices of the frames kept; none kept: :class:`AttackError`."""
     values = [float("nan") if v is None else v for v in losses]
     return average_frames([torch.from_numpy(g) for g in grads], values, list(finite), weights=weights)
+
+
+def objective(config: Any, texture: np.ndarray, grad: torch.Tensor, loss: float,
+              state: Any) -> tuple[torch.Tensor, float, dict[str, float]]:
+    """The attack's objective at texture ``texture`` (sRGB H×W×3) from the victim's mean gradient and
+    loss: ``victim_loss − Σ w_i R_i(T)`` over the run's regularisers (``config.regularise``, a
+    :class:`undream.spec.run.RunConfig`), the regularisers' gradient only on texels seen so far
+    (``state["visible"]`` and the texels ``grad`` reaches; :func:`undream.attacks.regularise.objective`).
+    Returns (G, objective value, named terms for the iteration record: ``loss_victim``, ``loss_total``,
+    ``reg_<term>``); without regularisers (grad, loss, {})."""
+    seen = state.get("visible") if isinstance(state, dict) else None
+    seen = seen if isinstance(seen, torch.Tensor) and seen.shape == grad.shape[:2] else None
+    return regularised(Regularisers.of(getattr(config, "regularise", None)), texture, grad, loss, seen)
 
 
 # --------------------------------------------------------------------------- 5. step

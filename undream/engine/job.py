@@ -8,6 +8,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from undream.attacks.print_capture import capture_noise, draw_print, printed, texture_vjp
 from undream.engine.context import RunContext
 from undream.engine.seeds import frame_seed
 from undream.color import linear_to_srgb
@@ -159,19 +160,27 @@ def render_and_grad_many(ctx: RunContext, positions: Sequence[int], texture: np.
     rendered by the simulator, the victim once per batch of frames (:func:`victim_pass`), then each
     frame's image gradient carried back to the texture. One :class:`FrameResult` per frame, in order;
     a frame's ``timings`` hold its own render and gradient time and its share of its batch's victim pass.
+
+    With ``eot_print`` each frame renders its own print of the texture and the victim sees the frame
+    with camera noise (:mod:`undream.attacks.print_capture`, drawn from (seed, iteration, frame)); the
+    gradient goes back through both to ``texture``.
     """
     cfg = ctx.config
     n = len(positions)
     indices = [ctx.frame_indices[p] for p in positions]
     seeds = [frame_seed(cfg.seed, iteration, index) for index in indices]
     conditions = [draw_conditions(cfg.eot, cfg.seed, iteration, index) for index in indices]  # None without eot
-    linear, srgb, t_sim = [], [], []
-    for index, seed, cond in zip(indices, seeds, conditions):
+    prints = [draw_print(getattr(cfg, "eot_print", None), cfg.seed, iteration, index) for index in indices]
+    linear, srgb, t_sim, passed, textures = [], [], [], [], []
+    for index, seed, cond, draw in zip(indices, seeds, conditions, prints):
         t0 = time.perf_counter()
-        img = ctx.crops.render(index, texture, cfg.sim_spp, seed, conditions=cond)
+        textures.append(printed(texture, draw))  # the texture itself without eot_print
+        img = ctx.crops.render(index, textures[-1], cfg.sim_spp, seed, conditions=cond)
         t_sim.append(time.perf_counter() - t0)
         linear.append(img)
-        srgb.append(linear_to_srgb(img))
+        noisy, inside = capture_noise(linear_to_srgb(img), draw)
+        srgb.append(noisy)
+        passed.append(inside)
     losses: list[float] = [math.nan] * n
     g_images: list[np.ndarray] = [np.empty(0)] * n
     preds: list[dict[str, Any]] = [{}] * n
@@ -185,8 +194,10 @@ def render_and_grad_many(ctx: RunContext, positions: Sequence[int], texture: np.
     out = []
     for i, (index, seed, cond) in enumerate(zip(indices, seeds, conditions)):
         t0 = time.perf_counter()
-        g_linear = ctx.crops.scale_gradient(index, cfg.sim_spp, srgb_encode_grad(linear[i], g_images[i]), cond)
-        grad = ctx.gradients.texture_gradient(index, texture, g_linear, cfg.grad_spp, iteration, seed, cond)
+        g_image = g_images[i] if passed[i] is None else g_images[i] * passed[i]  # the noise's clip
+        g_linear = ctx.crops.scale_gradient(index, cfg.sim_spp, srgb_encode_grad(linear[i], g_image), cond)
+        grad = ctx.gradients.texture_gradient(index, textures[i], g_linear, cfg.grad_spp, iteration, seed, cond)
+        grad = texture_vjp(texture, prints[i], grad)
         t_grad = time.perf_counter() - t0
         # A NaN in the victim's image gradient must not hide behind the renderer: Mitsuba's
         # backward pass turns it into zeros, which would pass as a finite frame.

@@ -70,7 +70,7 @@ def record_values(record: Mapping[str, Any]) -> dict[str, Any]:
         "step_seconds": number("record.step_seconds", record.get("step_seconds")),
         "dropped_json": dumps("record.dropped_frames", _frames(record.get("dropped_frames", []))),
         "per_frame_json": dumps("record.per_frame", record.get("per_frame", [])),
-        "terms_json": dumps("record.terms", _terms(record.get("terms", {}))),
+        "terms_json": dumps("record.terms", _terms(record["terms"])) if record.get("terms") else None,
     }
 
 
