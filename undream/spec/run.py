@@ -8,7 +8,7 @@ numbers through :class:`RunConfig` (``RunSnapshot.run_config`` for a stored run)
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -17,6 +17,7 @@ from undream.spec import _check as c
 from undream.spec.attack import AttackConfig
 from undream.spec.io import read_yaml
 from undream.spec.limits import MAX_FRAMES, bounded
+from undream.spec.printing import check_gamut, check_profile
 from undream.spec.physical import PrintEotConfig, RegulariseConfig, typed
 
 TASK_LOSSES = {"classification": ("ce", "targeted_ce", "dlr", "margin"), "detection": ("vanish", "mislabel", "box")}
@@ -90,6 +91,8 @@ class RunConfig:
     sim: str = "mitsuba"  # the simulator backend: one of SIMULATORS
     # A mapping (as in RUN.yaml) is parsed into a ConditionsConfig; None: the one scene.
     conditions: "ConditionsConfig | None" = None
+    # default | none | PATH.icc: each step's texture projected into a CMYK printer's gamut (undream.printing.gamut)
+    gamut: str = "none"
     # Mappings (as in RUN.yaml) are parsed into these; None: no regulariser, no print-and-capture EOT.
     regularise: RegulariseConfig | None = None
     eot_print: PrintEotConfig | None = None
@@ -130,6 +133,7 @@ class RunConfig:
                 raise c.fail("eot", self.eot, f"needs sim: mitsuba (the {self.sim!r} simulator cannot move "
                              "the camera and light per render)")
         c.choice("sim", self.sim, SIMULATORS)
+        check_gamut(self.gamut)
         if self.conditions is not None and not isinstance(self.conditions, ConditionsConfig):
             object.__setattr__(self, "conditions", ConditionsConfig.from_json(self.conditions))
         object.__setattr__(self, "regularise", typed(RegulariseConfig, self.regularise))
@@ -413,4 +417,12 @@ def load_run_config(path: str | Path) -> RunConfig:
         scene = Path(value) if Path(value).is_absolute() else path.parent / value
         if not ((scene / "sequence.json").is_file() or scene.is_file()):
             raise SpecError(f"{path}: {field_name}: {scene} is neither a scene directory nor a spec file")
+    if config.gamut not in ("default", "none"):  # a profile's path: relative to this file, checked now
+        profile = Path(config.gamut).expanduser()
+        profile = profile if profile.is_absolute() else path.parent / profile
+        try:
+            check_profile(profile)
+        except SpecError as err:
+            raise SpecError(f"{path}: {err}") from None
+        config = replace(config, gamut=str(profile.resolve()))
     return config
