@@ -106,7 +106,8 @@ def _scene_dir(scene: Path, work: Path, local: LocalSettings) -> Path:
     if not scene.is_file():
         raise SpecError(f"SCENE {scene}: neither a scene directory nor a spec file")
     return init_scene(scene, work / f"scene-{len(list(work.iterdir()))}",
-                      InitOptions(force=True, memory_limit=local.memory_limit, frozen=local.frozen))
+                      InitOptions(force=True, memory_limit=local.memory_limit, frozen=local.frozen,
+                                  cache_dir=local.undream_cache))
 
 
 Texture = tuple[np.ndarray, "Path | None"]  # the texture and the scene directory it was optimised on, if known

@@ -52,9 +52,9 @@ def resolve_scene(config: RunConfig, out: Path, base_dir: Path, reuse: bool = Fa
     if reuse and is_scene(out / "scene"):
         return out / "scene"
     if config.conditions is not None:  # every condition's frames in one scene directory
-        src = conditions_sequence(config, base_dir)
-    return init_scene(src, out / "scene",
-                      InitOptions(force=True, memory_limit=local.memory_limit, frozen=local.frozen))
+        src = conditions_sequence(config, base_dir, local.undream_cache)
+    return init_scene(src, out / "scene", InitOptions(force=True, memory_limit=local.memory_limit, frozen=local.frozen,
+                                                      cache_dir=local.undream_cache))
 
 
 class LocalDispatch:

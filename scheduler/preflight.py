@@ -94,9 +94,10 @@ def _preflight(config: RunConfig, base_dir: Path, local: LocalSettings) -> Check
         check_database(config.store)  # reachable, and a database: before anything is written
     if config.conditions is not None:
         # what `undream init` checks before writing OUT/scene, on every condition's frames
-        seq = check_source(conditions_sequence(config, base_dir), InitOptions(memory_limit=local.memory_limit)).sequence
+        seq = check_source(conditions_sequence(config, base_dir, local.undream_cache),
+                           InitOptions(memory_limit=local.memory_limit, cache_dir=local.undream_cache)).sequence
     else:
-        seq = _sequence(scene_source(config, base_dir), local.memory_limit)
+        seq = _sequence(scene_source(config, base_dir), local.memory_limit, local.undream_cache)
     check_frames(config, seq)
     estimate = run_estimate(seq, config, limit=local.memory_limit)
     victim = load_victim(config.victim, device=config.device, task=task_of(config), offline=local.hf_offline,
@@ -114,7 +115,7 @@ def check_frames(config: RunConfig, sequence: "Sequence") -> None:
                         f"to attack (the sequence's {len(sequence.frames)} frames, {len(held)} held out)")
 
 
-def _sequence(src: Path, memory_limit: int | None = None) -> "Sequence":
+def _sequence(src: Path, memory_limit: int | None = None, cache_dir: str | None = None) -> "Sequence":
     if is_scene(src):
         seq = load_sequence(src / SCENE_MARKER)
         check_seen(src, seq)  # a spec file: `undream init` checks it (each condition's frames too)
@@ -122,7 +123,7 @@ def _sequence(src: Path, memory_limit: int | None = None) -> "Sequence":
     if not src.is_file():
         raise SpecError(f"scene: {src} is neither a scene directory nor a spec file")
     # what `undream init` checks before writing OUT/scene
-    return check_source(src, InitOptions(memory_limit=memory_limit)).sequence
+    return check_source(src, InitOptions(memory_limit=memory_limit, cache_dir=cache_dir)).sequence
 
 
 def run_metadata(folder: Path) -> dict | None:

@@ -10,6 +10,7 @@ import pytest
 
 from scheduler.sweep import load_sweep
 from undream.scenedir.conditions import conditions_sequence
+from undream.settings import load_local
 from undream.spec.run import TASK_LOSSES, load_run_config
 from undream.victims.registry import BUNDLED, bundled_folder_name, bundled_path
 
@@ -28,7 +29,7 @@ def test_every_example_run_config_loads(path):
     if config.conditions is not None:  # every condition composes: its files are found from the config's folder
         grids = [grid for _, grid in config.conditions.placed_grids()]
         expected = (sum(math.prod(map(len, g.values())) for g in grids) if grids else 1) + len(config.conditions.scenes)
-        assert len(conditions_sequence(config, path.parent).conditions) == expected
+        assert len(conditions_sequence(config, path.parent, load_local().undream_cache).conditions) == expected
 
 
 @pytest.mark.parametrize("path", SWEEPS, ids=[p.name for p in SWEEPS])

@@ -23,6 +23,7 @@ from undream.scene.ac3d import ac3d_mesh, parse_ac3d
 from undream.scene.builtin import box
 from undream.scene.mesh import read_ply, write_ply
 from undream.scene.trajectory import sequence_from_trajectory
+from undream.settings import load_local
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -153,10 +154,9 @@ def _spec(mesh: str = "asset:crate", init: object = "asset:crate", res: int = 16
                        "path": {"type": "static", "position": [0, 0, 0]}}}
 
 
-def test_an_asset_name_resolves_to_the_cached_files(tmp_path, monkeypatch):
+def test_an_asset_name_resolves_to_the_cached_files(tmp_path):
     folder = _cache_with_box(tmp_path)
-    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
-    seq = sequence_from_trajectory(_spec())
+    seq = sequence_from_trajectory(_spec(), cache_dir=tmp_path / "undream")
     assert seq.asset.mesh == str(folder / "mesh.ply")
     assert seq.asset.texture.init == str(folder / "texture.png")
     assert read_ply(seq.asset.mesh).n_faces == 12
@@ -168,22 +168,31 @@ def test_an_asset_name_resolves_to_the_cached_files(tmp_path, monkeypatch):
     (_spec(mesh="asset:Bad/../name"), ["object.asset.mesh", "is not an asset name"]),
     (_spec(init="asset:nothing"), ["object.asset.texture.init", "'asset:nothing'", "run ./deploy/setup.sh"]),
 ])
-def test_a_missing_or_malformed_asset_name_is_one_line(spec, needles, tmp_path, monkeypatch):
+def test_a_missing_or_malformed_asset_name_is_one_line(spec, needles, tmp_path):
     _cache_with_box(tmp_path)
-    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     with pytest.raises(SpecError) as err:
-        sequence_from_trajectory(spec)
+        sequence_from_trajectory(spec, cache_dir=tmp_path / "undream")
     assert "\n" not in str(err.value)
     for needle in needles:
         assert needle in str(err.value)
 
 
-def test_an_actor_asset_has_no_starting_texture(tmp_path, monkeypatch):
+def test_an_actor_asset_has_no_starting_texture(tmp_path):
     folder = _cache_with_box(tmp_path)
     (folder / fetched.TEXTURE_FILE).unlink()
-    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     with pytest.raises(SpecError, match="texture.init: 'asset:crate' .* the asset has no starting texture"):
+        sequence_from_trajectory(_spec(), cache_dir=tmp_path / "undream")
+
+
+def test_the_library_reads_no_cache_folder_from_the_environment(tmp_path, monkeypatch):
+    """The asset cache is passed from the edge (settings): a caller that passes none gets one line,
+    whatever $XDG_CACHE_HOME says."""
+    _cache_with_box(tmp_path)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    with pytest.raises(SpecError) as err:
         sequence_from_trajectory(_spec())
+    assert "\n" not in str(err.value)
+    assert "object.asset.mesh: 'asset:crate' names a fetched asset, but no asset cache was given" in str(err.value)
 
 
 def _run_check(tmp_path: Path, spec: dict) -> subprocess.CompletedProcess:
@@ -218,7 +227,7 @@ def test_run_check_accepts_a_cached_asset(tmp_path):
 
 # --- the converted car and person, where setup put them -------------------------------------------
 
-CONVERTED = fetched.assets_root()
+CONVERTED = fetched.assets_root(load_local().undream_cache)
 HAVE = all((CONVERTED / n / fetched.MESH_FILE).is_file() for n in ("p406", "p406_wheels", "person_clothes", "person_body"))
 needs_cache = pytest.mark.skipif(not HAVE, reason=f"the converted assets are not in {CONVERTED}: "
                                  "run ./deploy/setup.sh (or .venv/bin/python deploy/fetch_assets.py)")

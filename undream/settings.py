@@ -315,6 +315,12 @@ class LocalSettings:
         if self.drjit_threads is not None:
             _check_int("drjit_threads", self.drjit_threads, 1)
 
+    @property
+    def undream_cache(self) -> str:
+        """undream's own cache folder, ``<cache_home>/undream``: fetched weights and assets
+        (``assets/NAME``), the benign evaluations, converted .blend files."""
+        return str(Path(self.cache_home) / "undream")
+
 
 def parse_bytes(text: str, source: str = MEMORY_LIMIT_ENV) -> int:
     """``"8G"``, ``"512M"`` or ``"1000000"`` as bytes (powers of 1024); SpecError naming ``source``."""

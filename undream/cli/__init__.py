@@ -59,7 +59,7 @@ def init_cmd(spec: Path, out: Path, force: bool, verify_spp: int, scene_spp: int
     elif spec.suffix.lower() != ".blend" and (object_name or camera or actors):
         raise SpecError(f"{spec}: --object, --camera and --actor are for .blend files only")
     options = InitOptions(force=force, verify_spp=verify_spp, scene_spp=scene_spp, progress=progress,
-                          memory_limit=local.memory_limit, frozen=local.frozen)
+                          memory_limit=local.memory_limit, frozen=local.frozen, cache_dir=local.undream_cache)
     check_output_folder(out, None, force, command="undream init", marker=SCENE_MARKER,
                         inputs=(spec,))  # the one output-folder rule
     if check:

@@ -26,7 +26,6 @@ import re
 from pathlib import Path
 
 from undream.errors import SpecError
-from undream.settings import cache_home
 
 PREFIX = "asset:"
 MESH_FILE = "mesh.ply"
@@ -35,10 +34,10 @@ ASSET_FILE = "asset.json"
 _NAME = re.compile(r"[a-z0-9][a-z0-9_]*")
 
 
-def assets_root(cache_dir: str | Path | None = None) -> Path:
-    """``CACHE_DIR/assets``; ``cache_dir`` None: ``$XDG_CACHE_HOME/undream`` (default
-    ``~/.cache/undream``), where ``deploy/fetch_assets.py`` writes by default."""
-    return Path(cache_dir if cache_dir is not None else cache_home() / "undream") / "assets"
+def assets_root(cache_dir: str | Path) -> Path:
+    """``CACHE_DIR/assets``: ``CACHE_DIR`` is undream's cache folder, ``<cache_home>/undream``
+    (``LocalSettings.cache_home``, default ``~/.cache``), where ``deploy/fetch_assets.py`` writes."""
+    return Path(cache_dir) / "assets"
 
 
 def is_fetched(value: object) -> bool:
@@ -50,13 +49,17 @@ def resolve(value: str, field: str, kind: str = "mesh", cache_dir: str | Path | 
     """The absolute path of ``asset:NAME``'s ``kind`` (``mesh`` or ``texture``) in the asset cache.
 
     ``field`` names the spec field in errors (``mesh``, ``texture.init``).
-    Raises :class:`SpecError` (one line) for a malformed name or a file the
-    cache lacks.
+    ``cache_dir``: undream's cache folder (:func:`assets_root`), which the edge passes from its
+    settings; None (a caller that has none) is one line too. Raises :class:`SpecError` (one line)
+    for a malformed name or a file the cache lacks.
     """
     name = value[len(PREFIX):]
     if not _NAME.fullmatch(name):
         raise SpecError(f"{field}: {value!r} is not an asset name (asset:NAME, NAME in lower case letters, "
                         "digits and _, e.g. asset:p406)")
+    if cache_dir is None:
+        raise SpecError(f"{field}: {value!r} names a fetched asset, but no asset cache was given "
+                        "(undream's commands pass <cache_home>/undream/assets from their settings)")
     folder = assets_root(cache_dir) / name
     path = folder / (MESH_FILE if kind == "mesh" else TEXTURE_FILE)
     if not path.is_file():

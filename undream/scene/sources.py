@@ -20,8 +20,9 @@ from undream.spec.io import read_json, read_yaml
 UNREAL_FORMAT = "undream-unreal-export"
 
 
-def sequence_from_file(path: "str | Path | BlendSource") -> Sequence:
-    """Parse a trajectory YAML, an Unreal export, a canonical sequence.json or a :class:`BlendSource`."""
+def sequence_from_file(path: "str | Path | BlendSource", cache_dir: str | Path | None = None) -> Sequence:
+    """Parse a trajectory YAML, an Unreal export, a canonical sequence.json or a :class:`BlendSource`
+    (``cache_dir``: undream's cache folder, for a YAML's ``asset:NAME``s)."""
     if isinstance(path, BlendSource):
         return sequence_from_blend(path)
     path = Path(path)
@@ -32,7 +33,7 @@ def sequence_from_file(path: "str | Path | BlendSource") -> Sequence:
         raise SpecError(f"{path}: a .blend file needs the name of the adversarial object "
                         "(undream init FILE.blend --object NAME)")
     if suffix in (".yaml", ".yml"):
-        return _from_yaml(path)
+        return _from_yaml(path, cache_dir)
     if suffix != ".json":
         raise SpecError(f"{path}: unknown spec type {suffix!r} (valid: .yaml, .yml, .json, .blend)")
     data = read_json(path)
@@ -41,11 +42,11 @@ def sequence_from_file(path: "str | Path | BlendSource") -> Sequence:
     return load_sequence(path)
 
 
-def _from_yaml(path: Path) -> Sequence:
+def _from_yaml(path: Path, cache_dir: str | Path | None) -> Sequence:
     from undream.scene.trajectory import sequence_from_trajectory
 
     data = read_yaml(path)
     try:
-        return sequence_from_trajectory(data, base_dir=path.parent)
+        return sequence_from_trajectory(data, base_dir=path.parent, cache_dir=cache_dir)
     except UndreamError as err:
         raise type(err)(f"{path}: {err}") from None

@@ -39,15 +39,18 @@ PATH_TYPES = ("static", "orbit", "dolly", "drive_by", "flyover", "keyframes")
 TOP_FIELDS = {"name", "seed", "frames", "fps", "camera", "object", "actors", "environment"}
 
 
-def sequence_from_trajectory(spec: Mapping[str, Any], base_dir: Path | None = None) -> Sequence:
-    """Build a sequence from a parsed trajectory spec (see the module docstring)."""
+def sequence_from_trajectory(spec: Mapping[str, Any], base_dir: Path | None = None,
+                             cache_dir: str | Path | None = None) -> Sequence:
+    """Build a sequence from a parsed trajectory spec (see the module docstring). ``cache_dir``:
+    undream's cache folder, where ``asset:NAME`` meshes and textures are
+    (:func:`undream.scene.fetched.resolve`); the edge passes it from its settings."""
     spec = c.mapping("spec", spec)
     c.no_extra(spec, TOP_FIELDS)
     n = bounded("frames", c.require(spec, "frames"))
     fps = c.positive("fps", spec.get("fps", 10.0))
     obj = c.mapping("object", c.require(spec, "object"))
     with c.at("object"):
-        asset = _asset(c.require(obj, "asset"), base_dir, adversarial=True)
+        asset = _asset(c.require(obj, "asset"), base_dir, adversarial=True, cache_dir=cache_dir)
         obj_poses = _object_path(obj, n)
     actors, actor_poses = [], []
     actor_specs = spec.get("actors")
@@ -56,7 +59,7 @@ def sequence_from_trajectory(spec: Mapping[str, Any], base_dir: Path | None = No
     for i, a in enumerate(actor_specs or []):
         with c.at(f"actors[{i}]"):
             a = c.mapping("actor", a)
-            actors.append(_asset(c.require(a, "asset"), base_dir, adversarial=False))
+            actors.append(_asset(c.require(a, "asset"), base_dir, adversarial=False, cache_dir=cache_dir))
             actor_poses.append(_object_path(a, n))
     with c.at("camera"):
         cams = _cameras(c.mapping("camera", c.require(spec, "camera")), n, obj_poses)
@@ -70,19 +73,19 @@ def sequence_from_trajectory(spec: Mapping[str, Any], base_dir: Path | None = No
                     actors=tuple(actors), fps=fps, source="trajectory", seed=spec.get("seed", 0))
 
 
-def _asset(d: Any, base_dir: Path | None, adversarial: bool) -> Asset:
+def _asset(d: Any, base_dir: Path | None, adversarial: bool, cache_dir: str | Path | None = None) -> Asset:
     with c.at("asset"):
         d = dict(c.mapping("asset", d))
         if adversarial and d.get("texture") is None:
             d["texture"] = TextureParam().to_json()
         mesh = d.get("mesh")
         if fetched.is_fetched(mesh):
-            d["mesh"] = fetched.resolve(mesh, "mesh")
+            d["mesh"] = fetched.resolve(mesh, "mesh", cache_dir=cache_dir)
         elif isinstance(mesh, str) and not mesh.startswith("builtin:") and base_dir is not None:
             d["mesh"] = resolve_against(mesh, base_dir, keep_absolute=True)
         tex = d.get("texture")
         if isinstance(tex, Mapping) and fetched.is_fetched(tex.get("init")):
-            d["texture"] = {**tex, "init": fetched.resolve(tex["init"], "texture.init", kind="texture")}
+            d["texture"] = {**tex, "init": fetched.resolve(tex["init"], "texture.init", kind="texture", cache_dir=cache_dir)}
         return Asset.from_json(d)
 
 

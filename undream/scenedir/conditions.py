@@ -39,20 +39,21 @@ def condition_sources(config: RunConfig, base_dir: Path) -> list[Path]:
     return [join_against(name, base_dir).resolve() for name in names]
 
 
-def conditions_sequence(config: RunConfig, base_dir: Path) -> Sequence:
+def conditions_sequence(config: RunConfig, base_dir: Path, cache_dir: str | Path | None = None) -> Sequence:
     """The multi-condition sequence of ``config`` (which has a ``conditions`` block); SpecError
-    naming the field, condition or file otherwise. Reads the specs and meshes; writes nothing."""
+    naming the field, condition or file otherwise. Reads the specs and meshes; writes nothing.
+    ``cache_dir``: undream's cache folder, for the specs' ``asset:NAME``s."""
     assert config.conditions is not None
     base, *more = condition_sources(config, base_dir)
     parts: list[tuple[str, Sequence]] = []
     grids = config.conditions.placed_grids()
     for where, grid in grids:
-        parts += grid_sequences(base, grid, where)
+        parts += grid_sequences(base, grid, where, cache_dir)
     if not grids:
-        parts.append((_slug(base.stem if base.is_file() else base.name), _read(base)))
+        parts.append((_slug(base.stem if base.is_file() else base.name), _read(base, cache_dir)))
     for i, src in enumerate(more):
         try:
-            parts.append((_slug(src.stem if src.is_file() else src.name), _read(src)))
+            parts.append((_slug(src.stem if src.is_file() else src.name), _read(src, cache_dir)))
         except UndreamError as err:
             raise type(err)(f"conditions.scenes[{i}]: {err}") from None
     names = [name for name, _ in parts]
@@ -69,7 +70,7 @@ def conditions_sequence(config: RunConfig, base_dir: Path) -> Sequence:
 
 
 def grid_sequences(spec_file: Path, grid: Mapping[str, tuple[Any, ...]],
-                   where: str = "conditions.grid") -> list[tuple[str, Sequence]]:
+                   where: str = "conditions.grid", cache_dir: str | Path | None = None) -> list[tuple[str, Sequence]]:
     """One sequence per combination of ``grid``'s values, each the spec file with those values set
     (``where``: the grid's place in the run config, named in errors)."""
     if not spec_file.is_file() or spec_file.suffix.lower() not in (".yaml", ".yml"):
@@ -85,7 +86,7 @@ def grid_sequences(spec_file: Path, grid: Mapping[str, tuple[Any, ...]],
         for key, value in point.items():
             _set(data, key, plain_grid_value(value), where)
         try:
-            seq = sequence_from_trajectory(data, base_dir=spec_file.parent)
+            seq = sequence_from_trajectory(data, base_dir=spec_file.parent, cache_dir=cache_dir)
             out.append((name, _anchored(seq, spec_file.parent)))
         except UndreamError as err:
             raise type(err)(f"{where} ({name}): {spec_file}: {err}") from None
@@ -115,7 +116,7 @@ def _slug(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9_-]", "_", text.replace(".", "p"))[:64] or "condition"
 
 
-def _read(src: Path) -> Sequence:
+def _read(src: Path, cache_dir: str | Path | None = None) -> Sequence:
     """A condition's sequence, every file it names absolute: a scene directory's own meshes and
     environment maps, a spec file's relative paths resolved against its folder."""
     if (src / SEQUENCE_FILE).is_file():
@@ -130,7 +131,7 @@ def _read(src: Path) -> Sequence:
         return _anchored(replace(seq, asset=asset, actors=actors), src)
     if not src.is_file():
         raise SpecError(f"{src}: is neither a scene directory nor a spec file")
-    return _anchored(sequence_from_file(src), src.parent)
+    return _anchored(sequence_from_file(src, cache_dir), src.parent)
 
 
 def _anchored(seq: Sequence, base_dir: Path) -> Sequence:

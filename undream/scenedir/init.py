@@ -60,6 +60,7 @@ class InitOptions:
     progress: bool = False  # show a progress bar
     memory_limit: int | None = None  # bytes the renders may use (None: MemAvailable; the edge reads $UNDREAM_MEMORY_LIMIT)
     frozen: bool = True  # the verification renders as Dr.Jit frozen functions (the edge reads $UNDREAM_FROZEN)
+    cache_dir: str | None = None  # undream's cache folder, where a spec's asset:NAME is (<cache_home>/undream)
 
 
 @dataclass(frozen=True)
@@ -87,7 +88,7 @@ def check_source(source: Source, options: InitOptions = InitOptions(),
     likewise: copied to ``textures/envmap*.exr``, which the written
     ``sequence.json`` names (:mod:`undream.scenedir.envmaps`).
     """
-    seq, base_dir, spec_text = _resolve_source(source, spec_text)
+    seq, base_dir, spec_text = _resolve_source(source, spec_text, options.cache_dir)
     try:
         meshes = _load_meshes(seq, base_dir)
         texture = texture_from_spec(seq.texture, base_dir)
@@ -146,14 +147,15 @@ def _check_target(out: Path, force: bool) -> None:
     check_writable_target(out.parent if out.is_dir() else out)
 
 
-def _resolve_source(source: Source, spec_text: str | None) -> tuple[Sequence, Path | None, str | None]:
+def _resolve_source(source: Source, spec_text: str | None,
+                    cache_dir: str | None) -> tuple[Sequence, Path | None, str | None]:
     if isinstance(source, Sequence):
         return source, None, spec_text
     if isinstance(source, BlendSource):
         return sequence_from_file(source), Path(source.path).parent, source.describe()
 
     path = Path(source)
-    seq = sequence_from_file(path)
+    seq = sequence_from_file(path, cache_dir)
     return seq, path.parent, path.read_text()
 
 
