@@ -23,6 +23,7 @@ from scheduler.options import attacked_frames  # noqa: F401  (re-exported: tests
 if TYPE_CHECKING:
     from undream.attacks.base import Attack
     from undream.engine.context import RunContext
+    from undream.printing.gamut import Gamut
     from undream.store import RunSnapshot, Store
 
 log = logging.getLogger(__name__)
@@ -77,7 +78,7 @@ def frame_jobs(store: "Store", ctx: "RunContext", run_id: str, k: int, positions
     return [r.summary() for r in res]
 
 
-def reduce_and_step(store: "Store", attack: "Attack", run_id: str, k: int) -> bool:
+def reduce_and_step(store: "Store", attack: "Attack", run_id: str, k: int, gamut: "Gamut | None" = None) -> bool:
     """Average iteration ``k``'s finite frame gradients, step the attack, advance the run to ``k + 1``.
 
     Refuses (:class:`MissingResults`) while an expected frame job has no
@@ -88,7 +89,8 @@ def reduce_and_step(store: "Store", attack: "Attack", run_id: str, k: int) -> bo
     none is left the run fails with :class:`AllFramesFailed`. Returns False
     when the run is no longer at iteration ``k`` or no longer active (the
     callback already ran, or the run was cancelled): calling it twice never
-    steps twice. The attack steps on the run's objective (:func:`undream.engine.algorithm.objective`:
+    steps twice. ``gamut``: the run's printer gamut (``RunContext.gamut``), the step projected into it.
+    The attack steps on the run's objective (:func:`undream.engine.algorithm.objective`:
     the victim's loss less its regularisers), whose named terms the iteration record keeps.
 
     Once it advanced the run, iteration ``k``'s gradients are transient: the
@@ -131,7 +133,7 @@ def reduce_and_step(store: "Store", attack: "Attack", run_id: str, k: int) -> bo
     state = decode_state(store.attack_state(run_id, k) or {})
     texture = store.texture(run_id, k)
     G, value, terms = objective(run.run_config, texture, G, loss, state)  # the regularisers subtracted
-    T_next, state = step(attack, texture, G, value, state)
+    T_next, state = step(attack, texture, G, value, state, gamut)
     scalars, arrays = encode_state(state)
     record = {"loss_mean": loss, "n_ok": len(kept), "n_bad": len(dropped), "dropped_frames": dropped,
               "grad_norm": float(G.norm()), "step_seconds": time.perf_counter() - t0, "terms": terms}

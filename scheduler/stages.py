@@ -119,9 +119,7 @@ def start(store: "Store", contexts: Contexts, run_id: str, dispatch: Dispatch) -
     recorded: a worker killed between recording them and sending them would
     leave the run with nothing in flight.
     """
-    import torch
-
-    from undream.engine.algorithm import start_texture, visibility
+    from undream.engine.algorithm import begin, start_texture, visibility
 
     run = store.get_run(run_id)
     if run.status not in ACTIVE:
@@ -132,9 +130,9 @@ def start(store: "Store", contexts: Contexts, run_id: str, dispatch: Dispatch) -
         random = ctx.attack.config.random_start
         seen = visibility(ctx.scenes, ctx.sequence.frames, T0, ctx.config.grad_spp, ctx.config.seed) if random \
             else np.zeros(T0.shape[:2], dtype=bool)
-        T_start, state = ctx.attack.start(torch.from_numpy(T0), visible=torch.from_numpy(seen))
+        T_start, state = begin(ctx.attack, T0, seen, ctx.gamut)  # in the printer's gamut, when the run has one
         scalars, arrays = encode_state(state)
-        store.start_run(run_id, T_start.numpy(), scalars, arrays)
+        store.start_run(run_id, T_start, scalars, arrays)
     store.transition(run_id, ("queued",), "running")
     run = store.get_run(run_id)
     if not _current(run, "attack", run.iteration):
@@ -273,15 +271,18 @@ def collect(store: "Store", contexts: Contexts, run_id: str, phase: str, k: int,
         dispatch.frames(run_id, phase, k, batches(missing, options.frames_per_task))
         return "rerun"
     if phase == "attack":
-        return _step(store, run, k, dispatch)
+        return _step(store, contexts, run, k, dispatch)
     if phase == "pre":
         return _final(store, run, k, dispatch)
     return finish(store, contexts, run_id, k)
 
 
-def _step(store: "Store", run: "RunSnapshot", k: int, dispatch: Dispatch) -> str:
+def _step(store: "Store", contexts: Contexts, run: "RunSnapshot", k: int, dispatch: Dispatch) -> str:
+    # A run with a printer's gamut projects each step into it: the context holds the gamut (built once
+    # per process); every worker serving the run's frames already has the context.
+    gamut = contexts(run.id).gamut if run.run_config.gamut != "none" else None
     try:
-        if not reduce_and_step(store, attacks.make_attack(run.run_config.attack), run.id, k):
+        if not reduce_and_step(store, attacks.make_attack(run.run_config.attack), run.id, k, gamut):
             return "stale"
     except MissingResults:  # a job was re-queued between our look and reduce's: its callback follows
         return "stale"

@@ -46,6 +46,10 @@ class StoreError(UndreamError):
     """The run store could not be read or written."""
 
 
+class PrintError(UndreamError, ValueError):
+    """A texture cannot be projected into a printer's gamut or exported for print (bad texture, size, DPI)."""
+
+
 def already_exists(path: object) -> SpecError:
     """The error for an output ``path`` that exists and is replaced only on request (``--force``)."""
     return SpecError(f"{path}: already exists (use --force to replace it)")

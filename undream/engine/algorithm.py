@@ -13,7 +13,7 @@ only reads and writes run state.
    victim once per batch of frames; :func:`frame_job` for one frame);
 4. **reduce**: :func:`reduce` (mean gradient and loss over the finite frames, the gradients
    weighted by ``attack.frame_weights``), then :func:`objective` (the run's regularisers subtracted);
-5. **step**: :func:`step` (the attack's projected step);
+5. **step**: :func:`step` (the attack's projected step, then the printer's gamut; :func:`begin` for the start);
 6. **evaluate**: :func:`quantise` (the 8-bit texture), :func:`eval_render` per frame,
    :func:`eval_predictions` and :func:`eval_losses` (the victim once per batch of frames;
    :func:`render_frames` and :func:`predict` over a whole sequence), and :func:`judge` (accuracy
@@ -42,6 +42,7 @@ from undream.scene.layout import frame_name
 
 if TYPE_CHECKING:
     from undream.attacks.base import Attack
+    from undream.printing.gamut import Gamut
     from undream.render.scene_cache import SceneCache
     from undream.spec import Frame
 
@@ -121,11 +122,25 @@ def objective(config: Any, texture: np.ndarray, grad: torch.Tensor, loss: float,
 # --------------------------------------------------------------------------- 5. step
 
 def step(attack: "Attack", texture: np.ndarray, grad: torch.Tensor, loss: float,
-         state: Any) -> tuple[np.ndarray, Any]:
+         state: Any, gamut: "Gamut | None" = None) -> tuple[np.ndarray, Any]:
     """T_{k+1} and the attack's next state: PGD, APGD, MI-FGSM or Adam, projected onto the ε ball
-    around T0 and onto [0, 1] (:meth:`undream.attacks.base.Attack.step`)."""
+    around T0 and onto [0, 1] (:meth:`undream.attacks.base.Attack.step`), then, with a ``gamut``
+    (``RunContext.gamut``, the run's ``gamut``), into the printer's gamut
+    (:func:`undream.printing.gamut.project_gamut`; applied after the ε ball, so a printable texture
+    wins where the two disagree: a texel may end up to the gamut's move outside the ball)."""
     T_next, state = attack.step(torch.from_numpy(texture), grad, loss, state)
-    return T_next.numpy().astype(np.float32), state
+    T_next = T_next.numpy().astype(np.float32)
+    return (T_next if gamut is None else gamut.project(T_next)), state
+
+
+def begin(attack: "Attack", T0: np.ndarray, visible: np.ndarray | None,
+          gamut: "Gamut | None" = None) -> tuple[np.ndarray, Any]:
+    """The texture the attack evaluates first and its state (:meth:`undream.attacks.base.Attack.start`:
+    ``T0`` or a random start among the ``visible`` texels), projected into ``gamut`` when given, as
+    every later step is; the state's ε ball stays centred on ``T0`` itself."""
+    T, state = attack.start(torch.from_numpy(T0), visible=None if visible is None else torch.from_numpy(visible))
+    T = T.numpy().astype(np.float32)
+    return (T if gamut is None else gamut.project(T)), state
 
 
 # --------------------------------------------------------------------------- 6. evaluate

@@ -9,6 +9,8 @@ from undream.attacks import make_attack
 from undream.engine.crops import CropFrames
 from undream.engine.gradient import GradientPath
 from undream.errors import SpecError, VictimError
+from undream.printing.gamut import Gamut, load_gamut
+from undream.printing.profiles import resolve_gamut
 from undream.render.scene_cache import SceneCache
 from undream.scenedir.verify import mask_box, read_mask
 from undream.settings import LocalSettings
@@ -39,6 +41,7 @@ class RunContext:
     attack: "Attack"
     gradients: GradientPath  # each frame's texture gradient: captured transport or prb
     crops: CropFrames = None  # type: ignore[assignment]  # what an iteration renders of each frame
+    gamut: Gamut | None = None  # the printer's gamut each step's texture is projected into (config.gamut)
 
     def __post_init__(self) -> None:
         if self.crops is None:
@@ -131,4 +134,12 @@ def build_context(config: RunConfig, scene_dir: Path, *, victim: "Victim | None"
     sim = make_backend(config.sim, scene_dir, **({"scenes": scenes} if config.sim == "mitsuba" else {}),
                        **backend_options(config.sim, local))
     gradients = GradientPath(scenes, config.gradient, refresh_iterations(config, seq), config.seed)
-    return RunContext(config, scene_dir, seq, scenes, sim, victim, targets, attack, gradients)
+    return RunContext(config, scene_dir, seq, scenes, sim, victim, targets, attack, gradients,
+                      gamut=run_gamut(config, local))
+
+
+def run_gamut(config: RunConfig, local: LocalSettings = LocalSettings()) -> Gamut | None:
+    """The printer's gamut of ``config.gamut`` (None for ``none``; ``default``: the profile setup fetched
+    into ``local``'s cache), built once per process (:func:`undream.printing.gamut.load_gamut`)."""
+    profile = resolve_gamut(config.gamut, local.undream_cache)
+    return None if profile is None else load_gamut(profile)
