@@ -378,14 +378,14 @@ def test_a_store_of_another_schema_version_is_refused(tmp_path):
         conn.execute(text("DELETE FROM undream_schema"))
         conn.execute(text("INSERT INTO undream_schema (version) VALUES (1)"))
     store.close()
-    with pytest.raises(StoreError, match=r"has schema version 1, this undream needs version 4 "
+    with pytest.raises(StoreError, match=r"has schema version 1, this undream needs version 5 "
                                          r"and cannot upgrade from 1"):
         open_store(None, tmp_path)
     store = open_store(None, tmp_path / "newer")
     with store.engine.begin() as conn:
         conn.execute(text("INSERT INTO undream_schema (version) VALUES (99)"))
     store.close()
-    with pytest.raises(StoreError, match=r"has schema version 99, newer than this undream's 4"):
+    with pytest.raises(StoreError, match=r"has schema version 99, newer than this undream's 5"):
         open_store(None, tmp_path / "newer")
 
 
