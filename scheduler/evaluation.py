@@ -129,15 +129,17 @@ def eval_textures(store: "Store", run_id: str, phase: str, k: int,
 
 
 def select_final(store: "Store", attack: Any, run_id: str, k: int) -> np.ndarray:
-    """Pick the texture to report after the last step (``Attack.final``), quantised to 8 bits."""
+    """Pick the texture to report after the last step (``Attack.final``), quantised to 8 bits; the last
+    texture's value is its objective as the steps saw it (the victim's loss less the regularisers)."""
     import torch
 
-    from undream.engine.algorithm import quantise
+    from undream.engine.algorithm import objective_value, quantise
 
     losses = [float("nan") if (j.result or {}).get("loss") is None else j.result["loss"]  # type: ignore[index]
               for j in store.jobs(run_id, k, "pre")]
     final_loss = float(np.mean(losses)) if losses else float("nan")  # NaN: not measured (not needed)
     T_last = store.texture(run_id, k)
+    final_loss = objective_value(store.get_run(run_id).run_config, T_last, final_loss)  # its steps' objective
     T_final = attack.final(torch.from_numpy(T_last), final_loss,
                            decode_state(store.attack_state(run_id, k) or {})).numpy()
     return quantise(T_final)

@@ -184,12 +184,12 @@ def tiny(tmp_path_factory, mi):
     return make_scene(base / "scene", n_frames=2, size=24), make_victim(base / "victim")
 
 
-def _run(tiny, out, **extra):
+def _run(tiny, out, attack=None, **extra):
     from scheduler.local import run_local
 
     scene, victim = tiny
     cfg = RunConfig(scene=str(scene), name="reg", victim=victim, loss="ce",
-                    attack={"name": "pgd", "eps": 32.0, "steps": 2}, sim_spp=2, grad_spp=2, eval_spp=2, seed=5,
+                    attack=attack or {"name": "pgd", "eps": 32.0, "steps": 2}, sim_spp=2, grad_spp=2, eval_spp=2, seed=5,
                     holdout="none", **extra)
     return run_local(cfg, out, progress=False), np.load(out / "texture_final.npy")
 
@@ -228,3 +228,39 @@ def test_undream_run_refuses_a_bad_palette_in_one_line_and_writes_nothing(tmp_pa
     line = res.stderr.strip()
     assert "\n" not in line and "regularise.palette" in line and "chart.csv line 2" in line, line
     assert not (tmp_path / "out").exists()
+
+
+def test_a_sweep_reads_palettes_beside_its_run_file_and_grids_the_weights(tmp_path):
+    from scheduler.sweep import load_sweep
+
+    (tmp_path / "base").mkdir()
+    (tmp_path / "base" / "chart.csv").write_text("0,0,0\n255,255,255\n")
+    write_yaml(tmp_path / "base" / "run.yaml", {"scene": "scene", "regularise": {"nps": 1.0, "palette": "chart.csv"}})
+    sweep = load_sweep(write_yaml(tmp_path / "s.yaml", {"name": "g", "run": "base/run.yaml",
+                                                        "grid": {"regularise.tv": [0.0, 2.5]}}))
+    assert [r.config.regularise.tv for r in sweep.runs] == [0.0, 2.5]
+    assert all(r.config.regularise.palette_rgb == ((0, 0, 0), (255, 255, 255)) for r in sweep.runs)
+
+
+def test_apgds_final_pick_compares_objectives(tiny, tmp_path, monkeypatch):
+    """APGD's final pick weighs the last texture by the objective its steps saw, not the victim's loss alone."""
+    from undream.attacks.apgd import APGD
+    from undream.engine.algorithm import objective_value
+    from undream.store import open_store
+
+    cfg = RunConfig.from_json({"scene": "s", "regularise": {"tv": 4.0}})
+    T = _texture().numpy()
+    assert objective_value(cfg, T, 2.0) == pytest.approx(2.0 - 4.0 * float(total_variation(torch.from_numpy(T))))
+    assert objective_value(RunConfig.from_json({"scene": "s"}), T, 2.0) == 2.0
+    seen = []
+    real = APGD.final
+    monkeypatch.setattr(APGD, "final", lambda self, T, loss, state: seen.append((T.numpy().copy(), loss))
+                        or real(self, T, loss, state))
+    res, T_final = _run(tiny, tmp_path / "apgd", regularise={"tv": 10.0},
+                        attack={"name": "apgd", "eps": 32.0, "steps": 2})
+    assert len(res["objective_per_iteration"]["reg_tv"]) == 2 and np.isfinite(T_final).all()
+    (T_last, loss), = seen
+    with open_store(None, tmp_path / "apgd" / "store") as store:
+        victim = np.mean([j.result["loss"] for j in store.jobs(res["run_id"], 2, "pre")])
+    tv = float(total_variation(torch.from_numpy(T_last).double()))
+    assert tv > 0 and loss == pytest.approx(victim - 10.0 * tv, rel=1e-6)

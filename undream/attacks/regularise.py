@@ -118,6 +118,14 @@ class Regularisers:
         return total, {t: float(v.detach()) for t, v in values.items()}
 
 
+def penalty(regs: Regularisers | None, texture: np.ndarray) -> float:
+    """``Σ w_i R_i(T)`` of ``texture`` (H×W×3 sRGB 0–1) as a float; 0 without regularisers."""
+    if regs is None:
+        return 0.0
+    with torch.no_grad():
+        return float(regs(torch.from_numpy(np.asarray(texture, np.float64)))[0])
+
+
 def objective(regs: Regularisers | None, texture: np.ndarray, grad: torch.Tensor, loss: float,
               seen: torch.Tensor | None = None) -> tuple[torch.Tensor, float, dict[str, float]]:
     """The attack's objective ``victim_loss − Σ w_i R_i(T)`` and its gradient w.r.t. ``texture``.

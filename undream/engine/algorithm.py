@@ -29,7 +29,7 @@ import torch
 from PIL import Image
 
 from undream.attacks import average_frames, frame_batch
-from undream.attacks.regularise import Regularisers
+from undream.attacks.regularise import Regularisers, penalty
 from undream.attacks.regularise import objective as regularised
 from undream.color import linear_to_srgb, to_uint8
 from undream.engine.context import RunContext
@@ -117,6 +117,12 @@ def objective(config: Any, texture: np.ndarray, grad: torch.Tensor, loss: float,
     seen = state.get("visible") if isinstance(state, dict) else None
     seen = seen if isinstance(seen, torch.Tensor) and seen.shape == grad.shape[:2] else None
     return regularised(Regularisers.of(getattr(config, "regularise", None)), texture, grad, loss, seen)
+
+
+def objective_value(config: Any, texture: np.ndarray, loss: float) -> float:
+    """The objective of :func:`objective` at ``texture`` from the victim's mean ``loss`` there (what an
+    attack's final pick compares with the values its steps saw)."""
+    return loss - penalty(Regularisers.of(getattr(config, "regularise", None)), texture)
 
 
 # --------------------------------------------------------------------------- 5. step

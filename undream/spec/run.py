@@ -401,14 +401,20 @@ def split_frames(holdout: Any, n_frames: int) -> tuple[list[int], list[int]]:
     return attacked, held
 
 
+def palettes_beside(data: Any, base_dir: str | Path) -> Any:
+    """A run config mapping whose ``regularise`` block is read with its palette files relative to
+    ``base_dir`` (the folder of the file that names them); anything else as it is."""
+    if isinstance(data, Mapping) and isinstance(data.get("regularise"), Mapping):
+        return {**data, "regularise": RegulariseConfig.from_json(data["regularise"], base_dir=base_dir)}
+    return data
+
+
 def load_run_config(path: str | Path) -> RunConfig:
     """Parse ``RUN.yaml``; errors name the file and the field."""
     path = Path(path)
     data = read_yaml(path)
     try:
-        if isinstance(data, Mapping) and isinstance(data.get("regularise"), Mapping):  # palettes beside the file
-            data = {**data, "regularise": RegulariseConfig.from_json(data["regularise"], base_dir=path.parent)}
-        config = RunConfig.from_json(data)
+        config = RunConfig.from_json(palettes_beside(data, path.parent))
     except SpecError as err:
         raise SpecError(f"{path}: {err}") from None
     named = [("scene", config.scene)] + [(f"conditions.scenes[{i}]", s) for i, s in
