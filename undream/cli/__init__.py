@@ -1,6 +1,6 @@
 """The ``undream`` command line: ``init``, ``run``, the farm's commands (:mod:`undream.cli.farm`:
 ``submit``, ``worker``, ``status``, ``cancel``, ``resume``, ``sweep``, ``results``), ``dashboard``
-(:mod:`undream.cli.dashboard`), ``report`` (:mod:`undream.cli.report`) and the ``victims`` group
+(:mod:`undream.cli.dashboard`), ``report`` (:mod:`undream.cli.report`), ``export`` (:mod:`undream.cli.export`) and the ``victims`` group
 (:mod:`undream.cli.victims`).
 
 Errors are mapped at this edge (:mod:`undream.cli.errors`): one line on stderr, exit status 2.
@@ -15,6 +15,7 @@ from undream.cli.baseline import COMMANDS as BASELINE
 from undream.cli.dashboard import COMMANDS as DASHBOARD
 from undream.cli.errors import OneLineGroup, one_line_errors
 from undream.cli.evaluate import COMMANDS as EVALUATE
+from undream.cli.export import COMMANDS as EXPORT
 from undream.cli.farm import COMMANDS
 from undream.cli.options import check_option, force_option, local_settings, out_option, progress_option, spp_option
 from undream.cli.report import COMMANDS as REPORT
@@ -118,7 +119,7 @@ def _fmt(v: float | None) -> str:
 
 def _register_subgroups() -> None:
     main.add_command(victims)
-    for command in COMMANDS + DASHBOARD + REPORT + BASELINE + EVALUATE:
+    for command in COMMANDS + DASHBOARD + REPORT + BASELINE + EVALUATE + EXPORT:
         main.add_command(command)
 
 
