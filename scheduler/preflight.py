@@ -84,10 +84,12 @@ def preflight(config: RunConfig, base_dir: Path, source: str | Path | None = Non
 def _preflight(config: RunConfig, base_dir: Path, local: LocalSettings) -> Checked:
     from undream.attacks import make_attack
     from undream.engine.context import class_ids, task_of
+    from undream.printing.profiles import resolve_gamut
     from undream.victims import load_victim
 
     make_attack(config.attack)
     check_simulator(config.sim, local)
+    resolve_gamut(config.gamut, local.undream_cache)  # the printer's profile is there and a CMYK one
     if config.store:
         from undream.store.db import check_database
 

@@ -194,3 +194,22 @@ def test_a_run_with_the_default_gamut_ends_on_a_printable_texture(tiny, tmp_path
                                     "--no-progress"])
     assert res.exit_code == 0, res.output
     assert not gamut.contains(np.load(tmp_path / "plain" / "texture_final.npy")).all()
+
+
+def test_undream_run_refuses_a_default_gamut_that_setup_did_not_fetch(tmp_path):
+    from click.testing import CliRunner
+
+    from undream.cli import main
+
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    (scene / "sequence.json").write_text("{}")
+    (tmp_path / "run.yaml").write_text("scene: scene\ngamut: default\n")
+    res = CliRunner(env={"XDG_CACHE_HOME": str(tmp_path / "empty-cache")}).invoke(
+        main, ["run", str(tmp_path / "run.yaml"), "--out", str(tmp_path / "out"), "--no-progress"])
+    assert res.exit_code == 2
+    assert res.output.strip().splitlines() == [
+        f"undream: error: {tmp_path / 'run.yaml'}: gamut: default: the CMYK profile "
+        f"{tmp_path / 'empty-cache' / 'undream' / 'profiles' / 'ghostscript' / 'default_cmyk.icc'} is not there; "
+        "./deploy/setup.sh fetches it (or .venv/bin/python deploy/fetch_profiles.py), or give a profile's path"]
+    assert not (tmp_path / "out").exists() and not (tmp_path / "empty-cache").exists()
