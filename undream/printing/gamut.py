@@ -11,7 +11,7 @@ or not, so it would move colours that are already printable).
 inverses, and the CMYK side is 8-bit, so a colour that came back from one trip
 moves again on the next (Ghostscript's SWOP profile: by up to 13 levels, 2 at
 the median). The projection ``P`` is defined on the 8-bit grid (all 2²⁴ colours,
-precomputed once per profile and process, about 4 s and 64 MB):
+precomputed once per profile and process, about 5 s and 64 MB):
 
 - a colour ``c`` is **inside** when its round trip moves it at most
   :data:`TOLERANCE` levels (L∞, 0–255 units): ``|R(c) − c|∞ ≤ 3``;
@@ -140,7 +140,7 @@ def round_trip(rgb8: np.ndarray, path: Path) -> np.ndarray:
 
 
 def build_gamut(path: str | Path, tolerance: int = TOLERANCE) -> Gamut:
-    """The :class:`Gamut` of the CMYK profile at ``path`` (checked; about 4 s: the round trip of all
+    """The :class:`Gamut` of the CMYK profile at ``path`` (checked; about 5 s: the round trip of all
     2²⁴ colours and a nearest-neighbour search for the few whose round trip is not printable)."""
     path = check_profile(path)
     if isinstance(tolerance, bool) or not isinstance(tolerance, int) or not 0 <= tolerance <= 255:
