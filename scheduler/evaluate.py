@@ -193,14 +193,16 @@ def frame_rows(ctx: Any, parts: Any, benign: Sequence[Any], texture: Sequence[An
 
 def evaluate(textures: Mapping[str, Texture], scenes: Sequence[Path], victims: Sequence[str], sim: str = "mitsuba",
              spp: int = 32, holdout: Any = "auto", label: str | None = None, seed: int = 0,
-             local: LocalSettings = LocalSettings(), per_frame: list[dict[str, Any]] | None = None
-             ) -> list[dict[str, Any]]:
+             local: LocalSettings = LocalSettings(), per_frame: list[dict[str, Any]] | None = None,
+             capture: Any = None) -> list[dict[str, Any]]:
     """One row per (scene, victim, texture, split ``all``/``attacked``/``held_out``, and ``condition NAME``
     for each condition of a multi-condition scene directory): frames, metric,
     the scene's own texture's value (``benign``) and the texture's (``adversarial``), fractions in
     [0, 1]. ``textures``: name → (texture, the scene directory it was optimised on or None), whose
     object's UV layout every scene's must share (:func:`check_uv_layout`). ``per_frame``: a list that
-    receives one row per (scene, victim, texture, frame) as well (:func:`frame_rows`)."""
+    receives one row per (scene, victim, texture, frame) as well (:func:`frame_rows`). ``capture``: a
+    :class:`undream.spec.physical.PrintEotConfig`: every texture, the scene's own too, is judged printed
+    and captured, one draw per frame that no attack drew (:func:`undream.engine.algorithm.captured_frames`)."""
     from undream.engine.algorithm import start_texture
     from undream.engine.context import build_context
     from undream.engine.patch import judge_splits, texture_predictions
@@ -236,10 +238,10 @@ def evaluate(textures: Mapping[str, Texture], scenes: Sequence[Path], victims: S
                 splits = {"all": sorted(parts.attacked + parts.held), "attacked": parts.attacked, "held_out": parts.held}
                 if ctx.sequence.conditions:  # a multi-condition scene: a row per condition too
                     splits.update({f"condition {part.name}": list(span) for part, span in ctx.sequence.condition_ranges()})
-                benign_preds = texture_predictions(ctx, start_texture(ctx))
+                benign_preds = texture_predictions(ctx, start_texture(ctx), capture)
                 benign = judge_splits(ctx, benign_preds, splits)
                 for texture_name, (texture, _) in textures.items():
-                    preds = texture_predictions(ctx, texture)
+                    preds = texture_predictions(ctx, texture, capture)
                     for split, judged in judge_splits(ctx, preds, splits).items():
                         rows.append({"scene": str(scene), "victim": name, "sim": sim, "texture": texture_name,
                                      "split": split, "frames": len(judged["frames"]), "metric": judged["metric"],

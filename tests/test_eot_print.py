@@ -145,3 +145,35 @@ def test_a_run_with_print_eot_is_judged_on_the_plain_texture(tiny, tmp_path):
                               np.load(tmp_path / "plain" / "texture_final.npy"))
     again = run_local(_config(tiny, eot_print=FULL.to_json(), name="again"), tmp_path / "again", progress=False)
     assert again["loss_per_iteration"] == pytest.approx(eot["loss_per_iteration"], rel=1e-5)
+
+
+def test_undream_evaluate_judges_under_print_capture_draws_no_attack_made(tiny, tmp_path):
+    from click.testing import CliRunner
+
+    from undream.cli import main
+
+    scene, victim = tiny
+    np.save(tmp_path / "t.npy", np.random.default_rng(0).uniform(0, 1, (8, 16, 3)).astype(np.float32))
+
+    def evaluate(*extra):
+        res = CliRunner().invoke(main, ["evaluate", str(tmp_path / "t.npy"), str(scene), "--victim", victim,
+                                        "--spp", "2", "--holdout", "none", *extra], env={"HF_HUB_OFFLINE": "1"})
+        return res
+
+    def scores(name):
+        doc = json.loads((tmp_path / name).read_text())
+        return doc, [(f["benign_score"], f["texture_score"]) for f in doc["frames"]]
+
+    capture = "{brightness: 0.2, contrast: 0.3, gamma: 0.3, blur: 2, noise: 0.05}"
+    for name, extra in (("plain.json", ()), ("cap.json", ("--print-capture", capture)),
+                        ("again.json", ("--print-capture", capture))):
+        res = evaluate(*extra, "--json", str(tmp_path / name))
+        assert res.exit_code == 0, res.output
+    plain, plain_scores = scores("plain.json")
+    cap, cap_scores = scores("cap.json")
+    assert "print_capture" not in plain and cap["print_capture"]["blur"] == 2.0
+    assert cap_scores == scores("again.json")[1]  # the evaluation's draws repeat
+    assert all(p != c for p, c in zip(plain_scores, cap_scores))  # and change every frame, benign and adversarial
+    res = evaluate("--print-capture", "{blur: 99}")
+    lines = [line for line in res.output.strip().splitlines() if line]
+    assert res.exit_code == 2 and len(lines) == 1 and "eot_print.blur: must be in [0, 16]" in lines[0], res.output

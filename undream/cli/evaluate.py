@@ -34,6 +34,10 @@ DEFAULT_VICTIM = "bundled:classifier"  # a texture file names no victim
               help="Which frames a run would hold out, judged apart: auto (every 4th), none, or a run "
                    "config's mapping in YAML: '{every: N, offset: K}' or '{frames: [0, 5]}'.")
 @click.option("--label", default=None, help="The object's class (default: the scene's).")
+@click.option("--print-capture", "capture", default=None, callback=lambda _c, _p, v: _capture(v),
+              help="Judge every texture printed and photographed: a run config's eot_print mapping in YAML, "
+                   "e.g. '{brightness: 0.1, gamma: 0.1, blur: 1, noise: 0.02}'; one draw per frame, none "
+                   "of them an attack's.")
 @click.option("--json", "json_out", type=click.Path(path_type=Path), default=None, help="Write the rows as JSON.")
 @click.option("--csv", "csv_out", type=click.Path(path_type=Path), default=None, help="Write the rows as CSV.")
 @click.option("--frames-csv", "frames_out", type=click.Path(path_type=Path), default=None,
@@ -43,7 +47,7 @@ DEFAULT_VICTIM = "bundled:classifier"  # a texture file names no victim
 @settings_options
 @one_line_errors
 def evaluate_cmd(texture: Path, scenes: tuple[Path, ...], victims: tuple[str, ...], sim: str, spp: int,
-                 holdout: Any, label: str | None, json_out: Path | None, csv_out: Path | None,
+                 holdout: Any, label: str | None, capture: Any, json_out: Path | None, csv_out: Path | None,
                  frames_out: Path | None, settings: Callable[..., "Settings"]) -> None:
     """Judge TEXTURE (a .npy, a .png, an `undream run` output folder, or a farm run or sweep by id or
     name: each of its runs' final textures) on SCENES (scene directories or spec files) by each
@@ -63,11 +67,12 @@ def evaluate_cmd(texture: Path, scenes: tuple[Path, ...], victims: tuple[str, ..
         source = "the one TEXTURE was attacked against" if attacked else "the default"
         click.echo(f"victim: {', '.join(victims)} ({source}; --victim to choose)", err=True)
     rows = evaluate(textures, scenes, victims, sim=sim, spp=spp, holdout=holdout, label=label,
-                    local=local_settings(), per_frame=per_frame)
+                    local=local_settings(), per_frame=per_frame, capture=capture)
     click.echo(_table(rows))
     if json_out is not None:
-        atomic_write(json_out, json.dumps({"texture": str(texture), "rows": rows, "frames": per_frame},
-                                          indent=2, allow_nan=False) + "\n")
+        document = {"texture": str(texture), "rows": rows, "frames": per_frame,
+                    **({"print_capture": capture.to_json()} if capture is not None else {})}
+        atomic_write(json_out, json.dumps(document, indent=2, allow_nan=False) + "\n")
     if csv_out is not None:
         atomic_write(csv_out, _csv(rows))
     if frames_out is not None and per_frame is not None:
@@ -89,6 +94,19 @@ def _holdout(value: str) -> Any:
         raise click.BadParameter(f"{value!r} is neither auto, none nor a YAML mapping such as "
                                  "'{every: 2}' or '{frames: [0, 5]}'")
     return parsed
+
+
+def _capture(value: str | None) -> Any:
+    """``--print-capture`` as a :class:`undream.spec.physical.PrintEotConfig` (None when not given)."""
+    from undream.spec.physical import PrintEotConfig
+    from undream.spec.yaml_strict import load
+
+    if value is None:
+        return None
+    try:
+        return PrintEotConfig.from_json(load(value))
+    except (yaml.YAMLError, UndreamError) as err:
+        raise click.BadParameter(f"{value!r}: {str(err).splitlines()[0]}") from None
 
 
 def _check_outputs(outputs: tuple[tuple[str, Path | None], ...], texture: Path, scenes: tuple[Path, ...],

@@ -29,6 +29,7 @@ import torch
 from PIL import Image
 
 from undream.attacks import average_frames, frame_batch
+from undream.attacks.print_capture import capture_noise, draw_print, printed
 from undream.attacks.regularise import Regularisers, penalty
 from undream.attacks.regularise import objective as regularised
 from undream.color import linear_to_srgb, to_uint8
@@ -201,6 +202,18 @@ def render_frames(ctx: RunContext, texture: np.ndarray, out_dir: Path | None) ->
             out_dir.mkdir(parents=True, exist_ok=True)
             Image.fromarray(to_uint8(img)).save(out_dir / f"{frame_name('frame', index)}.png")
         images.append(img)
+    return images
+
+
+def captured_frames(ctx: RunContext, texture: np.ndarray, capture: Any) -> list[np.ndarray]:
+    """Every frame as :func:`eval_render` renders it, but with ``texture`` printed and the frame
+    captured as one draw of ``capture`` (a :class:`undream.spec.physical.PrintEotConfig`) per frame:
+    :func:`undream.attacks.print_capture.draw_print` of (the run's seed, :data:`EVAL_ITERATION`, frame
+    index), a draw no attack iteration makes, the same for every texture judged."""
+    images = []
+    for position, index in enumerate(ctx.frame_indices):
+        draw = draw_print(capture, ctx.config.seed, EVAL_ITERATION, index)
+        images.append(capture_noise(eval_render(ctx, position, printed(texture, draw)), draw)[0])
     return images
 
 

@@ -22,7 +22,7 @@ import numpy as np
 
 from undream.color import linear_to_srgb
 from undream.engine.context import RunContext
-from undream.engine.algorithm import judge, predict, quantise, render_frames
+from undream.engine.algorithm import captured_frames, judge, predict, quantise, render_frames
 from undream.engine.job import frame_seed
 from undream.errors import SpecError
 from undream.scenedir.verify import mask_box, read_mask
@@ -137,9 +137,12 @@ def evaluate_texture(ctx: RunContext, texture: np.ndarray, splits: dict[str, lis
     return judge_splits(ctx, texture_predictions(ctx, texture), splits)
 
 
-def texture_predictions(ctx: RunContext, texture: np.ndarray) -> list[Any]:
-    """The victim's prediction on every frame (by position) rendered with ``texture`` quantised to 8 bits."""
-    return predict(ctx, render_frames(ctx, quantise(texture), None))
+def texture_predictions(ctx: RunContext, texture: np.ndarray, capture: Any = None) -> list[Any]:
+    """The victim's prediction on every frame (by position) rendered with ``texture`` quantised to 8 bits;
+    with ``capture`` (a :class:`undream.spec.physical.PrintEotConfig`) printed and captured as one
+    evaluation draw per frame (:func:`undream.engine.algorithm.captured_frames`)."""
+    texture = quantise(texture)
+    return predict(ctx, render_frames(ctx, texture, None) if capture is None else captured_frames(ctx, texture, capture))
 
 
 def judge_splits(ctx: RunContext, preds: Sequence[Any], splits: dict[str, list[int]]) -> dict[str, Any]:
