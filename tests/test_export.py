@@ -138,3 +138,21 @@ def test_bad_exports_are_one_line_and_write_nothing(run_dir, tmp_path):
         lines = res.output.strip().splitlines()
         assert len(lines) == 1 and __import__("re").search(message, lines[0]), (args, res.output)
         assert not out.exists()
+
+
+def test_force_replaces_only_an_earlier_export(run_dir, tmp_path):
+    out = tmp_path / "print"
+    assert _export(run_dir, "--out", out, "--dpi", 10, "--preview-frames", 0).exit_code == 0
+    res = _export(run_dir, "--out", out, "--dpi", 10, "--preview-frames", 0)
+    assert res.exit_code == 2 and "already exists (use --force to replace it)" in res.output
+    assert _export(run_dir, "--out", out, "--dpi", 20, "--preview-frames", 0, "--force").exit_code == 0
+    assert json.loads((out / "export.json").read_text())["dpi"] == 20
+    mine = tmp_path / "thesis"
+    mine.mkdir()
+    (mine / "chapter.tex").write_text("mine")
+    res = _export(run_dir, "--out", mine, "--dpi", 10, "--force")
+    assert res.exit_code == 2 and "--force only replaces a folder that `undream export` wrote" in res.output
+    assert [p.name for p in mine.iterdir()] == ["chapter.tex"]
+    (tmp_path / "file").write_text("x")
+    res = _export(run_dir, "--out", tmp_path / "file", "--dpi", 10)
+    assert res.exit_code == 2 and len(res.output.strip().splitlines()) == 1

@@ -21,7 +21,7 @@ from PIL import Image
 
 from undream.cli.errors import one_line_errors
 from undream.cli.options import force_option, local_settings, out_option, progress_option, spp_option
-from undream.errors import SpecError, already_exists
+from undream.errors import SpecError
 
 OUTPUTS = ("texture_print.png", "texture_print.pdf", "preview.png", "export.json")
 
@@ -36,7 +36,7 @@ def _read_texture(path: Path) -> np.ndarray:
         else:
             with Image.open(path) as im:
                 data = np.asarray(im.convert("RGB")).astype(np.float32) / 255.0
-    except (OSError, ValueError) as err:
+    except (OSError, ValueError, Image.DecompressionBombError) as err:
         raise SpecError(f"texture: {path}: cannot be read ({' '.join(str(err).split())})") from None
     if data.ndim != 3 or data.shape[2] != 3 or not np.issubdtype(data.dtype, np.floating) \
             or not np.isfinite(data).all() or data.min() < 0 or data.max() > 1:
@@ -126,6 +126,7 @@ def _preview(scene_dir: Path, seq: Any, texture: np.ndarray, frames: int, spp: i
 def export_cmd(source: Path, out: Path, dpi: float, width_cm: float | None, scene: Path | None, profile: str | None,
                resample: str, preview_frames: int, preview_spp: int, force: bool, progress: bool) -> None:
     """Write SOURCE's texture for print: an `undream run` output folder, or a texture file with --scene."""
+    from scheduler.preflight import check_output_folder
     from undream.printing.export import describe, print_pixels, print_size, write_pdf, write_png
     from undream.printing.gamut import load_gamut
     from undream.printing.profiles import resolve_gamut
@@ -139,12 +140,8 @@ def export_cmd(source: Path, out: Path, dpi: float, width_cm: float | None, scen
     texel = texel_size(mesh.vertices, mesh.faces, mesh.uvs, texture.shape[1::-1], seq.asset.texture.uv_scale,
                        _object_scale(seq))
     size = print_size(texel, texture.shape[1::-1], dpi, width_cm)
-    if out.exists() and any(out.iterdir()):
-        if not force:
-            raise already_exists(out)
-        if not (out / "export.json").is_file():
-            raise SpecError(f"--out {out}: holds files that are not an export's; --force replaces only an earlier "
-                            "export")
+    check_output_folder(out, scene_dir, force, command="undream export", marker=OUTPUTS[3], inputs=(source, icc))
+    if out.exists() and any(out.iterdir()):  # an earlier export, and --force (checked just above)
         shutil.rmtree(out)
     bar = progress_bar(3 + preview_frames, "export", "step", progress)
     try:
