@@ -133,7 +133,8 @@ def test_a_user_palette_is_read_into_the_config_and_round_trips(tmp_path):
     again = RunConfig.from_json(json.loads(json.dumps(cfg.to_json())))
     assert again == cfg
     (tmp_path / "pal.csv").unlink()  # a stored config needs no file: it holds the colours
-    assert RunConfig.from_json(json.loads(json.dumps(cfg.to_json()))).regularise.palette_rgb == cfg.regularise.palette_rgb
+    stored = RunConfig.from_json(json.loads(json.dumps(cfg.to_json())))
+    assert stored.regularise.palette_rgb == cfg.regularise.palette_rgb
 
 
 @pytest.mark.parametrize("text, message", [
@@ -189,7 +190,8 @@ def _run(tiny, out, attack=None, **extra):
 
     scene, victim = tiny
     cfg = RunConfig(scene=str(scene), name="reg", victim=victim, loss="ce",
-                    attack=attack or {"name": "pgd", "eps": 32.0, "steps": 2}, sim_spp=2, grad_spp=2, eval_spp=2, seed=5,
+                    attack=attack or {"name": "pgd", "eps": 32.0, "steps": 2}, sim_spp=2, grad_spp=2, eval_spp=2,
+                    seed=5,
                     holdout="none", **extra)
     return run_local(cfg, out, progress=False), np.load(out / "texture_final.npy")
 

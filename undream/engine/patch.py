@@ -142,7 +142,8 @@ def texture_predictions(ctx: RunContext, texture: np.ndarray, capture: Any = Non
     with ``capture`` (a :class:`undream.spec.physical.PrintEotConfig`) printed and captured as one
     evaluation draw per frame (:func:`undream.engine.algorithm.captured_frames`)."""
     texture = quantise(texture)
-    return predict(ctx, render_frames(ctx, texture, None) if capture is None else captured_frames(ctx, texture, capture))
+    images = render_frames(ctx, texture, None) if capture is None else captured_frames(ctx, texture, capture)
+    return predict(ctx, images)
 
 
 def judge_splits(ctx: RunContext, preds: Sequence[Any], splits: dict[str, list[int]]) -> dict[str, Any]:
