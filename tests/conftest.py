@@ -134,10 +134,12 @@ def example_scenes(tmp_path_factory, mi) -> dict[str, Path]:
     them). Under pytest-xdist they are written once for the whole run, by the first test process that
     asks, in the folder its processes share; the others wait for it on a lock."""
     from undream.scenedir.init import InitOptions, init_scene
+    from undream.settings import load_local
 
+    options = InitOptions(verify_spp=16, cache_dir=load_local().undream_cache)  # asset:NAME examples need the cache
     if not os.environ.get("PYTEST_XDIST_WORKER"):
         base = tmp_path_factory.mktemp("examples")
-        return {p.stem: init_scene(p, base / p.stem, InitOptions(verify_spp=16)) for p in EXAMPLES}
+        return {p.stem: init_scene(p, base / p.stem, options) for p in EXAMPLES}
     run_root = tmp_path_factory.getbasetemp().parent  # this run's pytest-N, above each process's popen-gwK
     base, done = run_root / "examples", run_root / "examples.done"
     with open(run_root / "examples.lock", "w") as lock:
@@ -145,6 +147,6 @@ def example_scenes(tmp_path_factory, mi) -> dict[str, Path]:
         if not done.exists():
             shutil.rmtree(base, ignore_errors=True)  # a process that failed half-way left it
             for p in EXAMPLES:
-                init_scene(p, base / p.stem, InitOptions(verify_spp=16))
+                init_scene(p, base / p.stem, options)
             done.touch()
     return {p.stem: base / p.stem for p in EXAMPLES}

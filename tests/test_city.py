@@ -54,8 +54,10 @@ def _dolly_camera() -> Sequence:
 
 def _sequences() -> dict[str, Sequence]:
     from undream.scene.sources import sequence_from_file
+    from undream.settings import load_local
 
-    out = {p.stem: _city(sequence_from_file(p)) for p in EXAMPLES}
+    cache = load_local().undream_cache  # the asset:NAME examples (car, person)
+    out = {p.stem: _city(sequence_from_file(p, cache)) for p in EXAMPLES}
     out["dolly_camera"] = _dolly_camera()
     return out
 
