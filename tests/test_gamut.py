@@ -213,3 +213,30 @@ def test_undream_run_refuses_a_default_gamut_that_setup_did_not_fetch(tmp_path):
         f"{tmp_path / 'empty-cache' / 'undream' / 'profiles' / 'ghostscript' / 'default_cmyk.icc'} is not there; "
         "./deploy/setup.sh fetches it (or .venv/bin/python deploy/fetch_profiles.py), or give a profile's path"]
     assert not (tmp_path / "out").exists() and not (tmp_path / "empty-cache").exists()
+
+
+@needs_profile
+def test_a_farm_run_projects_every_texture_version(tiny, tmp_path, gamut):
+    """The farm's stages (start, the callback's step) with a process's context cache, as workers run them."""
+    from farm_support import run_config
+    from scheduler.contexts import ContextCache
+    from scheduler.local import LocalDispatch, drain
+    from scheduler.submit import Validator, record
+    from undream.settings import load_settings
+    from undream.store import open_store
+
+    scene, victim = tiny
+    config = RunConfig.from_json(run_config(scene, victim, name="farm-gamut", steps=2, holdout="none",
+                                            gamut="default", attack={"eps": 64.0, "random_start": True}))
+    settings = load_settings(env={"UNDREAM_DATABASE_URL": f"sqlite:///{tmp_path}/farm.db",
+                                  "UNDREAM_BLOB_URL": str(tmp_path / "blobs")})
+    store = open_store(settings.database_url, settings.blob_url)
+    (run_id,) = record(store, [Validator(tmp_path / "work")(config, tmp_path)], settings, tmp_path / "out")
+    dispatch = LocalDispatch()
+    dispatch.start(run_id)
+    drain(store, ContextCache(store, tmp_path / "cache", local=load_local()), dispatch)
+    assert store.get_run(run_id).status == "done"
+    versions = [store.texture(run_id, k) for k in range(3)] + [store.final_texture(run_id)]
+    for T in versions:
+        assert np.array_equal(gamut.project(T), T)
+    assert not np.array_equal(versions[0], versions[2])  # the attack moved it, inside the gamut
