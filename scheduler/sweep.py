@@ -25,7 +25,7 @@ from undream.errors import SpecError
 from undream.spec import _check as c
 from undream.spec.io import read_yaml
 from undream.spec.limits import MAX_SWEEP_RUNS
-from undream.spec.run import RunConfig, palettes_beside
+from undream.spec.run import RunConfig, palettes_beside, profile_beside
 
 
 @dataclass(frozen=True)
@@ -97,7 +97,8 @@ def load_sweep(path: str | Path, max_runs: int = MAX_SWEEP_RUNS) -> Sweep:
             set_dotted(config, key, value, f"{path}: grid.{key}")
         config["name"] = f"{name}-{i:03d}"
         try:
-            runs.append(SweepRun(RunConfig.from_json(palettes_beside(config, base_dir)), base_dir, values))
+            runs.append(SweepRun(RunConfig.from_json(profile_beside(palettes_beside(config, base_dir), base_dir)),
+                                 base_dir, values))
         except SpecError as err:
             shown = ", ".join(f"{k}={v!r}" for k, v in values.items())
             raise SpecError(f"{path}: run {i} ({shown}): {err}") from None

@@ -148,6 +148,17 @@ def test_the_run_config_file_checks_its_profile_before_anything_is_written(tmp_p
     assert sorted(p.name for p in tmp_path.iterdir()) == ["profiles", "run.yaml", "scene"]
 
 
+def test_a_sweep_reads_profiles_beside_its_file(tmp_path):
+    from scheduler.sweep import load_sweep
+
+    (tmp_path / "sweep.yaml").write_text("name: s\nbase: {scene: scene}\ngrid: {gamut: [none, default, p.icc]}\n")
+    with pytest.raises(SpecError, match=r"sweep\.yaml: run 2 \(gamut='p\.icc'\): gamut: .*p\.icc: no such profile"):
+        load_sweep(tmp_path / "sweep.yaml")
+    _icc(tmp_path / "p.icc")
+    runs = load_sweep(tmp_path / "sweep.yaml").runs
+    assert [r.config.gamut for r in runs] == ["none", "default", str((tmp_path / "p.icc").resolve())]
+
+
 def test_undream_run_refuses_a_bad_gamut_before_writing(tmp_path):
     from click.testing import CliRunner
 

@@ -8,7 +8,7 @@ numbers through :class:`RunConfig` (``RunSnapshot.run_config`` for a stored run)
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -409,12 +409,24 @@ def palettes_beside(data: Any, base_dir: str | Path) -> Any:
     return data
 
 
+def profile_beside(data: Any, base_dir: str | Path) -> Any:
+    """A run config mapping whose ``gamut``, when it is a profile's path, is made absolute against
+    ``base_dir`` (the folder of the file that names it) and checked (readable, a CMYK printer's
+    ICC profile: :func:`undream.spec.printing.check_profile`); anything else as it is."""
+    value = data.get("gamut") if isinstance(data, Mapping) else None
+    if not isinstance(value, str) or value in ("default", "none"):
+        return data
+    profile = Path(check_gamut(value)).expanduser()
+    profile = profile if profile.is_absolute() else Path(base_dir) / profile
+    return {**data, "gamut": str(check_profile(profile).resolve())}
+
+
 def load_run_config(path: str | Path) -> RunConfig:
     """Parse ``RUN.yaml``; errors name the file and the field."""
     path = Path(path)
     data = read_yaml(path)
     try:
-        config = RunConfig.from_json(palettes_beside(data, path.parent))
+        config = RunConfig.from_json(profile_beside(palettes_beside(data, path.parent), path.parent))
     except SpecError as err:
         raise SpecError(f"{path}: {err}") from None
     named = [("scene", config.scene)] + [(f"conditions.scenes[{i}]", s) for i, s in
@@ -423,12 +435,4 @@ def load_run_config(path: str | Path) -> RunConfig:
         scene = Path(value) if Path(value).is_absolute() else path.parent / value
         if not ((scene / "sequence.json").is_file() or scene.is_file()):
             raise SpecError(f"{path}: {field_name}: {scene} is neither a scene directory nor a spec file")
-    if config.gamut not in ("default", "none"):  # a profile's path: relative to this file, checked now
-        profile = Path(config.gamut).expanduser()
-        profile = profile if profile.is_absolute() else path.parent / profile
-        try:
-            check_profile(profile)
-        except SpecError as err:
-            raise SpecError(f"{path}: {err}") from None
-        config = replace(config, gamut=str(profile.resolve()))
     return config
