@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from undream.errors import SpecError, StoreError, UndreamError, already_exists
+from undream.printing.profiles import resolve_gamut
 from undream.redact import MASK, redact
 from undream.render.budget import run_estimate
 from undream.scenedir.conditions import conditions_sequence
@@ -84,7 +85,6 @@ def preflight(config: RunConfig, base_dir: Path, source: str | Path | None = Non
 def _preflight(config: RunConfig, base_dir: Path, local: LocalSettings) -> Checked:
     from undream.attacks import make_attack
     from undream.engine.context import class_ids, task_of
-    from undream.printing.profiles import resolve_gamut
     from undream.victims import load_victim
 
     make_attack(config.attack)
