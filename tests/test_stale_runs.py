@@ -268,12 +268,12 @@ _POWER_CUT = """
 import os, sys
 import scheduler.stages as stages
 step = stages._step
-def cut(store, run, k, dispatch):
+def cut(store, contexts, run, k, dispatch):
     if k == 2:  # iteration 2's jobs are recorded; one gradient did not reach the disk; the machine goes down
         job = store.jobs(run.id, k)[0]
         store.blobs.path(job.grad_ref).unlink()
         os._exit(9)
-    return step(store, run, k, dispatch)
+    return step(store, contexts, run, k, dispatch)
 stages._step = cut
 from undream.cli import main
 main(sys.argv[1:])
