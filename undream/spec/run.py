@@ -15,6 +15,7 @@ from typing import Any, Mapping
 from undream.errors import SpecError
 from undream.spec import _check as c
 from undream.spec.attack import AttackConfig
+from undream.spec.defence import DefenceConfig, typed_defence
 from undream.spec.io import read_yaml
 from undream.spec.limits import MAX_FRAMES, bounded
 from undream.spec.printing import check_gamut, check_profile
@@ -62,6 +63,9 @@ class RunConfig:
     ``regularise``: regularisers subtracted from the victim's loss (smoothness, printability,
     camouflage; :class:`undream.spec.physical.RegulariseConfig`); ``eot_print``: per-frame draws of
     a print's colour shift and blur and of camera noise (:class:`undream.spec.physical.PrintEotConfig`).
+    ``defence``: input transforms in front of the victim (JPEG, smoothing, bit depth, resize-and-pad),
+    how the attack differentiates through them and whether it does at all; the evaluation judges the
+    defended victim (:class:`undream.spec.defence.DefenceConfig`).
     """
 
     scene: str
@@ -96,6 +100,8 @@ class RunConfig:
     # Mappings (as in RUN.yaml) are parsed into these; None: no regulariser, no print-and-capture EOT.
     regularise: RegulariseConfig | None = None
     eot_print: PrintEotConfig | None = None
+    # A list or mapping (as in RUN.yaml) is parsed into a DefenceConfig; None: the victim undefended.
+    defence: DefenceConfig | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.scene, str) or not self.scene:
@@ -138,6 +144,7 @@ class RunConfig:
             object.__setattr__(self, "conditions", ConditionsConfig.from_json(self.conditions))
         object.__setattr__(self, "regularise", typed(RegulariseConfig, self.regularise))
         object.__setattr__(self, "eot_print", typed(PrintEotConfig, self.eot_print))
+        object.__setattr__(self, "defence", typed_defence(self.defence))
 
     def _typed_attack(self) -> AttackConfig:
         if isinstance(self.attack, AttackConfig):
@@ -151,7 +158,7 @@ class RunConfig:
         """Every field, the attack block complete (its defaults filled in): what the store keeps."""
         d = asdict(self)
         d["conditions"] = None if self.conditions is None else self.conditions.to_json()
-        for name in ("regularise", "eot_print"):
+        for name in ("regularise", "eot_print", "defence"):
             part = getattr(self, name)
             d[name] = None if part is None else part.to_json()
         return d
