@@ -113,6 +113,8 @@ def victim_digest(victim: Any) -> str:
             h.update(f"{name}={value!r}".encode())
         elif isinstance(value, torch.device):
             h.update(f"{name}={value}".encode())
+        elif hasattr(value, "forward_raw"):  # a wrapped victim (a defended victim's inner one)
+            h.update(f"{name}:{victim_digest(value)}".encode())
     _VICTIM_DIGESTS[victim] = digest = h.hexdigest()
     return digest
 

@@ -194,7 +194,7 @@ def frame_rows(ctx: Any, parts: Any, benign: Sequence[Any], texture: Sequence[An
 def evaluate(textures: Mapping[str, Texture], scenes: Sequence[Path], victims: Sequence[str], sim: str = "mitsuba",
              spp: int = 32, holdout: Any = "auto", label: str | None = None, seed: int = 0,
              local: LocalSettings = LocalSettings(), per_frame: list[dict[str, Any]] | None = None,
-             capture: Any = None) -> list[dict[str, Any]]:
+             capture: Any = None, defence: Any = None) -> list[dict[str, Any]]:
     """One row per (scene, victim, texture, split ``all``/``attacked``/``held_out``, and ``condition NAME``
     for each condition of a multi-condition scene directory): frames, metric,
     the scene's own texture's value (``benign``) and the texture's (``adversarial``), fractions in
@@ -202,7 +202,9 @@ def evaluate(textures: Mapping[str, Texture], scenes: Sequence[Path], victims: S
     object's UV layout every scene's must share (:func:`check_uv_layout`). ``per_frame``: a list that
     receives one row per (scene, victim, texture, frame) as well (:func:`frame_rows`). ``capture``: a
     :class:`undream.spec.physical.PrintEotConfig`: every texture, the scene's own too, is judged printed
-    and captured, one draw per frame that no attack drew (:func:`undream.engine.algorithm.captured_frames`)."""
+    and captured, one draw per frame that no attack drew (:func:`undream.engine.algorithm.captured_frames`).
+    ``defence``: a :class:`undream.spec.defence.DefenceConfig`: each victim judges behind it (a row's
+    ``victim`` then reads ``NAME + jpeg 75``)."""
     from undream.engine.algorithm import start_texture
     from undream.engine.context import build_context
     from undream.engine.patch import judge_splits, texture_predictions
@@ -225,8 +227,10 @@ def evaluate(textures: Mapping[str, Texture], scenes: Sequence[Path], victims: S
                     # box in each frame (without it, AP had no ground truth and every cell was n/a)
                     config = RunConfig.from_json({"scene": str(scene_dir), "name": "evaluate", "victim": name,
                                                   "label": label, "eval_spp": spp, "holdout": holdout,
-                                                  "sim": sim, "seed": seed, "loss": TASK_LOSSES[victim.task][0]})
-                    contexts.append((scene, name, build_context(config, scene_dir, victim=victim, local=local)))
+                                                  "sim": sim, "seed": seed, "loss": TASK_LOSSES[victim.task][0],
+                                                  "defence": None if defence is None else defence.to_json()})
+                    shown = name if defence is None else f"{name} + {defence.label}"
+                    contexts.append((scene, shown, build_context(config, scene_dir, victim=victim, local=local)))
                     wanted = contexts[-1][2].sequence.texture.shape
                     for texture_name, (texture, _) in textures.items():
                         if wanted != texture.shape:

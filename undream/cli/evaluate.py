@@ -38,6 +38,9 @@ DEFAULT_VICTIM = "bundled:classifier"  # a texture file names no victim
               help="Judge every texture printed and photographed: a run config's eot_print mapping in YAML, "
                    "e.g. '{brightness: 0.1, gamma: 0.1, blur: 1, noise: 0.02}'; one draw per frame, none "
                    "of them an attack's.")
+@click.option("--defence", "defence", default=None, callback=lambda _c, _p, v: _defence(v),
+              help="Judge by each victim behind a defence: a run config's defence in YAML, e.g. '{jpeg: 75}' "
+                   "or '[{median: 3}, {bits: 5}]' (docs/victims.md, Defended victims).")
 @click.option("--json", "json_out", type=click.Path(path_type=Path), default=None, help="Write the rows as JSON.")
 @click.option("--csv", "csv_out", type=click.Path(path_type=Path), default=None, help="Write the rows as CSV.")
 @click.option("--frames-csv", "frames_out", type=click.Path(path_type=Path), default=None,
@@ -47,7 +50,7 @@ DEFAULT_VICTIM = "bundled:classifier"  # a texture file names no victim
 @settings_options
 @one_line_errors
 def evaluate_cmd(texture: Path, scenes: tuple[Path, ...], victims: tuple[str, ...], sim: str, spp: int,
-                 holdout: Any, label: str | None, capture: Any, json_out: Path | None, csv_out: Path | None,
+                 holdout: Any, label: str | None, capture: Any, defence: Any, json_out: Path | None, csv_out: Path | None,
                  frames_out: Path | None, settings: Callable[..., "Settings"]) -> None:
     """Judge TEXTURE (a .npy, a .png, an `undream run` output folder, or a farm run or sweep by id or
     name: each of its runs' final textures) on SCENES (scene directories or spec files) by each
@@ -67,11 +70,12 @@ def evaluate_cmd(texture: Path, scenes: tuple[Path, ...], victims: tuple[str, ..
         source = "the one TEXTURE was attacked against" if attacked else "the default"
         click.echo(f"victim: {', '.join(victims)} ({source}; --victim to choose)", err=True)
     rows = evaluate(textures, scenes, victims, sim=sim, spp=spp, holdout=holdout, label=label,
-                    local=local_settings(), per_frame=per_frame, capture=capture)
+                    local=local_settings(), per_frame=per_frame, capture=capture, defence=defence)
     click.echo(_table(rows))
     if json_out is not None:
         document = {"texture": str(texture), "rows": rows, "frames": per_frame,
-                    **({"print_capture": capture.to_json()} if capture is not None else {})}
+                    **({"print_capture": capture.to_json()} if capture is not None else {}),
+                    **({"defence": defence.to_json()} if defence is not None else {})}
         atomic_write(json_out, json.dumps(document, indent=2, allow_nan=False) + "\n")
     if csv_out is not None:
         atomic_write(csv_out, _csv(rows))
@@ -105,6 +109,19 @@ def _capture(value: str | None) -> Any:
         return None
     try:
         return PrintEotConfig.from_json(load(value))
+    except (yaml.YAMLError, UndreamError) as err:
+        raise click.BadParameter(f"{value!r}: {str(err).splitlines()[0]}") from None
+
+
+def _defence(value: str | None) -> Any:
+    """``--defence`` as a :class:`undream.spec.defence.DefenceConfig` (None when not given)."""
+    from undream.spec.defence import DefenceConfig
+    from undream.spec.yaml_strict import load
+
+    if value is None:
+        return None
+    try:
+        return DefenceConfig.from_json(load(value))
     except (yaml.YAMLError, UndreamError) as err:
         raise click.BadParameter(f"{value!r}: {str(err).splitlines()[0]}") from None
 

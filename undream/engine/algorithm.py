@@ -40,6 +40,7 @@ from undream.metrics import accuracy, average_precision, correct, is_detected
 from undream.render.differentiable import texture_gradient
 from undream.render.loading import read_texture_srgb
 from undream.scene.layout import frame_name
+from undream.victims.defended import attacker_view
 
 if TYPE_CHECKING:
     from undream.attacks.base import Attack
@@ -183,11 +184,12 @@ def eval_predictions(ctx: RunContext, images: Sequence[np.ndarray]) -> list[Any]
 
 def eval_losses(ctx: RunContext, positions: Sequence[int], images: Sequence[np.ndarray]) -> list[float]:
     """The attack's loss on each frame ``positions[i]`` rendered as ``images[i]`` (APGD's final pick
-    reads them), one pass per batch."""
+    reads them), one pass per batch, by the victim the attack sees (a non-adaptive attack's pick
+    knows nothing of the defence: :func:`undream.victims.defended.attacker_view`)."""
     out = [float("nan")] * len(images)
     with torch.no_grad():
         for group, x in _stacks(ctx, images):
-            values = ctx.victim.losses(x, [ctx.targets[positions[i]] for i in group], ctx.config.loss)
+            values = attacker_view(ctx.victim).losses(x, [ctx.targets[positions[i]] for i in group], ctx.config.loss)
             for i, v in zip(group, values.double().tolist()):
                 out[i] = v
     return out

@@ -108,12 +108,15 @@ def build_context(config: RunConfig, scene_dir: Path, *, victim: "Victim | None"
 
     ``victim`` and ``scenes``: already loaded ones to share (a farm worker
     serving several runs of one scene and victim loads them once); loaded here
-    when None. Everything else is the run's own. ``local``: this process's
+    when None. The victim is put behind the run's ``defence`` here
+    (:func:`undream.victims.defended.defend`), so every path that builds a context judges the
+    defended victim. Everything else is the run's own. ``local``: this process's
     settings, read at the edge (frozen renders, the simulator's options, the hub).
     """
     import torch
 
     from undream.victims import Target, load_victim
+    from undream.victims.defended import defend
 
     # Small victims on CPU: one thread avoids OpenMP spinning against Dr.Jit's
     # render threads (measured: ~0.03 s per loss+grad+predict call with 1 thread,
@@ -124,6 +127,7 @@ def build_context(config: RunConfig, scene_dir: Path, *, victim: "Victim | None"
     if victim is None:
         victim = load_victim(config.victim, device=config.device, task=task, offline=local.hf_offline,
                              cache_home=local.cache_home)
+    victim = defend(victim, config.defence, config.seed)  # the evaluation judges it; attacks: attacker_view
     label, target = class_ids(config, seq, victim)
     targets = [Target(label=label, target_label=target,
                       box=mask_box(read_mask(scene_dir, f.index)) if task == "detection" else None)

@@ -15,6 +15,7 @@ from undream.color import linear_to_srgb
 from undream.metrics import GroundTruth, is_detected
 from undream.render.differentiable import srgb_encode_grad
 from undream.render.jitter import draw_conditions
+from undream.victims.defended import attacker_view
 
 
 MAX_BOXES = 5  # detections per frame kept in results.json (the highest-scoring)
@@ -110,19 +111,23 @@ def victim_loss_and_grad(ctx: RunContext, position: int,
     return loss, grad, record
 
 
-def victim_pass(ctx: RunContext, positions: Sequence[int],
-                images_srgb: Sequence[np.ndarray]) -> tuple[list[float], list[np.ndarray], list[dict[str, Any]]]:
+def victim_pass(ctx: RunContext, positions: Sequence[int], images_srgb: Sequence[np.ndarray],
+                iteration: int | None = None) -> tuple[list[float], list[np.ndarray], list[dict[str, Any]]]:
     """The victim ONCE on the frames at ``positions`` (H×W×3 sRGB images of one size, stacked into
     a batch), forward and backward: each frame's loss, d loss / d image (H×W×3) and prediction record.
 
     The backward pass is that of the SUM of the per-frame losses, so each frame's image gradient is
     its own loss's (images do not interact in an eval-mode model), equal to a pass on the frame
     alone up to float rounding; the predictions come from the same forward pass.
+
+    The victim is the attack's view of the run's (:func:`undream.victims.defended.attacker_view`):
+    behind an adaptive defence, its random transforms drawn from (seed, ``iteration``, frame index).
     """
     import torch
 
     x = stack_images(images_srgb).requires_grad_(True)
-    losses, preds = ctx.victim.loss_and_predict(x, [ctx.targets[p] for p in positions], ctx.config.loss)
+    victim = attacker_view(ctx.victim, ctx.config.seed, iteration, [ctx.frame_indices[p] for p in positions])
+    losses, preds = victim.loss_and_predict(x, [ctx.targets[p] for p in positions], ctx.config.loss)
     (g,) = torch.autograd.grad(losses.sum(), x)
     grads = np.ascontiguousarray(g.permute(0, 2, 3, 1).numpy(), dtype=np.float32)
     values = losses.detach().double().tolist()
@@ -187,7 +192,7 @@ def render_and_grad_many(ctx: RunContext, positions: Sequence[int], texture: np.
     t_victim = [0.0] * n
     for batch in victim_batches([im.shape for im in srgb], cfg.victim_batch):
         t0 = time.perf_counter()
-        values, grads, records = victim_pass(ctx, [positions[i] for i in batch], [srgb[i] for i in batch])
+        values, grads, records = victim_pass(ctx, [positions[i] for i in batch], [srgb[i] for i in batch], iteration)
         share = (time.perf_counter() - t0) / len(batch)
         for i, v, g, r in zip(batch, values, grads, records):
             losses[i], g_images[i], preds[i], t_victim[i] = v, g, r, share

@@ -26,6 +26,7 @@ from undream.engine.algorithm import captured_frames, judge, predict, quantise, 
 from undream.engine.job import frame_seed
 from undream.errors import SpecError
 from undream.scenedir.verify import mask_box, read_mask
+from undream.victims.defended import attacker_view
 
 
 @dataclass(frozen=True)
@@ -107,7 +108,7 @@ def optimise_patch(ctx: RunContext, frames: Sequence[tuple[Footprint, Any]], tex
     for _ in range(ctx.attack.config.steps):
         P.requires_grad_(True)
         batch = torch.stack([paste(image, P, f) for f, image in frames])
-        loss = ctx.victim.loss(batch, targets, ctx.config.loss)
+        loss = attacker_view(ctx.victim).loss(batch, targets, ctx.config.loss)
         (G,) = torch.autograd.grad(loss, P)
         history.append(float(loss.detach()))
         with torch.no_grad():
