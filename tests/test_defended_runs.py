@@ -134,3 +134,39 @@ def test_undream_run_refuses_a_bad_defence_in_one_line_writing_nothing(tiny, tmp
     assert res.exit_code == 2 and len(lines) == 1, res.output
     assert "run.yaml" in lines[0] and needle in lines[0]
     assert not (tmp_path / "out").exists()
+
+
+def test_the_farm_judges_and_attacks_through_the_defence_like_a_local_run(tiny, tmp_path, seen):
+    from pathlib import Path
+
+    from scheduler.local import run_local
+    from scheduler.submit import Validator, record
+    from undream.settings import load_settings
+    from undream.store import open_store
+    from workers.app import create_celery_app
+    from workers.dispatch import CeleryDispatch
+
+    defence = {"steps": [{"resize_pad": {"scale": [0.7, 1.0], "pad": 0.25}}, {"bits": 2}]}
+    cfg = _config(tiny, defence, name="farm-defended")
+    local = run_local(cfg, tmp_path / "local", progress=False)
+    n_local = len(seen)
+    settings = load_settings(env={}, broker_url="memory://", result_backend="cache+memory://",
+                             blob_url=str(tmp_path / "blobs"), cache_dir=str(tmp_path / "cache"))
+    app = create_celery_app(settings)
+    app.conf.task_always_eager = True
+    app.conf.task_eager_propagates = True
+    store = open_store(settings.database_url, settings.blob_url)
+    try:
+        (run_id,) = record(store, [Validator(tmp_path / "work")(cfg, Path("."))], settings, tmp_path / "out")
+        CeleryDispatch(app).start(run_id)
+        run = store.get_run(run_id)
+        assert run.status == "done", run.error
+        farm = seen[n_local:]
+        assert any(grad for _, grad in farm) and any(not grad for _, grad in farm)
+        assert all(im.shape[1:] == (3, 30, 30) and _on_levels(im) for im, _ in farm)  # the workers' frames defended
+        assert run.run_config.defence == cfg.defence
+        assert [it.loss_mean for it in store.iterations(run_id)] == pytest.approx(local["loss_per_iteration"], rel=1e-5)
+        assert np.array_equal(np.load(tmp_path / "out" / "texture_final.npy"),
+                              np.load(tmp_path / "local" / "texture_final.npy"))
+    finally:
+        store.close()
