@@ -170,3 +170,31 @@ def test_the_farm_judges_and_attacks_through_the_defence_like_a_local_run(tiny, 
                               np.load(tmp_path / "local" / "texture_final.npy"))
     finally:
         store.close()
+
+
+@pytest.mark.parametrize("step", [{"jpeg": 40}, {"median": 3}, {"gaussian": 1.0}, {"bits": 3}])
+def test_each_defence_transforms_the_frames_of_the_frame_job_and_the_evaluation(tiny, seen, step):
+    import torch
+
+    from undream.engine import job
+    from undream.engine.algorithm import eval_predictions, eval_render, start_texture
+    from undream.engine.context import build_context
+    from undream.spec.defence import DefenceStep
+    from undream.victims.defences import forward
+
+    plain = build_context(_config(tiny, None), tiny[0])
+    ctx = build_context(_config(tiny, step), tiny[0], victim=plain.victim)
+    assert isinstance(ctx.victim, defended.DefendedVictim) and ctx.victim.inner is plain.victim
+    T = start_texture(ctx)
+    for c in (plain, ctx):
+        job.render_and_grad_many(c, [0, 1], T, 1)
+        eval_predictions(c, [eval_render(c, p, T) for p in (0, 1)])
+    assert [grad for _, grad in seen] == [True, False, True, False]
+    (raw, _), (raw_eval, _), (got, _), (got_eval, _) = seen
+    transform = DefenceStep.from_json(step)
+    for frames, defended_frames in ((raw, got), (raw_eval, got_eval)):
+        expected = forward(transform, torch.from_numpy(frames)).numpy()
+        assert np.allclose(defended_frames, expected, atol=1e-6)
+        assert not np.allclose(defended_frames, frames, atol=1e-3)
+    plain.scenes.close()
+    ctx.scenes.close()
