@@ -266,7 +266,9 @@ def test_the_wrapper_reuses_the_inner_victim_and_attacker_view_follows_adaptive(
 
 @pytest.mark.parametrize("defence, message", [
     ({"jpeg": 0}, "defence.steps[0].jpeg: must be a JPEG quality, an integer in 1..100, got 0"),
+    ({"jpeg": float("inf")}, "defence.steps[0].jpeg: must be a JPEG quality, an integer in 1..100, got inf"),
     ({"median": 4}, "defence.steps[0].median: must be an odd kernel size in pixels"),
+    ({"median": float("nan")}, "defence.steps[0].median: must be an odd kernel size in pixels"),
     ({"gaussian": -1}, "defence.steps[0].gaussian: must be a standard deviation in pixels in (0, 10], got -1"),
     ({"bits": 9}, "defence.steps[0].bits: must be a bit depth per channel, an integer in 1..8, got 9"),
     ({"resize_pad": {"scale": [0.1, 1]}}, "defence.steps[0].resize_pad.scale: must be [low, high]"),

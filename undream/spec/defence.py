@@ -122,8 +122,8 @@ class DefenceStep:
 
 
 def _integer(kind: str, value: Any, lo: int, hi: int, what: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or value != int(value) \
-            or not lo <= value <= hi:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not lo <= value <= hi \
+            or value != int(value):
         raise c.fail(kind, value, f"must be {what}, an integer in {lo}..{hi}")
     return float(value)
 
