@@ -76,6 +76,7 @@ def results(store: "Store", ctx: "RunContext", run: "RunSnapshot", k: int) -> di
     times["wall"] = (dt.datetime.now(dt.timezone.utc) - run.created).total_seconds()
     return {
         "run_id": run.id, "victim": ctx.config.victim, "task": task, "loss_kind": ctx.config.loss,
+        **({"defence": ctx.config.defence.to_json()} if ctx.config.defence is not None else {}),
         "attack": {**ctx.attack.config.to_dict()}, "label": ctx.victim.labels[ctx.targets[0].label],
         "benign": benign, "adversarial": adv, "attack_success": report.to_dict(), **splits,
         "loss_per_iteration": [r.loss_mean for r in iters],

@@ -59,6 +59,7 @@ def test_the_run_attacks_and_judges_through_the_defence(tiny, tmp_path, seen):
     assert len(attack) == 2 and judged  # 2 steps of one batch of 2 frames; then the evaluation
     assert all(_on_levels(im) for im in attack + judged)  # every frame the model saw was reduced to 2 bits
     assert len(results["loss_per_iteration"]) == 2
+    assert results["defence"] == {"steps": [{"bits": 2}], "backward": "auto", "adaptive": True, "draws": 1}
     meta = json.loads((tmp_path / "run" / "metadata.json").read_text())
     assert meta["config"]["defence"]["steps"] == [{"bits": 2}]
 
@@ -66,7 +67,8 @@ def test_the_run_attacks_and_judges_through_the_defence(tiny, tmp_path, seen):
 def test_a_non_adaptive_attack_ignores_the_defence_the_evaluation_does_not(tiny, tmp_path, seen):
     from scheduler.local import run_local
 
-    run_local(_config(tiny, {"bits": 2, "adaptive": False}, name="blind"), tmp_path / "run", progress=False)
+    results = run_local(_config(tiny, {"bits": 2, "adaptive": False}, name="blind"), tmp_path / "run", progress=False)
+    assert results["defence"]["adaptive"] is False
     attack = [im for im, grad in seen if grad]
     judged = [im for im, grad in seen if not grad]
     assert len(attack) == 2 and not any(_on_levels(im) for im in attack)  # the undefended victim's frames
