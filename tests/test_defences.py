@@ -15,8 +15,8 @@ from undream.spec.run import RunConfig
 from undream.victims import Classifier, Detector, Target
 from undream.victims.defended import DefendedVictim, attacker_view, defend
 from undream.victims.defences import (
-    backward_rule, bit_depth, draw_resize_pad, gaussian_kernel, gaussian_smooth, jpeg, mean_smooth,
-    median_smooth, resize_pad,
+    backward_rule, bit_depth, draw_resize_pad, gaussian_kernel, gaussian_smooth, jpeg, jpeg_approx, jpeg_tables,
+    mean_smooth, median_smooth, resize_pad,
 )
 
 LABELS = ["a", "b", "c"]
@@ -107,6 +107,31 @@ def test_jpeg_is_real_jpeg():
     assert (jpeg(x, 5) - x).abs().mean() > (jpeg(x, 95) - x).abs().mean()  # lower quality, more change
 
 
+def test_the_differentiable_jpeg_approximation_tracks_the_codec():
+    from io import BytesIO
+
+    from PIL import Image
+
+    assert jpeg_tables(50)[0, 0].tolist() == [16, 11, 10, 16, 24, 40, 51, 61]  # the standard's table at 50
+    assert torch.equal(jpeg_tables(100), torch.ones(3, 8, 8, dtype=torch.float64))
+    x = gaussian_smooth(_images(b=1, h=21, w=30, seed=4), 2.0)  # not whole 8×8 blocks
+
+    def codec(q: int) -> torch.Tensor:  # Pillow without chroma subsampling, which the approximation skips
+        buf = BytesIO()
+        Image.fromarray((x[0] * 255).round().to(torch.uint8).permute(1, 2, 0).numpy()).save(
+            buf, format="JPEG", quality=q, subsampling=0)
+        decoded = np.array(Image.open(BytesIO(buf.getvalue())).convert("RGB"), dtype=np.float32) / 255
+        return torch.from_numpy(decoded).permute(2, 0, 1)[None]
+
+    for q in (20, 50, 75):
+        approx, real = jpeg_approx(x, q), codec(q)
+        assert approx.shape == x.shape and 0 <= approx.min() and approx.max() <= 1
+        assert (approx - real).abs().mean() < 0.6 * (real - x).abs().mean(), q  # nearer the codec than the input is
+    xg = x.double().requires_grad_(True)
+    (g,) = torch.autograd.grad(jpeg_approx(xg, 50).sum(), xg)
+    assert torch.isfinite(g).all() and g.abs().sum() > 0
+
+
 def test_resize_pad_places_the_image_where_its_draw_says():
     step = DefenceStep("resize_pad", scale=(0.5, 0.8), pad=0.25, fill=0.5)
     x = torch.zeros(1, 3, 16, 20)
@@ -168,6 +193,11 @@ def test_exact_and_smooth_backward_passes():
     z = x.clone().requires_grad_(True)  # the mean's vjp of the inner gradient at the median's output
     (expected,) = torch.autograd.grad(mean_smooth(z, 3), z, grad_outputs=_grad(smooth.inner, y))
     assert torch.allclose(_grad(smooth, x), expected, atol=1e-6)
+    smooth_jpeg = _defended({"jpeg": 50}, backward="smooth")
+    y = jpeg(x, 50)
+    (expected,) = torch.autograd.grad(jpeg_approx(z, 50), z, grad_outputs=_grad(smooth_jpeg.inner, y))
+    assert torch.allclose(_grad(smooth_jpeg, x), expected, atol=1e-5)
+    assert not torch.allclose(expected, _grad(smooth_jpeg.inner, y), atol=1e-3)  # not the identity's
     assert backward_rule(DefenceStep("resize_pad"), "bpda") == "exact"  # it moves pixels: never the identity
 
 

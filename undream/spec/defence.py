@@ -20,8 +20,9 @@ How an attack differentiates through them (``backward``):
   the identity on the backward pass where it is not (jpeg, median, bits);
 - ``bpda``: the identity on the backward pass for every transform that keeps the frame's pixels in
   place (jpeg, median, bits, gaussian); resize_pad, which moves them, is always differentiated exactly;
-- ``smooth``: as ``auto``, but the median's backward pass is that of a K×K mean filter (a smooth
-  stand-in, Athalye et al. 2018) instead of the identity;
+- ``smooth``: as ``auto``, but with smooth stand-ins instead of the identity (Athalye et al. 2018):
+  the median's backward pass is that of a K×K mean filter, jpeg's that of a differentiable JPEG
+  approximation (block DCT, cubic rounding; Shin & Song 2017); bits keeps the identity;
 - ``exact``: plain autograd through every transform: bits' rounding then passes no gradient and the
   median only its chosen pixel's (the obfuscated gradients a non-adaptive attack meets); jpeg has
   no autograd and is refused.

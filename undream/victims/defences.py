@@ -5,7 +5,7 @@ input frames) and keeps them in [0, 1]. The settings are :class:`undream.spec.de
 the wrapper that puts a chain of them in front of any victim is :mod:`undream.victims.defended`.
 
 - :func:`jpeg`: real JPEG (Pillow's encoder and decoder, each image quantised to 8 bits first); no
-  autograd.
+  autograd. :func:`jpeg_approx` is a differentiable approximation of it (the ``smooth`` stand-in).
 - :func:`median_smooth`: K×K median filter (edges replicated); autograd passes the gradient to the
   chosen pixel only.
 - :func:`gaussian_smooth`: separable Gaussian filter of σ pixels, radius ⌈3σ⌉ (edges replicated);
@@ -79,6 +79,52 @@ def mean_smooth(images: torch.Tensor, kernel: int) -> torch.Tensor:
     r = int(kernel) // 2
     padded = F.pad(images, (r, r, r, r), mode="replicate")
     return F.avg_pool2d(padded, int(kernel), stride=1)
+
+
+# The JPEG standard's example quantisation tables (ITU-T T.81, Annex K), luminance and chrominance.
+_LUMA_Q = (16, 11, 10, 16, 24, 40, 51, 61, 12, 12, 14, 19, 26, 58, 60, 55, 14, 13, 16, 24, 40, 57, 69, 56,
+           14, 17, 22, 29, 51, 87, 80, 62, 18, 22, 37, 56, 68, 109, 103, 77, 24, 35, 55, 64, 81, 104, 113, 92,
+           49, 64, 78, 87, 103, 121, 120, 101, 72, 92, 95, 98, 112, 100, 103, 99)
+_CHROMA_Q = (17, 18, 24, 47, 99, 99, 99, 99, 18, 21, 26, 66, 99, 99, 99, 99, 24, 26, 56, 99, 99, 99, 99, 99,
+             47, 66, 99, 99, 99, 99, 99, 99, *([99] * 32))
+_TO_YCC = ((0.299, 0.587, 0.114), (-0.168736, -0.331264, 0.5), (0.5, -0.418688, -0.081312))  # JFIF
+_FROM_YCC = ((1.0, 0.0, 1.402), (1.0, -0.344136, -0.714136), (1.0, 1.772, 0.0))
+
+
+def jpeg_tables(quality: int) -> torch.Tensor:
+    """The 3×8×8 quantisation steps (Y, Cb, Cr) of ``quality`` as libjpeg scales the standard's tables."""
+    scale = 5000 / quality if quality < 50 else 200 - 2 * quality
+    tables = torch.tensor([_LUMA_Q, _CHROMA_Q, _CHROMA_Q], dtype=torch.float64).view(3, 8, 8)
+    return ((tables * scale + 50) // 100).clamp(1, 255)
+
+
+def _dct_matrix() -> torch.Tensor:
+    k, n = torch.arange(8, dtype=torch.float64)[:, None], torch.arange(8, dtype=torch.float64)[None]
+    c = torch.cos((2 * n + 1) * k * math.pi / 16) * math.sqrt(2 / 8)
+    c[0] = math.sqrt(1 / 8)
+    return c
+
+
+def jpeg_approx(images: torch.Tensor, quality: int) -> torch.Tensor:
+    """A differentiable approximation of :func:`jpeg` (Shin & Song 2017): JFIF YCbCr, 8×8 block DCT,
+    quantisation by ``quality``'s tables with the rounding replaced by ``r + (x − r)³`` (r the nearest
+    integer), and back; no chroma subsampling, edges replicated to whole blocks. Its gradient is the
+    smooth stand-in of the ``smooth`` backward pass; its value only approximates the codec's."""
+    _check(images, "jpeg")
+    b, _, h, w = images.shape
+    dt = images.dtype
+    to_ycc, from_ycc = torch.tensor(_TO_YCC, dtype=dt), torch.tensor(_FROM_YCC, dtype=dt)
+    x = torch.einsum("ij,bjhw->bihw", to_ycc.to(images.device), images * 255)
+    x = F.pad(x, (0, -w % 8, 0, -h % 8), mode="replicate")
+    hp, wp = x.shape[2], x.shape[3]
+    blocks = x.unfold(2, 8, 8).unfold(3, 8, 8)  # B×3×(H/8)×(W/8)×8×8
+    c = _dct_matrix().to(dt).to(images.device)
+    q = jpeg_tables(int(quality)).to(dt).to(images.device).view(1, 3, 1, 1, 8, 8)
+    coeffs = (c @ blocks @ c.T) / q
+    r = torch.round(coeffs).detach()
+    blocks = c.T @ ((r + (coeffs - r) ** 3) * q) @ c
+    x = blocks.permute(0, 1, 2, 4, 3, 5).reshape(b, 3, hp, wp)[:, :, :h, :w]
+    return (torch.einsum("ij,bjhw->bihw", from_ycc.to(images.device), x) / 255).clamp(0, 1)
 
 
 def gaussian_kernel(sigma: float, dtype: torch.dtype = torch.float32) -> torch.Tensor:
@@ -172,13 +218,16 @@ def straight_through(x: torch.Tensor, y: torch.Tensor,
 
 def backward_rule(step: DefenceStep, backward: str) -> str:
     """How an attack differentiates through ``step`` under ``backward`` (auto, bpda, smooth, exact):
-    ``exact`` (autograd), ``identity`` (BPDA with the identity) or ``mean`` (BPDA with a K×K mean)."""
+    ``exact`` (autograd), ``identity`` (BPDA with the identity), ``mean`` (BPDA with a K×K mean) or
+    ``jpeg_approx`` (BPDA with :func:`jpeg_approx`)."""
     if step.kind == "resize_pad" or backward == "exact":
         return "exact"
     if step.kind == "gaussian":
         return "identity" if backward == "bpda" else "exact"
     if step.kind == "median" and backward == "smooth":
         return "mean"
+    if step.kind == "jpeg" and backward == "smooth":
+        return "jpeg_approx"
     return "identity"
 
 
@@ -207,4 +256,5 @@ def apply_step(step: DefenceStep, images: torch.Tensor, backward: str,
         return forward(step, images, draws)
     with torch.no_grad():
         y = forward(step, images, draws)
-    return straight_through(images, y, (lambda x: mean_smooth(x, int(step.value))) if rule == "mean" else None)
+    stand_ins = {"mean": lambda x: mean_smooth(x, int(step.value)), "jpeg_approx": lambda x: jpeg_approx(x, int(step.value))}
+    return straight_through(images, y, stand_ins.get(rule))
