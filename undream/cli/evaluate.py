@@ -50,8 +50,8 @@ DEFAULT_VICTIM = "bundled:classifier"  # a texture file names no victim
 @settings_options
 @one_line_errors
 def evaluate_cmd(texture: Path, scenes: tuple[Path, ...], victims: tuple[str, ...], sim: str, spp: int,
-                 holdout: Any, label: str | None, capture: Any, defence: Any, json_out: Path | None, csv_out: Path | None,
-                 frames_out: Path | None, settings: Callable[..., "Settings"]) -> None:
+                 holdout: Any, label: str | None, capture: Any, defence: Any, json_out: Path | None,
+                 csv_out: Path | None, frames_out: Path | None, settings: Callable[..., "Settings"]) -> None:
     """Judge TEXTURE (a .npy, a .png, an `undream run` output folder, or a farm run or sweep by id or
     name: each of its runs' final textures) on SCENES (scene directories or spec files) by each
     victim, rendered by one simulator: per scene, victim and texture, on every frame and apart on the

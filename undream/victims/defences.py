@@ -256,5 +256,6 @@ def apply_step(step: DefenceStep, images: torch.Tensor, backward: str,
         return forward(step, images, draws)
     with torch.no_grad():
         y = forward(step, images, draws)
-    stand_ins = {"mean": lambda x: mean_smooth(x, int(step.value)), "jpeg_approx": lambda x: jpeg_approx(x, int(step.value))}
+    stand_ins = {"mean": lambda x: mean_smooth(x, int(step.value)),
+                 "jpeg_approx": lambda x: jpeg_approx(x, int(step.value))}
     return straight_through(images, y, stand_ins.get(rule))
