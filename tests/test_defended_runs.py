@@ -12,6 +12,7 @@ import yaml
 from click.testing import CliRunner
 
 from farm_support import make_scene, make_victim
+from undream.errors import SpecError
 from undream.spec.run import RunConfig
 from undream.victims import Classifier
 from undream.victims import defended
@@ -200,3 +201,22 @@ def test_each_defence_transforms_the_frames_of_the_frame_job_and_the_evaluation(
         assert not np.allclose(defended_frames, frames, atol=1e-3)
     plain.scenes.close()
     ctx.scenes.close()
+
+
+def test_a_sweep_grids_defences_and_their_options(tiny, tmp_path):
+    from scheduler.sweep import load_sweep
+
+    scene, victim = tiny
+    base = {"scene": str(scene), "victim": victim, "defence": {"jpeg": 75}}
+    (tmp_path / "a.yaml").write_text(yaml.safe_dump({"name": "d", "base": base, "grid": {
+        "defence.adaptive": [False, True], "defence.backward": ["auto", "smooth"]}}))
+    runs = load_sweep(tmp_path / "a.yaml").runs
+    assert [(r.config.defence.adaptive, r.config.defence.backward) for r in runs] == [
+        (False, "auto"), (False, "smooth"), (True, "auto"), (True, "smooth")]
+    (tmp_path / "b.yaml").write_text(yaml.safe_dump({"name": "e", "base": {**base, "defence": None}, "grid": {
+        "defence": [None, {"median": 3}, [{"gaussian": 1.0}, {"bits": 5}]]}}))
+    assert [r.config.defence and r.config.defence.label for r in load_sweep(tmp_path / "b.yaml").runs] == [
+        None, "median 3", "gaussian 1 + bits 5"]
+    (tmp_path / "c.yaml").write_text(yaml.safe_dump({"name": "f", "base": base, "grid": {"defence.draws": [2]}}))
+    with pytest.raises(SpecError, match=r"defence\.draws: must be 1 without a random defence"):
+        load_sweep(tmp_path / "c.yaml")
