@@ -42,6 +42,7 @@ class CropFrames:
     ctx: Any  # the RunContext
     _windows: dict[int, Window | None] = field(default_factory=dict)
     _media: dict[tuple[int, int], MediumModel | None] = field(default_factory=dict)  # (index, spp) → model
+    _start: np.ndarray | None = None  # the scene's own texture, read once (every base and medium fit uses it)
 
     @property
     def enabled(self) -> bool:
@@ -104,8 +105,10 @@ class CropFrames:
         return next(f for f in self.ctx.sequence.frames if f.index == index)
 
     def _texture(self) -> np.ndarray:
-        return read_texture_srgb(self.ctx.scenes.mi, self.ctx.scene_dir / "textures" /
-                                 f"{self.ctx.sequence.texture.name}.exr")
+        if self._start is None:
+            self._start = read_texture_srgb(self.ctx.scenes.mi, self.ctx.scene_dir / "textures" /
+                                            f"{self.ctx.sequence.texture.name}.exr")
+        return self._start
 
     def base(self, index: int, spp: int) -> np.ndarray:
         """Frame ``index`` rendered whole with the scene's own texture at ``spp`` (once per process)."""
