@@ -73,6 +73,7 @@ def setting(config: dict[str, Any]) -> dict[str, Any]:
     reg = config.get("regularise") or {}
     eot = config.get("eot_print") or {}
     return {"attack": config["attack"]["name"], "eps": config["attack"]["eps"],
+            "step_decay": config["attack"].get("step_decay") or "none",
             "tv_weight": reg.get("tv", 0.0) or 0.0, "nps_weight": reg.get("nps", 0.0) or 0.0,
             "gamut": config.get("gamut") or "none",
             "eot_print": ",".join(f"{k}={v}" for k, v in sorted(eot.items()) if v) or "none"}
@@ -92,7 +93,7 @@ def read_run(folder: Path, palette: np.ndarray, gamut: Any) -> dict[str, Any]:
 
 def groups(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Mean and sd over the seeds of each setting, of every numeric column."""
-    keys = ("attack", "eps", "tv_weight", "nps_weight", "gamut", "eot_print")
+    keys = ("attack", "eps", "step_decay", "tv_weight", "nps_weight", "gamut", "eot_print")
     by: dict[tuple, list[dict[str, Any]]] = defaultdict(list)
     for r in rows:
         by[tuple(r[k] for k in keys)].append(r)
@@ -111,7 +112,8 @@ def groups(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 def label(g: dict[str, Any]) -> str:
-    parts = [f"{'Auto-PGD' if g['attack'] == 'apgd' else g['attack'].upper()} ε{g['eps']:g}"]
+    parts = [f"{'Auto-PGD' if g['attack'] == 'apgd' else g['attack'].upper()} ε{g['eps']:g}"
+             + (f" ({g['step_decay']} step)" if g["step_decay"] != "none" else "")]
     if g["tv_weight"]:
         parts.append(f"tv {g['tv_weight']:g}")
     if g["nps_weight"]:
