@@ -38,8 +38,8 @@ def _nan_victim_gradient(monkeypatch, positions: set[int]) -> None:
 
     real = job.victim_pass
 
-    def nan_half(ctx, batch, images_srgb):
-        losses, grads, records = real(ctx, batch, images_srgb)
+    def nan_half(ctx, batch, images_srgb, iteration=None):
+        losses, grads, records = real(ctx, batch, images_srgb, iteration)
         for i, position in enumerate(batch):
             if position in positions:
                 grads[i] = grads[i].copy()

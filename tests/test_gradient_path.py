@@ -119,7 +119,7 @@ def test_a_nan_image_gradient_marks_the_frame_non_finite(scene_dir, monkeypatch,
                           gradients=GradientPath(scenes, mode))
     ctx.crops = CropFrames(ctx)  # crop: off renders whole frames through ctx.sim
     bad = np.full((*IMG, 3), np.nan, np.float32)
-    monkeypatch.setattr(job, "victim_pass", lambda ctx, positions, images: ([0.5], [bad], [None]))
+    monkeypatch.setattr(job, "victim_pass", lambda ctx, positions, images, iteration=None: ([0.5], [bad], [None]))
     res = job.render_and_grad(ctx, 0, np.full((8, 16, 3), 0.5, np.float32), 0)
     assert not res.finite
     if mode == "prb" and scenes.mi.variant().startswith("llvm"):

@@ -448,7 +448,8 @@ def test_the_attack_engine_runs_a_dense_victim(trained):
 
     victim = DenseDetector(trained["model"], LABELS, PRE)
     targets = [Target(0, box=(18, 14, 46, 42)), Target(0, box=(8, 30, 30, 60))]
-    ctx = SimpleNamespace(victim=victim, targets=targets, config=SimpleNamespace(loss="vanish"),
+    ctx = SimpleNamespace(victim=victim, targets=targets, config=SimpleNamespace(loss="vanish", seed=0),
+                          frame_indices=[3, 4],
                           sequence=SimpleNamespace(frames=[SimpleNamespace(index=3), SimpleNamespace(index=4)]))
     frames = [_square(0, box=t.box, seed=s)[0].permute(1, 2, 0).numpy() for t, s in zip(targets, (1, 2))]
     values, grads, records = victim_pass(ctx, [0, 1], frames)
