@@ -78,6 +78,27 @@ def run_config(scene: Path, victim: str, name: str = "farm", steps: int = 3, **e
             "sim_spp": 2, "grad_spp": 2, "eval_spp": 2, "seed": 5, **extra}
 
 
+def eager_run(cfg: Any, root: Path) -> tuple[Any, str]:
+    """``cfg`` (a RunConfig) recorded and run through the Celery app in eager mode (a logic test of the
+    farm's path: tasks run in this process, nothing serialized), its outputs in ``root / "out"``:
+    the open store (the caller closes it) and the run's id."""
+    from scheduler.submit import Validator, record
+    from undream.settings import load_settings
+    from undream.store import open_store
+    from workers.app import create_celery_app
+    from workers.dispatch import CeleryDispatch
+
+    settings = load_settings(env={}, broker_url="memory://", result_backend="cache+memory://",
+                             blob_url=str(root / "blobs"), cache_dir=str(root / "cache"))
+    app = create_celery_app(settings)
+    app.conf.task_always_eager = True
+    app.conf.task_eager_propagates = True
+    store = open_store(settings.database_url, settings.blob_url)
+    (run_id,) = record(store, [Validator(root / "work")(cfg, Path("."))], settings, root / "out")
+    CeleryDispatch(app).start(run_id)
+    return store, run_id
+
+
 def write_yaml(path: Path, data: dict[str, Any]) -> Path:
     import yaml
 

@@ -140,28 +140,15 @@ def test_undream_run_refuses_a_bad_defence_in_one_line_writing_nothing(tiny, tmp
 
 
 def test_the_farm_judges_and_attacks_through_the_defence_like_a_local_run(tiny, tmp_path, seen):
-    from pathlib import Path
-
+    from farm_support import eager_run
     from scheduler.local import run_local
-    from scheduler.submit import Validator, record
-    from undream.settings import load_settings
-    from undream.store import open_store
-    from workers.app import create_celery_app
-    from workers.dispatch import CeleryDispatch
 
     defence = {"steps": [{"resize_pad": {"scale": [0.7, 1.0], "pad": 0.25}}, {"bits": 2}]}
     cfg = _config(tiny, defence, name="farm-defended")
     local = run_local(cfg, tmp_path / "local", progress=False)
     n_local = len(seen)
-    settings = load_settings(env={}, broker_url="memory://", result_backend="cache+memory://",
-                             blob_url=str(tmp_path / "blobs"), cache_dir=str(tmp_path / "cache"))
-    app = create_celery_app(settings)
-    app.conf.task_always_eager = True
-    app.conf.task_eager_propagates = True
-    store = open_store(settings.database_url, settings.blob_url)
+    store, run_id = eager_run(cfg, tmp_path)
     try:
-        (run_id,) = record(store, [Validator(tmp_path / "work")(cfg, Path("."))], settings, tmp_path / "out")
-        CeleryDispatch(app).start(run_id)
         run = store.get_run(run_id)
         assert run.status == "done", run.error
         farm = seen[n_local:]

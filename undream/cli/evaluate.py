@@ -100,30 +100,30 @@ def _holdout(value: str) -> Any:
     return parsed
 
 
-def _capture(value: str | None) -> Any:
-    """``--print-capture`` as a :class:`undream.spec.physical.PrintEotConfig` (None when not given)."""
-    from undream.spec.physical import PrintEotConfig
+def _mapping_option(value: str | None, config: Any) -> Any:
+    """A YAML mapping option as ``config.from_json`` reads it (None when not given); one line otherwise."""
     from undream.spec.yaml_strict import load
 
     if value is None:
         return None
     try:
-        return PrintEotConfig.from_json(load(value))
+        return config.from_json(load(value))
     except (yaml.YAMLError, UndreamError) as err:
         raise click.BadParameter(f"{value!r}: {str(err).splitlines()[0]}") from None
+
+
+def _capture(value: str | None) -> Any:
+    """``--print-capture`` as a :class:`undream.spec.physical.PrintEotConfig` (None when not given)."""
+    from undream.spec.physical import PrintEotConfig
+
+    return _mapping_option(value, PrintEotConfig)
 
 
 def _defence(value: str | None) -> Any:
     """``--defence`` as a :class:`undream.spec.defence.DefenceConfig` (None when not given)."""
     from undream.spec.defence import DefenceConfig
-    from undream.spec.yaml_strict import load
 
-    if value is None:
-        return None
-    try:
-        return DefenceConfig.from_json(load(value))
-    except (yaml.YAMLError, UndreamError) as err:
-        raise click.BadParameter(f"{value!r}: {str(err).splitlines()[0]}") from None
+    return _mapping_option(value, DefenceConfig)
 
 
 def _check_outputs(outputs: tuple[tuple[str, Path | None], ...], texture: Path, scenes: tuple[Path, ...],
