@@ -39,17 +39,18 @@ SPLITS = ("held_out_conditions", "held_out", "attacked")
 
 
 def texture_measures(texture: np.ndarray, palette: np.ndarray, gamut: Any) -> dict[str, float | None]:
-    """TV (Thys, exact), NPS against ``palette`` (N×3 sRGB 0–1) and the fraction of texels in gamut."""
-    T = np.asarray(texture, np.float64)
-    tv = float(np.abs(np.diff(T, axis=1)).mean() + np.abs(np.diff(T, axis=0)).mean())
-    flat = T.reshape(-1, 3)
-    nearest = np.full(len(flat), np.inf)
-    for start in range(0, len(flat), 65536):
-        block = flat[start:start + 65536]
-        d = np.sqrt(((block[:, None, :] - palette[None]) ** 2).sum(-1)).min(1)
-        nearest[start:start + 65536] = d
+    """TV (Thys, exact) and NPS against ``palette`` (N×3 sRGB 0–1): the regularisers a run weighs
+    (:mod:`undream.attacks.regularise`) with exact absolute values (no smoothing), and the fraction
+    of texels in ``gamut``."""
+    import torch
+
+    from undream.attacks.regularise import palette_distance, total_variation
+
+    T = torch.from_numpy(np.asarray(texture, np.float64))
+    tv = float(total_variation(T, delta=0.0))
+    nps = float(palette_distance(T, torch.from_numpy(palette), delta=0.0))
     in_gamut = None if gamut is None else float(gamut.contains(np.asarray(texture, np.float32)).mean())
-    return {"tv": tv, "nps": float(nearest.mean()), "in_gamut": in_gamut}
+    return {"tv": tv, "nps": nps, "in_gamut": in_gamut}
 
 
 def split_rates(results: dict[str, Any]) -> dict[str, float | None]:
