@@ -43,15 +43,19 @@ def victims() -> None:
               help="v1: the orbiting camera of bundled:classifier/detector; v2: camera height "
                    "and ground distance, every background and weather (bundled:*-v2); v3: v2 with "
                    "plain, unsaturated objects too (bundled:*-v3).")
+@click.option("--shading", is_flag=True,
+              help="Also render each image's shading (shading/NNNNN.npz: the object under a black and a "
+                   "white texture, its uv per pixel): the data 'undream victims train-adversarial' takes.")
 @progress_option
 @one_line_errors
 def make_dataset_cmd(out: Path, n: int, seed: int, split: str, size: int, spp: int,
-                     distribution: str, progress: bool) -> None:
+                     distribution: str, shading: bool, progress: bool) -> None:
     """Render N images of the built-in assets with their classes and boxes."""
     from undream.training.dataset import DatasetConfig, make_dataset
 
     local_settings()  # Mitsuba's variant, from UNDREAM_MI_VARIANT (the dataset's own is set around its renders)
-    cfg = DatasetConfig(n=n, seed=seed, split=split, size=size, spp=spp, distribution=distribution)
+    cfg = DatasetConfig(n=n, seed=seed, split=split, size=size, spp=spp, distribution=distribution,
+                        shading=shading)
     done = make_dataset(out, cfg, progress=progress, command=_command())
     click.echo(f"wrote {n} images to {done}")
 
@@ -83,6 +87,44 @@ def train_cmd(task: str, data: tuple[Path, ...], test: Path, out: Path, seed: in
     cfg = TrainConfig(task=task, seed=seed, epochs=epochs, backbone=backbone, threads=threads, arch=arch)
     result = train(list(data), test, out, cfg, command=_command())
     click.echo(json.dumps(result["test"], indent=2))
+    click.echo(f"wrote {out}")
+
+
+@victims.command("train-adversarial")
+@click.option("--base", required=True,
+              help="The classifier to fine-tune: bundled:NAME or a save_pretrained folder.")
+@click.option("--data", required=True, multiple=True, type=click.Path(path_type=Path),
+              help="Training dataset made with --shading; repeat for a set rendered in parts.")
+@click.option("--test", "test", required=True, type=click.Path(path_type=Path),
+              help="Held-out dataset made with --shading: clean and robust accuracy, before and after.")
+@out_option("Folder to write the model to (save_pretrained layout, training.json, MODEL_CARD.md).")
+@seed_option
+@click.option("--eps", default="16,50,255", show_default=True,
+              help="Budgets (0-255, comma-separated), one drawn per attacked image.")
+@click.option("--steps", default=5, show_default=True, type=click.IntRange(1, 1000), help="PGD steps per batch.")
+@click.option("--epochs", default=6, show_default=True, type=click.IntRange(1, 10000))
+@click.option("--lr", default=3e-4, show_default=True, type=click.FloatRange(min=0, min_open=True))
+@click.option("--clean-share", default=0.5, show_default=True, type=click.FloatRange(0, 1, max_open=True),
+              help="Share of each batch seen as rendered; the rest is attacked.")
+@click.option("--eval-steps", default=20, show_default=True, type=click.IntRange(1, 1000),
+              help="PGD steps of the held-out robust accuracy.")
+@click.option("--threads", default=None, type=click.IntRange(1, 1024), help="torch CPU threads.")
+@one_line_errors
+def train_adversarial_cmd(base: str, data: tuple[Path, ...], test: Path, out: Path, seed: int, eps: str,
+                          steps: int, epochs: int, lr: float, clean_share: float, eval_steps: int,
+                          threads: int | None) -> None:
+    """Fine-tune a classifier against textures attacked in the loop (PGD-AT on the texture)."""
+    from undream.training.adversarial import AdversarialConfig, train_adversarial
+
+    try:
+        budgets = tuple(int(e) for e in eps.split(","))
+    except ValueError:
+        raise click.BadParameter(f"budgets must be integers in 1..255, comma-separated; got {eps!r}",
+                                 param_hint="--eps") from None
+    cfg = AdversarialConfig(eps=budgets, steps=steps, epochs=epochs, lr=lr, clean_share=clean_share, seed=seed,
+                            eval_steps=eval_steps, threads=threads)
+    result = train_adversarial(list(data), test, base, out, cfg, command=_command())
+    click.echo(json.dumps({"test": result["test"]["accuracy"], **result["adversarial"]["held_out"]}, indent=2))
     click.echo(f"wrote {out}")
 
 

@@ -32,6 +32,7 @@ Output of :func:`make_dataset` (sRGB PNGs, 8 bit)::
     OUT/images/00000.png ...
     OUT/labels.jsonl      one JSON object per image (see :func:`render_sample`)
     OUT/metadata.json     the config, classes, split rules, variant, versions, command
+    OUT/shading/00000.npz ...  with ``shading``: each image's shading (:func:`render_shading`)
 
 Reproducible: sample ``i`` of ``(seed, split)`` depends on those three only
 (its generator is ``default_rng([seed, split_id, i])``), so a dataset can be
@@ -77,6 +78,7 @@ CLASSES: tuple[str, ...] = ("car", "sphere", "stop_sign", "traffic_cone", "trash
 DATASET_VERSION = 1
 LABELS_FILE = "labels.jsonl"
 METADATA_FILE = "metadata.json"
+SHADING_DIR = "shading"
 
 # Banded parameters: (low, high, band width); band k = floor((v - low) / width) belongs to
 # train when k is even, to test when k is odd.
@@ -107,7 +109,10 @@ class DatasetConfig:
     """What :func:`make_dataset` renders: ``n`` images of ``split`` from ``seed``.
 
     size: image width = height in pixels; spp: samples per pixel of the image
-    (the mask uses the same count); distribution: ``v1`` (this module's
+    (the mask uses the same count); shading: also render and save each
+    image's texture-free shading (:func:`render_shading`, ``shading/NNNNN.npz``),
+    which :mod:`undream.training.adversarial` composites attacked textures with;
+    distribution: ``v1`` (this module's
     orbiting camera, the original bundled victims' data, kept bit for bit),
     ``v2`` (:mod:`undream.training.distribution_v2`: camera height and ground
     distance, every background and weather, kept bit for bit) or ``v3``
@@ -120,6 +125,7 @@ class DatasetConfig:
     size: int = 64
     spp: int = 16
     distribution: str = "v1"
+    shading: bool = False  # also write each image's shading (:func:`render_shading`): attackable in training
 
     def __post_init__(self) -> None:
         if self.distribution not in DISTRIBUTIONS:
@@ -275,9 +281,42 @@ def _scene(mi: ModuleType, seq: Sequence, paths: ScenePaths, kind: str, spp: int
     return mi.load_dict(d)
 
 
+def render_shading(mi: ModuleType, seq: Sequence, paths: ScenePaths, spp: int, index: int,
+                   coverage: np.ndarray) -> dict[str, np.ndarray]:
+    """What an image looks like under ANY texture, as arrays (float32): the linear radiance with a black
+    (``black``) and a white (``white``) texture, the object's texture coordinates (``uv``, H×W×2: the
+    mean over the pixel's samples that hit the object, rendered with the object alone) and the share
+    of the pixel the object visibly covers (``coverage``, H×W, the ``mask`` view's).
+
+    The object is diffuse: a camera sample that first hits it carries ``albedo(uv) · L_white`` plus
+    what does not depend on its albedo (fog in front of it), so a texture ``t`` (linear) renders
+    about as ``black + (white − black) · t(uv)`` (exactly so up to the light the object throws back
+    onto itself and onto its surroundings, and the pixels a texture seam crosses)."""
+    def render(kind: str, texture: np.ndarray | None, integrator: dict[str, Any] | None = None) -> np.ndarray:
+        d = to_mitsuba(scene_dict(seq, seq.frames[0], paths, kind), mi, {"spp": spp})
+        if texture is not None:
+            d[OBJECT_ID]["bsdf"]["bsdf"]["reflectance"] = {"type": "rgb", "value": texture.tolist()}
+        if integrator is not None:
+            d["integrator"] = integrator
+        return np.array(mi.render(mi.load_dict(d), seed=index), dtype=np.float32)
+
+    black = render("sim", np.zeros(3))[..., :3]
+    white = render("sim", np.ones(3))[..., :3]
+    # The object alone (an emitter of radiance 1 in the mask view, nothing in front of it): its
+    # unoccluded coverage and the sum of its uv over the samples that hit it (misses add 0).
+    d = to_mitsuba(scene_dict(seq, seq.frames[0], paths, "mask"), mi, {"spp": spp})
+    d = {"type": "scene", "sensor": d["sensor"], OBJECT_ID: d[OBJECT_ID],
+         "integrator": {"type": "aov", "aovs": "uv:uv", "image": d["integrator"]}}
+    out = np.array(mi.render(mi.load_dict(d), seed=index), dtype=np.float32)
+    alone, uv_sum = out[..., 0], out[..., -2:]
+    uv = np.where(alone[..., None] > 1e-3, uv_sum / np.maximum(alone[..., None], 1e-3), 0.0)
+    return {"black": black, "white": white, "uv": uv.astype(np.float32), "coverage": coverage.astype(np.float32)}
+
+
 def render_sample(mi: ModuleType, meshes: _Meshes, cfg: DatasetConfig, index: int
                   ) -> tuple[np.ndarray, dict[str, Any]]:
-    """Render sample ``index``: the H×W×3 uint8 sRGB image and its label record.
+    """Render sample ``index``: the H×W×3 uint8 sRGB image and its label record (with
+    ``cfg.shading``, the record's ``shading`` holds :func:`render_shading`'s arrays).
 
     The record holds ``label``, ``name``, ``box`` (xyxy pixels: every pixel
     the object visibly covers by more than :data:`BOX_COVERAGE`, so thin
@@ -321,6 +360,8 @@ def render_sample(mi: ModuleType, meshes: _Meshes, cfg: DatasetConfig, index: in
     record = {"file": f"images/{index:05d}.png", "index": index, "label": p.label, "name": p.name,
               "box": list(box), "visible_pixels": int(mask.sum()), "redraws": attempt,
               "params": params, "camera_to_world": seq.frames[0].camera.to_world.to_json()}
+    if cfg.shading:
+        record["shading"] = render_shading(mi, seq, paths, cfg.spp, index, coverage)
     return image, record
 
 
@@ -363,6 +404,8 @@ def make_dataset(out: str | Path, cfg: DatasetConfig, progress: bool = True,
             for i in progress_bar(range(cfg.n), f"render {cfg.split}", "image", progress):
                 image, rec = render_sample(mi, meshes, cfg, i)
                 Image.fromarray(image).save(out / rec["file"])
+                if cfg.shading:
+                    rec["shading"] = _save_shading(out, i, rec.pop("shading"))
                 fh.write(json.dumps(rec) + "\n")
     partial.replace(out / LABELS_FILE)
     v2_data = cfg.distribution in (v2.NAME, v3.NAME)
@@ -377,6 +420,15 @@ def make_dataset(out: str | Path, cfg: DatasetConfig, progress: bool = True,
             "versions": versions(), "command": command}
     (out / METADATA_FILE).write_text(json.dumps(meta, indent=2) + "\n", encoding="utf-8")
     return out
+
+
+def _save_shading(out: Path, index: int, arrays: dict[str, np.ndarray]) -> str:
+    """Write an image's shading (float16: radiance and coverage in [0, 65504], uv to 2⁻¹¹) and return its
+    file, relative to ``out``."""
+    rel = f"{SHADING_DIR}/{index:05d}.npz"
+    (out / SHADING_DIR).mkdir(exist_ok=True)
+    np.savez_compressed(out / rel, **{k: v.astype(np.float16) for k, v in arrays.items()})
+    return rel
 
 
 def _plain_textures() -> dict[str, Any]:

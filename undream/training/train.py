@@ -325,7 +325,7 @@ def train(data: str | Path | list[str | Path], test: str | Path, out: str | Path
 
 def _save_and_evaluate(model: Any, out: Path, cfg: TrainConfig, seconds: float, train_ds: Dataset,
                        test_ds: Dataset, parts: list[str | Path], test: str | Path,
-                       command: str) -> dict[str, Any]:
+                       command: str, extra: dict[str, Any] | None = None) -> dict[str, Any]:
     out.mkdir(parents=True, exist_ok=True)
     model.save_pretrained(str(out))
     processor = processor_json(cfg.task, cfg.input_size)
@@ -336,7 +336,7 @@ def _save_and_evaluate(model: Any, out: Path, cfg: TrainConfig, seconds: float, 
               "threads": torch.get_num_threads(), "train_data": _about(train_ds, *parts),
               "test_data": _about(test_ds, test), "test": evaluate(victim, test_ds),
               "parameters": sum(p.numel() for p in model.parameters()),
-              "versions": versions()}
+              "versions": versions(), **(extra or {})}
     (out / TRAINING_FILE).write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
     from undream.training.model_card import write_model_card
     write_model_card(out)
