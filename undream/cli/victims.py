@@ -114,13 +114,13 @@ def train_adversarial_cmd(base: str, data: tuple[Path, ...], test: Path, out: Pa
                           steps: int, epochs: int, lr: float, clean_share: float, eval_steps: int,
                           threads: int | None) -> None:
     """Fine-tune a classifier against textures attacked in the loop (PGD-AT on the texture)."""
+    from undream.errors import VictimError
     from undream.training.adversarial import AdversarialConfig, train_adversarial
 
     try:
         budgets = tuple(int(e) for e in eps.split(","))
     except ValueError:
-        raise click.BadParameter(f"budgets must be integers in 1..255, comma-separated; got {eps!r}",
-                                 param_hint="--eps") from None
+        raise VictimError(f"--eps: budgets must be integers in 1..255, comma-separated; got {eps!r}") from None
     cfg = AdversarialConfig(eps=budgets, steps=steps, epochs=epochs, lr=lr, clean_share=clean_share, seed=seed,
                             eval_steps=eval_steps, threads=threads)
     result = train_adversarial(list(data), test, base, out, cfg, command=_command())

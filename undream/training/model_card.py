@@ -148,12 +148,17 @@ def model_card(folder: str | Path, commands: list[str] | None = None, note: str 
     config = _model_config(folder)  # the architecture as saved, not as the code says today
     distribution = tr["config"].get("distribution", "v1")
     suffix = _suffix(folder, distribution)
+    adversarial = rec.get("adversarial")
     if task == "classification":
         r = config
         title = f"bundled:classifier{suffix} — ResNet image classifier"
         arch = (f"`transformers` `ResNetForImageClassification` ({r['layer_type']} "
                 f"blocks, depths {r['depths']}, widths {r['hidden_sizes']}, "
                 f"stem {r['embedding_size']}), trained from scratch.")
+        if adversarial:
+            title = f"bundled:{folder.name} — adversarially trained ResNet image classifier"
+            arch = arch.replace("trained from scratch.", f"`{adversarial['base']}` fine-tuned against attacked "
+                                "textures (PGD-AT on the object's texture, below).")
         numbers = [f"- **accuracy: {_fmt(test['accuracy'])}** ({test['n_correct']}/{test['n_images']})",
                    "- per class: " + ", ".join(f"{k} {_fmt(v)}" for k, v in test["per_class"].items()),
                    "- per weather: " + ", ".join(f"{k} {_fmt(v)}" for k, v in test["per_weather"].items())]
@@ -209,10 +214,11 @@ def model_card(folder: str | Path, commands: list[str] | None = None, note: str 
         "ImageNet mean/std (`preprocessor_config.json`; undream redoes this differentiably).", "",
         "## Held-out results", "",
         *numbers, *group_tables(test), "",
-        "## Training", "",
-        f"- seed {cfg['seed']}, {rec['defaults']['epochs'] if cfg['epochs'] is None else cfg['epochs']} "
-        f"epochs, AdamW, cosine schedule, batch {rec['defaults']['batch_size']}; augmentation: "
-        "horizontal flip, ±6 px shift, brightness/saturation/contrast jitter, pixel noise",
+        *(_adversarial_lines(adversarial) if adversarial else [
+            "## Training", "",
+            f"- seed {cfg['seed']}, {rec['defaults']['epochs'] if cfg['epochs'] is None else cfg['epochs']} "
+            f"epochs, AdamW, cosine schedule, batch {rec['defaults']['batch_size']}; augmentation: "
+            "horizontal flip, ±6 px shift, brightness/saturation/contrast jitter, pixel noise"]),
         f"- {rec['train_seconds'] / 60:.1f} min on {rec['threads']} CPU "
         f"thread{'' if rec['threads'] == 1 else 's'}; "
         f"torch {rec['versions']['torch']}, transformers {rec['versions']['transformers']}", "",
@@ -225,6 +231,37 @@ def model_card(folder: str | Path, commands: list[str] | None = None, note: str 
         "own scenes: not a general-purpose model.",
         f"- Trained on square images; other aspect ratios are squashed to {px}×{px}.", ""]
     return "\n".join(lines)
+
+
+def _adversarial_lines(adv: dict[str, Any]) -> list[str]:
+    """The model card's account of adversarial training (:mod:`undream.training.adversarial`) and its
+    held-out robust accuracy against the base model's."""
+    c, before, after, fid = adv["config"], adv["held_out_base"], adv["held_out"], adv["composite_fidelity"]
+    rows = ["| held-out images | " + f"`{adv['base']}` (base) | this model |", "|---|---|---|",
+            f"| rendered, their own textures | {_fmt(before['clean'])} | {_fmt(after['clean'])} |",
+            f"| composited, their own textures | {_fmt(before['composite'])} | {_fmt(after['composite'])} |"]
+    for eps in before["robust"]:
+        rows.append(f"| texture attacked, ε {eps} | {_fmt(before['robust'][eps])} | {_fmt(after['robust'][eps])} |")
+    return [
+        "## Robust accuracy (held-out)", "",
+        f"Accuracy on the {after['n_images']} held-out images (their shading: `make-dataset --shading`), as rendered, "
+        "and with the object's texture attacked by PGD on the composite (untargeted cross-entropy, a uniform "
+        f"random start in the ε-ball of the image's own sRGB texture, {after['pgd_steps']} sign steps of 2.5 ε / "
+        f"steps; seed {after['seed']}):", "", *rows, "",
+        "This is the attack the training saw (white-box, on the composite). undream's own attack on the trained "
+        "model (Mitsuba renders, the adaptive attack) is in docs/results.md, \"Defended victims\".", "",
+        "## Training", "",
+        f"- PGD-AT on the texture (the PBCAT idea): each batch of {c['batch_size']} is {c['clean_share']:.0%} rendered "
+        f"images and the rest the composites of their textures attacked by PGD ({c['steps']} steps, random start; ε "
+        f"drawn per image from {', '.join(str(e) for e in c['eps'])}, 0–255 sRGB) against the model as it is, then "
+        "one AdamW step on all of them (cross-entropy, label smoothing 0.1; the base's augmentation)",
+        f"- the composite: `black + (white − black) · lin(t)(uv)` per pixel from the image's shading (its "
+        "radiance under a black and a white texture, the object's uv), the texture looked up as Mitsuba's "
+        f"bitmap does; against the renders of the images' own textures: {fid['test']['psnr_db']} dB PSNR on "
+        f"the held-out set (mean |difference| on the object's pixels {fid['test']['object_mean_abs_255']} of "
+        f"255), {fid['train']['psnr_db']} dB on the training set",
+        f"- seed {c['seed']}, {c['epochs']} epochs, lr {c['lr']:g}, cosine schedule; "
+        f"{adv['train_seconds'] / 60:.1f} min"]
 
 
 def _yolo_card(c: dict[str, Any], test: dict[str, Any]) -> tuple[str, str, list[str]]:
