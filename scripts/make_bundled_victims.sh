@@ -16,6 +16,9 @@
 # DISTRIBUTION=v4 makes bundled:classifier-v4 only: the v3 data, twice the training renders (16,000,
 # rendered as two parts under seeds 0 and 1, one core each; the first part is v3's own set), the same
 # held-out set and training as classifier-v3 (trained on 2 threads: 35 min, the renders 40 min on two cores).
+# DISTRIBUTION=at makes bundled:classifier-at: bundled:classifier-v3 fine-tuned against attacked textures
+# (undream victims train-adversarial) on v3 renders made with --shading: 1600 (seed 0) + 1000 (seed 1)
+# training images, one core each, and the first 600 of v3's held-out set.
 #
 # WORK_DIR (default build/bundled-victims, or build/bundled-victims-v2 / -v3) receives the datasets;
 # OUT_DIR (default WORK_DIR/models) the two model folders. Pass OUT_DIR=undream/victims/bundled
@@ -37,11 +40,26 @@ case "$DISTRIBUTION" in
     v3) N_TRAIN=8000 N_TEST=1200 CLS_EPOCHS=40 DET_EPOCHS=50 SUFFIX=-v3
         CLS_THREADS=${CLS_THREADS:-1} DET_THREADS=${DET_THREADS:-1} ;;
     v4) N_TRAIN=8000 N_TEST=1200 CLS_EPOCHS=40 SUFFIX=-v4 CLS_THREADS=${CLS_THREADS:-2} ;;
-    *) echo "DISTRIBUTION must be v1, v2, v3 or v4, got '$DISTRIBUTION'" >&2; exit 2 ;;
+    at) N_TEST=600 SUFFIX=-at CLS_THREADS=${CLS_THREADS:-2} ;;
+    *) echo "DISTRIBUTION must be v1, v2, v3, v4 or at, got '$DISTRIBUTION'" >&2; exit 2 ;;
 esac
 WORK=${1:-build/bundled-victims${SUFFIX}}
 OUT=${2:-$WORK/models}
 UNDREAM=${UNDREAM:-undream}
+
+if [ "$DISTRIBUTION" = at ]; then  # v3's data with its shading, in two parts, one core each
+    taskset -c 0 $UNDREAM victims make-dataset --out "$WORK/train0" --n 1600 --seed 0 --split train \
+        --distribution v3 --shading --no-progress &
+    part0=$!
+    taskset -c 1 $UNDREAM victims make-dataset --out "$WORK/test" --n "$N_TEST" --seed 0 --split test \
+        --distribution v3 --shading --no-progress
+    taskset -c 1 $UNDREAM victims make-dataset --out "$WORK/train1" --n 1000 --seed 1 --split train \
+        --distribution v3 --shading --no-progress
+    wait "$part0"
+    $UNDREAM victims train-adversarial --base bundled:classifier-v3 --data "$WORK/train0" --data "$WORK/train1" \
+        --test "$WORK/test" --out "$OUT/classifier$SUFFIX" --seed 0 --threads "$CLS_THREADS"
+    exit 0
+fi
 
 if [ "$DISTRIBUTION" = v4 ]; then  # v3's data in two parts, one core each; classifier only
     taskset -c 0 $UNDREAM victims make-dataset --out "$WORK/train1" --n "$N_TRAIN" --seed 1 --split train \

@@ -54,7 +54,9 @@ def test_tiny_dataset_layout(tiny):
         assert rec["name"] == CLASSES[rec["label"]]
         assert rec["visible_pixels"] <= (rec["box"][2] - rec["box"][0]) * (rec["box"][3] - rec["box"][1])
     meta = json.loads((tiny / "metadata.json").read_text())
-    assert meta["config"] == {"n": 6, "seed": 3, "split": "train", "size": SIZE, "spp": 4, "distribution": "v1"}
+    assert meta["config"] == {"n": 6, "seed": 3, "split": "train", "size": SIZE, "spp": 4, "distribution": "v1",
+                              "shading": False}
+    assert not (tiny / "shading").exists()
     assert meta["distribution"] == "v1" and meta["backgrounds"] == ["plain", "park", "street"]
     assert meta["classes"] == list(CLASSES)
     assert not (tiny / "labels.jsonl.partial").exists()
@@ -276,6 +278,6 @@ def test_classes_are_the_bundled_victims_and_built_in_assets():
 
     assert set(CLASSES) <= set(BUILTINS)
     for name in ("classifier", "detector", "classifier-v2", "detector-v2", "classifier-v3", "detector-v3",
-                 "classifier-v4", "yolo"):
+                 "classifier-v4", "classifier-at", "yolo"):
         config = json.loads((bundled_path(name) / "config.json").read_text())
         assert [config["id2label"][str(i)] for i in range(len(config["id2label"]))] == list(CLASSES)

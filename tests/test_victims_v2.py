@@ -117,7 +117,7 @@ def test_bundled_names_and_aliases():
     assert bundled_path("classifier-v2").name == "classifier-v2"
     assert bundled_path("detector-v2").name == "detector-v2"
     assert bundled_names() == ["classifier", "detector", "classifier-v2", "detector-v2", "classifier-v3",
-                               "detector-v3", "classifier-v4", "yolo",
+                               "detector-v3", "classifier-v4", "classifier-at", "yolo",
                                "classifier-v1", "detector-v1"]
 
 
@@ -125,7 +125,7 @@ def test_unknown_bundled_name_lists_the_valid_ones():
     from undream.victims import load_victim
     with pytest.raises(VictimError, match=r"bundled victim 'classifier-v9': unknown; valid names are "
                        r"bundled:classifier, bundled:detector, bundled:classifier-v2, bundled:detector-v2, "
-                       r"bundled:classifier-v3, bundled:detector-v3, bundled:classifier-v4, bundled:yolo, "
+                       r"bundled:classifier-v3, bundled:detector-v3, bundled:classifier-v4, bundled:classifier-at, bundled:yolo, "
                        r"bundled:classifier-v1, "
                        r"bundled:detector-v1"):
         load_victim("bundled:classifier-v9")

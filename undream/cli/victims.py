@@ -102,9 +102,9 @@ def train_cmd(task: str, data: tuple[Path, ...], test: Path, out: Path, seed: in
 @click.option("--eps", default="16,50,255", show_default=True,
               help="Budgets (0-255, comma-separated), one drawn per attacked image.")
 @click.option("--steps", default=5, show_default=True, type=click.IntRange(1, 1000), help="PGD steps per batch.")
-@click.option("--epochs", default=6, show_default=True, type=click.IntRange(1, 10000))
-@click.option("--lr", default=3e-4, show_default=True, type=click.FloatRange(min=0, min_open=True))
-@click.option("--clean-share", default=0.5, show_default=True, type=click.FloatRange(0, 1, max_open=True),
+@click.option("--epochs", default=16, show_default=True, type=click.IntRange(1, 10000))
+@click.option("--lr", default=1e-3, show_default=True, type=click.FloatRange(min=0, min_open=True))
+@click.option("--clean-share", default=0.4, show_default=True, type=click.FloatRange(0, 1, max_open=True),
               help="Share of each batch seen as rendered; the rest is attacked.")
 @click.option("--eval-steps", default=20, show_default=True, type=click.IntRange(1, 1000),
               help="PGD steps of the held-out robust accuracy.")

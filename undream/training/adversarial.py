@@ -46,10 +46,10 @@ class AdversarialConfig:
 
     eps: tuple[int, ...] = (16, 50, 255)
     steps: int = 5
-    epochs: int = 6
-    lr: float = 3e-4
+    epochs: int = 16
+    lr: float = 1e-3
     batch_size: int = 64
-    clean_share: float = 0.5
+    clean_share: float = 0.4
     seed: int = 0
     eval_steps: int = 20
     threads: int | None = None

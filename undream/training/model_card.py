@@ -260,8 +260,7 @@ def _adversarial_lines(adv: dict[str, Any]) -> list[str]:
         f"bitmap does; against the renders of the images' own textures: {fid['test']['psnr_db']} dB PSNR on "
         f"the held-out set (mean |difference| on the object's pixels {fid['test']['object_mean_abs_255']} of "
         f"255), {fid['train']['psnr_db']} dB on the training set",
-        f"- seed {c['seed']}, {c['epochs']} epochs, lr {c['lr']:g}, cosine schedule; "
-        f"{adv['train_seconds'] / 60:.1f} min"]
+        f"- seed {c['seed']}, {c['epochs']} epochs, lr {c['lr']:g}, cosine schedule"]
 
 
 def _yolo_card(c: dict[str, Any], test: dict[str, Any]) -> tuple[str, str, list[str]]:

@@ -43,7 +43,7 @@ BUNDLED_DIR = Path(__file__).resolve().parent / "bundled"
 BUNDLED = {"classifier": "classification", "detector": "detection",
            "classifier-v2": "classification", "detector-v2": "detection",
            "classifier-v3": "classification", "detector-v3": "detection", "classifier-v4": "classification",
-           "yolo": "detection"}
+           "classifier-at": "classification", "yolo": "detection"}
 # How to get a bundled victim whose folder is absent.
 NOT_SHIPPED = {"yolo": "this installation lacks its folder: train one with `undream victims train --task "
                        "detection --arch yolo` and pass its folder"}
