@@ -45,8 +45,8 @@ def defence_name(defence: dict[str, Any] | None) -> str:
     parts = []
     for step in defence["steps"]:
         (name, value), = step.items()
-        if isinstance(value, dict):
-            value = ", ".join(f"{k} {v}" for k, v in value.items())
+        if isinstance(value, dict):  # in name order: a run's config and a re-read JSON name it alike
+            value = ", ".join(f"{k} {v}" for k, v in sorted(value.items()))
         parts.append(f"{name} {value}")
     draws = defence.get("draws", 1)
     return " + ".join(parts) + (f" (EOT {draws} draws)" if draws > 1 else "")

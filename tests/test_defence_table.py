@@ -46,7 +46,7 @@ def test_the_table_groups_seeds_and_measures_each_defence_against_the_undefended
     assert "| 1.00 ± 0.00 | 0.30 ± 0.14 |" in rows[("bundled:classifier-v3", "none", "undefended")]
     # within 0.10 of the undefended 0.30: bypassed; 0.80 is 0.50 above it: the defence holds
     assert rows[("bundled:classifier-v3", "jpeg 75", "adaptive")].endswith("| 0.90 ± 0.00 | 0.30 ± 0.07 | +0.00: bypassed |")
-    assert rows[("bundled:classifier-v3", "resize_pad scale [0.8, 1.0], pad 0.15, fill 0.5 (EOT 2 draws)",
+    assert rows[("bundled:classifier-v3", "resize_pad fill 0.5, pad 0.15, scale [0.8, 1.0] (EOT 2 draws)",
                  "adaptive")].endswith("| 0.80 | +0.50: holds |")
     # another victim without a defence is the attack on that victim itself
     assert rows[("bundled:classifier-at", "none", "adaptive")].endswith("| 0.50 | +0.20: holds |")
