@@ -14,6 +14,7 @@ from typing import Any
 import click
 
 from undream.cli.errors import one_line_errors
+from undream.errors import VictimError
 from undream.cli.options import local_settings, out_option, progress_option, seed_option, spp_option
 
 
@@ -114,7 +115,6 @@ def train_adversarial_cmd(base: str, data: tuple[Path, ...], test: Path, out: Pa
                           steps: int, epochs: int, lr: float, clean_share: float, eval_steps: int,
                           threads: int | None) -> None:
     """Fine-tune a classifier against textures attacked in the loop (PGD-AT on the texture)."""
-    from undream.errors import VictimError
     from undream.training.adversarial import AdversarialConfig, train_adversarial
 
     try:

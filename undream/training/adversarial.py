@@ -32,6 +32,7 @@ import torch
 import torch.nn.functional as F
 
 from undream.errors import DatasetError, VictimError
+from undream.spec.io import check_new_folder, restored_on_failure
 from undream.training.dataset import Dataset, load_dataset, load_datasets
 from undream.training.textures import make_texture
 
@@ -273,7 +274,6 @@ def train_adversarial(data: list[str | Path], test: str | Path, base: str, out: 
     ``shading``) by :func:`adversarial_fit`, save it to ``out`` with ``training.json`` (the base's
     record plus ``adversarial``: the config, the composite's fidelity, and the held-out robust
     accuracy of the base and of the new model) and its model card. ``out`` must be new or empty."""
-    from undream.spec.io import check_new_folder, restored_on_failure
     from undream.training.train import _save_and_evaluate, TrainConfig
     from undream.victims.registry import load_victim
 
