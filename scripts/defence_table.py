@@ -6,7 +6,7 @@ held-out conditions, with each defended victim's benign accuracy.
         [--non-adaptive] [--transfer bundled:classifier-at] [--out build/defence_table]
 
 Each argument is an ``undream run`` output folder (a farm sweep's ``--out`` holds one per run); a row
-groups the runs of one (victim, defence, adaptive) by budget, over their seeds. Read from each run's
+groups the runs of one (victim, defence, adaptive, attack steps) by budget, over their seeds. Read from each run's
 ``metadata.json`` (its config: victim, ``defence`` in full form, ``attack.eps``, seed) and
 ``results.json`` (accuracy, benign and adversarial, on the held-out conditions, the held-out views and
 the attacked views; the evaluation always judges the defended victim).
@@ -62,7 +62,8 @@ def read_run(folder: Path) -> dict[str, Any]:
         "run": folder.name, "victim": cfg["victim"], "defence": defence_name(defence),
         "attack": ("non-adaptive" if defence and not defence.get("adaptive", True) else "adaptive")
         if defence else "undefended",
-        "eps": int(cfg["attack"]["eps"]), "seed": int(cfg["seed"]), "eval_spp": int(cfg["eval_spp"]),
+        "eps": int(cfg["attack"]["eps"]), "steps": int(cfg["attack"].get("steps", 0)), "seed": int(cfg["seed"]),
+        "eval_spp": int(cfg["eval_spp"]),
         "folder": str(folder), "defence_config": defence}
     for split in SPLITS:
         part = res.get(split) or {}
@@ -116,29 +117,39 @@ def _cell(values: list[float]) -> str:
 
 
 def table(rows: list[dict[str, Any]], split: str = "held_out_conditions") -> str:
-    """The Markdown table: a row per (victim, defence, attack), a column per budget."""
+    """The Markdown table: a row per (victim, defence, attack, attack steps), a column per budget; an
+    adaptive row's distance from the undefended victim under as many steps (else its strongest
+    undefended attack: the lowest accuracy over the step counts run)."""
     budgets = sorted({r["eps"] for r in rows})
-    groups: dict[tuple[str, str, str], dict[int, list[dict[str, Any]]]] = defaultdict(lambda: defaultdict(list))
+    groups: dict[tuple[str, str, str, int], dict[int, list[dict[str, Any]]]] = defaultdict(lambda: defaultdict(list))
     for r in rows:
-        groups[(r["victim"], r["defence"], r["attack"])][r["eps"]].append(r)
-    undefended = {(v, e): statistics.mean(x[f"{split}_adversarial"] for x in g[e])
-                  for (v, d, a), g in groups.items() if a == "undefended" for e in g}
-    base_victim = next((v for (v, d, a) in groups if a == "undefended"), None)  # one victim runs undefended
-    head = ["victim", "defence", "attack", "benign", *(f"ε {e}" for e in budgets), "adaptive − undefended"]
+        groups[(r["victim"], r["defence"], r["attack"], r["steps"])][r["eps"]].append(r)
+    undefended = {(e, n): statistics.mean(x[f"{split}_adversarial"] for x in g[e])
+                  for (v, d, a, n), g in groups.items() if a == "undefended" for e in g}
+    base_victim = next((v for (v, d, a, n) in groups if a == "undefended"), None)  # one victim runs undefended
+
+    def reference(e: int, n: int) -> float | None:
+        if (e, n) in undefended:
+            return undefended[(e, n)]
+        others = [value for (b, _), value in undefended.items() if b == e]
+        return min(others) if others else None
+
+    head = ["victim", "defence", "attack", "steps", "benign", *(f"ε {e}" for e in budgets), "adaptive − undefended"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     order = {"undefended": 0, "non-adaptive": 1, "adaptive": 2}
-    for key in sorted(groups, key=lambda k: (k[0] != base_victim, k[0], k[1] != "none", k[1], order[k[2]])):
-        victim, defence, attack = key
+    for key in sorted(groups, key=lambda k: (k[0] != base_victim, k[0], k[1] != "none", k[1], order[k[2]], k[3])):
+        victim, defence, attack, steps = key
         g = groups[key]
         benign = [x[f"{split}_benign"] for e in g for x in g[e]]
         cells = [_cell([x[f"{split}_adversarial"] for x in g[e]]) if e in g else "—" for e in budgets]
         gap = ""
-        if attack == "adaptive" and base_victim is not None:
-            diffs = [statistics.mean(x[f"{split}_adversarial"] for x in g[e]) - undefended[(base_victim, e)]
-                     for e in budgets if e in g and (base_victim, e) in undefended]
+        if attack == "adaptive":
+            diffs = [statistics.mean(x[f"{split}_adversarial"] for x in g[e]) - ref
+                     for e in budgets if e in g and (ref := reference(e, steps)) is not None]
             worst = round(max(diffs), 2) + 0.0 if diffs else None  # + 0.0: no "-0.00"
             gap = "" if worst is None else (f"{worst:+.2f}: bypassed" if worst <= GOAL else f"{worst:+.2f}: holds")
-        lines.append(f"| {victim} | {defence} | {attack} | {_cell(benign)} | " + " | ".join(cells) + f" | {gap} |")
+        lines.append(f"| {victim} | {defence} | {attack} | {steps} | {_cell(benign)} | " + " | ".join(cells)
+                     + f" | {gap} |")
     return "\n".join(lines)
 
 
