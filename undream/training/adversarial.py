@@ -221,7 +221,7 @@ def adversarial_fit(model: torch.nn.Module, data: ShadedSet, cfg: AdversarialCon
                     preprocess: Callable[[torch.Tensor], torch.Tensor], log: Callable[[str], None]) -> float:
     """Fine-tune the Hugging Face classifier ``model`` in place (see the module docstring), its input
     sRGB frames through ``preprocess`` (the victim's); returns the seconds spent."""
-    from undream.training.train import _schedule, augment
+    from undream.training.train import _schedule, augment, optimiser_step
 
     torch.manual_seed(cfg.seed)
     gen = torch.Generator().manual_seed(cfg.seed)
@@ -254,12 +254,7 @@ def adversarial_fit(model: torch.nn.Module, data: ShadedSet, cfg: AdversarialCon
             y = torch.cat([data.labels[idx[:n_clean]], data.labels[att]])
             x, _ = augment(x, torch.zeros(len(y), 4), gen)
             loss = F.cross_entropy(logits_of(x), y, label_smoothing=0.1)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)
-            opt.step()
-            sched.step()
-            total += float(loss.detach()) * len(y)
+            total += optimiser_step(model, opt, sched, loss, 5.0) * len(y)
             seen += len(y)
         log(f"epoch {epoch + 1}/{cfg.epochs}: loss {total / seen:.4f}, the attack fooled the model on "
             f"{fooled}/{attacked} images before each update ({time.perf_counter() - start:.0f} s)")

@@ -246,6 +246,18 @@ def _schedule(total: int, warmup: int) -> Callable[[int], float]:
     return f
 
 
+def optimiser_step(model: torch.nn.Module, opt: torch.optim.Optimizer, sched: Any, loss: torch.Tensor,
+                   clip: float) -> float:
+    """One update: the loss's gradient, clipped to norm ``clip``, an optimiser and a schedule step;
+    returns the loss."""
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(model.parameters(), clip)
+    opt.step()
+    sched.step()
+    return float(loss.detach())
+
+
 def fit(model: torch.nn.Module, ds: Dataset, cfg: TrainConfig, log: Callable[[str], None]) -> float:
     """Train ``model`` in place on ``ds``; returns the seconds spent."""
     torch.manual_seed(cfg.seed)
@@ -283,12 +295,7 @@ def fit(model: torch.nn.Module, ds: Dataset, cfg: TrainConfig, log: Callable[[st
             else:
                 logits = model(pixel_values=x).logits
                 loss = torch.nn.functional.cross_entropy(logits, labels[idx], label_smoothing=0.1)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(model.parameters(), 0.1 if detection and not yolo else 5.0)
-            opt.step()
-            sched.step()
-            total += float(loss.detach()) * len(idx)
+            total += optimiser_step(model, opt, sched, loss, 0.1 if detection and not yolo else 5.0) * len(idx)
             seen += len(idx)
         log(f"epoch {epoch + 1}/{epochs}: loss {total / seen:.4f} "
             f"({time.perf_counter() - start:.0f} s)")
