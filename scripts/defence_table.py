@@ -73,13 +73,13 @@ def read_run(folder: Path) -> dict[str, Any]:
 
 
 def judged_rows(runs: list[dict[str, Any]], base: str, victim: str | None, defence: dict[str, Any] | None,
-                out: Path, scenes: list[Path]) -> list[dict[str, Any]]:
+                out: Path, scenes: list[Path], steps: int) -> list[dict[str, Any]]:
     """Non-adaptive rows: the undefended runs' textures (made against ``base``, the defence
     unseen) judged on ``scenes`` (the held-out conditions) by ``victim`` (default: ``base``) behind
     ``defence`` (a full-form defence; None: none), with :func:`scheduler.evaluate.evaluate` (the function
     of ``undream evaluate``) at the runs' ``eval_spp``, every texture in one call. Kept as JSON in
-    ``out`` and reused."""
-    undefended = [r for r in runs if r["attack"] == "undefended" and r["victim"] == base]
+    ``out`` and reused. Only the runs of ``steps`` attack steps."""
+    undefended = [r for r in runs if r["attack"] == "undefended" and r["victim"] == base and r["steps"] == steps]
     if not undefended:
         return []
     judge = victim or base
@@ -166,6 +166,8 @@ def main() -> None:
     ap.add_argument("--base-victim", default="bundled:classifier-v3",
                     help="the victim whose undefended runs the others are measured against; a run of another "
                          "victim without a defence is the attack on that victim itself (adaptive)")
+    ap.add_argument("--judge-steps", type=int, default=20,
+                    help="--non-adaptive and --transfer judge the undefended runs of this many attack steps")
     ap.add_argument("--out", type=Path, default=Path("build/defence_table"))
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
@@ -178,9 +180,9 @@ def main() -> None:
         defences = {json.dumps(r["defence_config"], sort_keys=True) for r in runs
                     if r["attack"] == "adaptive" and r["defence_config"]}
         for d in sorted(defences):
-            extra += judged_rows(runs, args.base_victim, None, json.loads(d), args.out, args.scenes)
+            extra += judged_rows(runs, args.base_victim, None, json.loads(d), args.out, args.scenes, args.judge_steps)
     for victim in args.transfer:
-        extra += judged_rows(runs, args.base_victim, victim, None, args.out, args.scenes)
+        extra += judged_rows(runs, args.base_victim, victim, None, args.out, args.scenes, args.judge_steps)
     runs += extra
     with open(args.out / "runs.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, [k for k in runs[0] if k != "defence_config"], extrasaction="ignore")
