@@ -27,7 +27,6 @@ import argparse
 import csv
 import json
 import statistics
-import subprocess
 import sys
 from collections import defaultdict
 from pathlib import Path
@@ -162,7 +161,7 @@ def main() -> None:
                     help="judge the undefended runs' textures by VICTIM too (its non-adaptive row)")
     ap.add_argument("--scenes", nargs="*", type=Path,
                     default=[ROOT / "examples/conditions/city.yaml", ROOT / "examples/conditions/camera_high.yaml"],
-                    help="the held-out condition scenes --transfer judges on (the run's own)")
+                    help="the held-out condition scenes --non-adaptive and --transfer judge on (the runs' own)")
     ap.add_argument("--base-victim", default="bundled:classifier-v3",
                     help="the victim whose undefended runs the others are measured against; a run of another "
                          "victim without a defence is the attack on that victim itself (adaptive)")

@@ -17,7 +17,7 @@ with textures attacked by PGD (random start, ``steps`` sign steps of ``2.5 ε / 
 drawn per image from ``eps`` (0–255, the L∞ distance of the sRGB texture from the image's own).
 
 The victim it makes is judged where it matters by undream's own attack (the Mitsuba renderer, the
-adaptive attack on the trained model itself): docs/victims.md, "An adversarially trained victim".
+adaptive attack on the trained model itself): docs/results.md, "Defended victims".
 """
 from __future__ import annotations
 
@@ -33,7 +33,7 @@ import torch.nn.functional as F
 
 from undream.errors import DatasetError, VictimError
 from undream.spec.io import check_new_folder, restored_on_failure
-from undream.training.dataset import Dataset, load_dataset, load_datasets
+from undream.training.dataset import Dataset, load_datasets
 from undream.training.textures import make_texture
 
 SHADING_KEYS = ("black", "white", "uv", "coverage")
@@ -94,7 +94,7 @@ class ShadedSet:
 def load_shaded(folders: str | Path | list[str | Path]) -> ShadedSet:
     """A data set (one folder, or the parts of one: :func:`load_datasets`) made with ``shading``."""
     parts = [folders] if isinstance(folders, (str, Path)) else list(folders)
-    ds = load_datasets(parts) if len(parts) > 1 else load_dataset(parts[0])
+    ds = load_datasets(parts)
     roots = _record_roots(parts, ds)
     arrays: dict[str, list[np.ndarray]] = {k: [] for k in SHADING_KEYS}
     textures = []
@@ -218,9 +218,9 @@ def robust_accuracy(logits_of: Callable[[torch.Tensor], torch.Tensor], data: Sha
 # --------------------------------------------------------------------------- training
 
 def adversarial_fit(model: torch.nn.Module, data: ShadedSet, cfg: AdversarialConfig,
-                    preprocess: Callable[[torch.Tensor], torch.Tensor], log: Callable[[str], None]) -> float:
-    """Fine-tune the Hugging Face classifier ``model`` in place (see the module docstring), its input
-    sRGB frames through ``preprocess`` (the victim's); returns the seconds spent."""
+                    logits_of: Callable[[torch.Tensor], torch.Tensor], log: Callable[[str], None]) -> float:
+    """Fine-tune ``model`` in place (see the module docstring); ``logits_of`` gives its logits for sRGB
+    frames (a victim's ``forward_raw``, whose module ``model`` is); returns the seconds spent."""
     from undream.training.train import _schedule, augment, optimiser_step
 
     torch.manual_seed(cfg.seed)
@@ -230,10 +230,6 @@ def adversarial_fit(model: torch.nn.Module, data: ShadedSet, cfg: AdversarialCon
     steps = cfg.epochs * math.ceil(n / bs)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, _schedule(steps, max(1, steps // 30)))
     budgets = torch.tensor(cfg.eps, dtype=torch.float32) / 255.0
-
-    def logits_of(x: torch.Tensor) -> torch.Tensor:
-        return model(pixel_values=preprocess(x)).logits
-
     start = time.perf_counter()
     for epoch in range(cfg.epochs):
         order = torch.randperm(n, generator=gen)
@@ -287,16 +283,13 @@ def train_adversarial(data: list[str | Path], test: str | Path, base: str, out: 
     fidelity = {"train": composite_fidelity(train_set), "test": composite_fidelity(test_set)}
     log(f"composite against the renders: {fidelity}")
 
-    def logits_of(x: torch.Tensor) -> torch.Tensor:
-        return module(pixel_values=victim.preprocess(x)).logits
-
     budgets = sorted(set(cfg.eps) | {16, 50, 255})
-    before = robust_accuracy(logits_of, test_set, budgets, cfg.eval_steps, cfg.seed)
+    before = robust_accuracy(victim.forward_raw, test_set, budgets, cfg.eval_steps, cfg.seed)
     log(f"base on the held-out set: {before}")
     module.requires_grad_(True)
-    seconds = adversarial_fit(module, train_set, cfg, victim.preprocess, log)
+    seconds = adversarial_fit(module, train_set, cfg, victim.forward_raw, log)
     module.requires_grad_(False)
-    after = robust_accuracy(logits_of, test_set, budgets, cfg.eval_steps, cfg.seed)
+    after = robust_accuracy(victim.forward_raw, test_set, budgets, cfg.eval_steps, cfg.seed)
     log(f"trained on the held-out set: {after}")
     adversarial = {"base": base, "config": asdict(cfg), "composite_fidelity": fidelity,
                    "held_out_base": before, "held_out": after, "train_seconds": round(seconds, 1)}

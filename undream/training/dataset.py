@@ -292,16 +292,11 @@ def render_shading(mi: ModuleType, seq: Sequence, paths: ScenePaths, spp: int, i
     what does not depend on its albedo (fog in front of it), so a texture ``t`` (linear) renders
     about as ``black + (white − black) · t(uv)`` (exactly so up to the light the object throws back
     onto itself and onto its surroundings, and the pixels a texture seam crosses)."""
-    def render(kind: str, texture: np.ndarray | None, integrator: dict[str, Any] | None = None) -> np.ndarray:
-        d = to_mitsuba(scene_dict(seq, seq.frames[0], paths, kind), mi, {"spp": spp})
-        if texture is not None:
-            d[OBJECT_ID]["bsdf"]["bsdf"]["reflectance"] = {"type": "rgb", "value": texture.tolist()}
-        if integrator is not None:
-            d["integrator"] = integrator
-        return np.array(mi.render(mi.load_dict(d), seed=index), dtype=np.float32)
+    def render(value: float) -> np.ndarray:  # the object in one colour, its texture every texel `value`
+        scene = _scene(mi, seq, paths, "sim", spp, np.full((2, 2, 3), value, np.float32))
+        return np.array(mi.render(scene, seed=index), dtype=np.float32)[..., :3]
 
-    black = render("sim", np.zeros(3))[..., :3]
-    white = render("sim", np.ones(3))[..., :3]
+    black, white = render(0.0), render(1.0)
     # The object alone (an emitter of radiance 1 in the mask view, nothing in front of it): its
     # unoccluded coverage and the sum of its uv over the samples that hit it (misses add 0).
     d = to_mitsuba(scene_dict(seq, seq.frames[0], paths, "mask"), mi, {"spp": spp})
