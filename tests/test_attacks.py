@@ -270,6 +270,18 @@ def test_apgd_halves_at_exactly_the_checkpoints():
     assert state["eta"] == 2 * att.eps / 2 ** len(CHECKPOINTS_100)
 
 
+def test_apgd_starts_at_the_step_size_when_one_is_given():
+    """``attack.step_size`` is APGD's η₀: the first step moves each texel by it, and the halvings
+    divide it; without one, η₀ is 2ε (above)."""
+    att = attack("apgd", eps=255, steps=100, step_size=6)
+    G = torch.tensor([1.0, -1.0, 0.0]).expand(SHAPE)
+    T0 = torch.full(SHAPE, 0.5)
+    iterates, state = run(att, lambda T: (torch.tensor(1.0), G), T0, 100)
+    assert torch.allclose(iterates[1] - T0, torch.sign(G) * 6 / 255, atol=1e-7)
+    assert state["halvings"] == CHECKPOINTS_100
+    assert state["eta"] == pytest.approx(6 / 255 / 2 ** len(CHECKPOINTS_100))
+
+
 @pytest.mark.parametrize("n_inc, period, halved_last, best_last, best, expected", [
     (16, 22, True, 0.0, 1.0, True),    # 16 <= 16.5: oscillating
     (17, 22, True, 0.0, 1.0, False),   # enough increases, halved last time

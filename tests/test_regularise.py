@@ -266,3 +266,19 @@ def test_apgds_final_pick_compares_objectives(tiny, tmp_path, monkeypatch):
         victim = np.mean([j.result["loss"] for j in store.jobs(res["run_id"], 2, "pre")])
     tv = float(total_variation(torch.from_numpy(T_last).double()))
     assert tv > 0 and loss == pytest.approx(victim - 10.0 * tv, rel=1e-6)
+
+
+def test_a_run_of_apgd_takes_its_first_step_from_the_config(tiny, tmp_path):
+    """``attack.step_size`` reaches APGD on the run's path: its first step moves the seen texels by
+    η₀ = 2/255 exactly, where the paper's η₀ = 2ε moves them by 64/255 at ε 32."""
+    from undream.store import open_store
+
+    moved = {}
+    for name, attack in (("small", {"step_size": 2.0}), ("paper", {})):
+        res, _ = _run(tiny, tmp_path / name, regularise={"tv": 10.0},
+                      attack={"name": "apgd", "eps": 32.0, "steps": 2, **attack})
+        with open_store(None, tmp_path / name / "store") as store:
+            step = np.abs(store.texture(res["run_id"], 1) - store.texture(res["run_id"], 0))
+        moved[name] = np.round(step[step > 0] * 255, 3)
+    assert moved["small"].max() == 2.0 and np.mean(moved["small"] == 2.0) > 0.5, moved["small"]  # less: clipped at 0 or 1
+    assert moved["paper"].max() > 8

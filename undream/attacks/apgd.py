@@ -3,7 +3,8 @@
 Follows the authors' reference code (fra31/auto-attack,
 ``autoattack/autopgd_base.py``, ``APGDAttack.attack_single_run``, L∞ branch):
 
-- step size η starts at ``2ε``; the first step is plain projected sign ascent,
+- step size η starts at ``2ε`` (``attack.step_size`` sets another η₀: with a regulariser, a first
+  step of 2ε makes the texture so rough that no later point scores above the start); the first step is plain projected sign ascent,
   ``x_1 = P(x_0 + η·sign ∇f(x_0))``; later ones add momentum α = 0.75:
   ``z = P(x_k + η·sign ∇f(x_k))``,
   ``x_{k+1} = P(x_k + α(z − x_k) + (1 − α)(x_k − x_{k−1}))``;
@@ -93,10 +94,17 @@ def apgd_move(x: torch.Tensor, x_prev: torch.Tensor, grad: torch.Tensor, T0: tor
 
 @register
 class APGD(Attack):
-    """Auto-PGD (L∞); ``config.steps`` is N, ``config.rho`` is ρ; η starts at 2ε."""
+    """Auto-PGD (L∞); ``config.steps`` is N, ``config.rho`` is ρ; η starts at ``config.step_size``,
+    2ε when it is None."""
 
     name = "apgd"
     needs_final_loss = True  # the best point seen counts the last texture's loss
+
+    @property
+    def first_step(self) -> float:
+        """η₀ in 0–1 units: ``config.step_size`` when given, else ``2ε`` (the paper's)."""
+        c = self.config
+        return c.step_size / 255.0 if c.step_size is not None else 2.0 * self.eps
 
     def _random_delta(self, T0: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
         t = 2 * torch.rand(T0.shape, generator=gen, dtype=T0.dtype, device=T0.device) - 1
@@ -104,7 +112,7 @@ class APGD(Attack):
 
     def _init_state(self, T: torch.Tensor) -> State:
         period, _, _ = apgd_schedule(self.config.steps)
-        return {"eta": 2.0 * self.eps, "period": period, "counter": 0, "n_increase": 0,
+        return {"eta": self.first_step, "period": period, "counter": 0, "n_increase": 0,
                 "loss_prev": -math.inf, "loss_best": -math.inf,
                 "loss_best_last_check": -math.inf, "halved_last_check": True,
                 "halvings": [], "x_prev": T.clone(), "x_best": T.clone(),

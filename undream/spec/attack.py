@@ -38,7 +38,8 @@ class AttackConfig:
       PGD and MI-FGSM derive their default step size from it.
     - ``step_size``: sign-step size for PGD and MI-FGSM, 0–255 units. None:
       ``2.5·eps/steps`` for PGD (the robustness library's rule), ``eps/steps``
-      for MI-FGSM (Dong et al. 2018). APGD ignores it (it starts at 2·eps).
+      for MI-FGSM (Dong et al. 2018). APGD's first step η₀ (None: 2·eps, the
+      paper's; it halves from there).
     - ``random_start``: start from a random point of the ε ball (visible
       texels only).
     - ``momentum``: MI-FGSM's decay μ.

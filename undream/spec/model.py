@@ -490,7 +490,7 @@ class Sequence:
         if not frames:
             raise c.fail("frames", [], "must hold at least one frame")
         if len(frames) > MAX_FRAMES:
-            raise SpecError(f"frames: {len(frames)} frames is out of range (valid: 1 ≤ frames ≤ {MAX_FRAMES})")
+            raise _too_many_frames(len(frames))
         idx = [f.index for f in frames]
         if idx != sorted(set(idx)):
             raise c.fail("frames", idx, "must have strictly increasing indices")
@@ -550,9 +550,16 @@ class Sequence:
         with c.at("asset"):
             kw["asset"] = Asset.from_json(kw["asset"])
         kw["actors"] = tuple(_each("actors", kw.get("actors", []), Asset.from_json))
+        if isinstance(kw["frames"], (list, tuple)) and len(kw["frames"]) > MAX_FRAMES:
+            # refused before 10,000 frames are parsed one by one
+            raise _too_many_frames(len(kw["frames"]))
         kw["frames"] = tuple(_each("frames", kw["frames"], Frame.from_json))
         kw["conditions"] = tuple(_each("conditions", kw.get("conditions", []), Condition.from_json))
         return cls(**kw)
+
+
+def _too_many_frames(n: int) -> SpecError:
+    return SpecError(f"frames: {n} frames is out of range (valid: 1 ≤ frames ≤ {MAX_FRAMES})")
 
 
 def _each(prefix: str, items: Any, parse: Any) -> list[Any]:
