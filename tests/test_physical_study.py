@@ -14,12 +14,13 @@ ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "scripts" / "physical_study.py"
 
 
-def _run_folder(root: Path, name: str, seed: int, texture: np.ndarray, detected: list[bool], tv: float = 0.0) -> Path:
+def _run_folder(root: Path, name: str, seed: int, texture: np.ndarray, detected: list[bool], tv: float = 0.0,
+                attack: dict | None = None) -> Path:
     """A finished run's outputs as `undream run` writes them (the fields the script reads): 4 frames,
     frames 0-1 attacked, 2 held out, 3 a held-out condition."""
     folder = root / name
     folder.mkdir(parents=True)
-    config = {"attack": {"name": "pgd", "eps": 255.0}, "seed": seed, "gamut": "none",
+    config = {"attack": attack or {"name": "pgd", "eps": 255.0}, "seed": seed, "gamut": "none",
               "regularise": {"tv": tv} if tv else None, "eot_print": None}
     (folder / "metadata.json").write_text(json.dumps({"config": config}))
     rows = lambda hits: [{"frame": i, "detected": h} for i, h in enumerate(hits)]  # noqa: E731
@@ -39,7 +40,10 @@ def test_the_study_measures_each_texture_and_groups_the_seeds(tmp_path):
     runs = [_run_folder(tmp_path, "a0", 0, flat, [True, False, False, True]),
             _run_folder(tmp_path, "a1", 1, flat, [False, False, False, False]),
             _run_folder(tmp_path, "b0", 0, stripes, [True, True, True, True], tv=10),
-            _run_folder(tmp_path, "w0", 0, np.ones((8, 8, 3)), [True, True, True, True], tv=1)]
+            _run_folder(tmp_path, "w0", 0, np.ones((8, 8, 3)), [True, True, True, True], tv=1),
+            _run_folder(tmp_path, "p0", 0, flat, [True] * 4, tv=10, attack={"name": "apgd", "eps": 255.0}),
+            _run_folder(tmp_path, "q0", 0, flat, [False] * 4, tv=10,
+                        attack={"name": "apgd", "eps": 255.0, "step_size": 21.0})]
     res = subprocess.run([sys.executable, str(SCRIPT), *map(str, runs), "--out", str(tmp_path / "study")],
                          capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert res.returncode == 0, res.stderr
@@ -52,12 +56,14 @@ def test_the_study_measures_each_texture_and_groups_the_seeds(tmp_path):
     assert float(rows["a0"]["held_out_conditions_adversarial_rate"]) == 1.0
     assert float(rows["a1"]["held_out_conditions_adversarial_rate"]) == 0.0
     with open(tmp_path / "study" / "groups.csv") as f:
-        groups = {r["tv_weight"]: r for r in csv.DictReader(f)}
+        groups = {r["tv_weight"]: r for r in csv.DictReader(f) if r["attack"] == "pgd"}
     assert groups["0.0"]["seeds"] == "0 1"
     assert float(groups["0.0"]["held_out_conditions_adversarial_rate"]) == 0.5
     assert abs(float(groups["0.0"]["held_out_conditions_adversarial_rate_sd"]) - 2 ** -0.5) < 1e-9
     assert (tmp_path / "study" / "pareto.png").stat().st_size > 0
     assert "| PGD ε255, tv 10 | 0 |" in res.stdout
+    # Auto-PGD's first step (attack.step_size) makes a setting of its own
+    assert "| Auto-PGD ε255, tv 10 | 0 |" in res.stdout and "| Auto-PGD ε255, η₀ 21, tv 10 | 0 |" in res.stdout
 
 
 def test_folders_without_results_are_one_line(tmp_path):
