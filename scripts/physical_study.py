@@ -76,6 +76,7 @@ def setting(config: dict[str, Any]) -> dict[str, Any]:
     return {"attack": config["attack"]["name"], "eps": config["attack"]["eps"],
             "step_decay": config["attack"].get("step_decay") or "none",
             "step_size": config["attack"].get("step_size") or 0.0,
+            "grad_blur": config["attack"].get("grad_blur") or 0.0,
             "tv_weight": reg.get("tv", 0.0) or 0.0, "nps_weight": reg.get("nps", 0.0) or 0.0,
             "gamut": config.get("gamut") or "none",
             "eot_print": ",".join(f"{k}={v}" for k, v in sorted(eot.items()) if v) or "none"}
@@ -95,7 +96,7 @@ def read_run(folder: Path, palette: np.ndarray, gamut: Any) -> dict[str, Any]:
 
 def groups(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Mean and sd over the seeds of each setting, of every numeric column."""
-    keys = ("attack", "eps", "step_decay", "step_size", "tv_weight", "nps_weight", "gamut", "eot_print")
+    keys = ("attack", "eps", "step_decay", "step_size", "grad_blur", "tv_weight", "nps_weight", "gamut", "eot_print")
     by: dict[tuple, list[dict[str, Any]]] = defaultdict(list)
     for r in rows:
         by[tuple(r[k] for k in keys)].append(r)
@@ -116,7 +117,8 @@ def groups(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
 def label(g: dict[str, Any]) -> str:
     parts = [f"{'Auto-PGD' if g['attack'] == 'apgd' else g['attack'].upper()} ε{g['eps']:g}"
              + (f" ({g['step_decay']} step)" if g["step_decay"] != "none" else "")
-             + (f", {'η₀' if g['attack'] == 'apgd' else 'step'} {g['step_size']:g}" if g["step_size"] else "")]
+             + (f", {'η₀' if g['attack'] == 'apgd' else 'step'} {g['step_size']:g}" if g["step_size"] else "")
+             + (f", gradient blur σ {g['grad_blur']:g}" if g["grad_blur"] else "")]
     if g["tv_weight"]:
         parts.append(f"tv {g['tv_weight']:g}")
     if g["nps_weight"]:

@@ -43,7 +43,9 @@ def test_the_study_measures_each_texture_and_groups_the_seeds(tmp_path):
             _run_folder(tmp_path, "w0", 0, np.ones((8, 8, 3)), [True, True, True, True], tv=1),
             _run_folder(tmp_path, "p0", 0, flat, [True] * 4, tv=10, attack={"name": "apgd", "eps": 255.0}),
             _run_folder(tmp_path, "q0", 0, flat, [False] * 4, tv=10,
-                        attack={"name": "apgd", "eps": 255.0, "step_size": 21.0})]
+                        attack={"name": "apgd", "eps": 255.0, "step_size": 21.0}),
+            _run_folder(tmp_path, "r0", 0, flat, [False] * 4, tv=10,
+                        attack={"name": "apgd", "eps": 255.0, "step_size": 21.0, "grad_blur": 4.0})]
     res = subprocess.run([sys.executable, str(SCRIPT), *map(str, runs), "--out", str(tmp_path / "study")],
                          capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert res.returncode == 0, res.stderr
@@ -62,8 +64,9 @@ def test_the_study_measures_each_texture_and_groups_the_seeds(tmp_path):
     assert abs(float(groups["0.0"]["held_out_conditions_adversarial_rate_sd"]) - 2 ** -0.5) < 1e-9
     assert (tmp_path / "study" / "pareto.png").stat().st_size > 0
     assert "| PGD ε255, tv 10 | 0 |" in res.stdout
-    # Auto-PGD's first step (attack.step_size) makes a setting of its own
+    # Auto-PGD's first step (attack.step_size) and a gradient blur make settings of their own
     assert "| Auto-PGD ε255, tv 10 | 0 |" in res.stdout and "| Auto-PGD ε255, η₀ 21, tv 10 | 0 |" in res.stdout
+    assert "| Auto-PGD ε255, η₀ 21, gradient blur σ 4, tv 10 | 0 |" in res.stdout
 
 
 def test_folders_without_results_are_one_line(tmp_path):
