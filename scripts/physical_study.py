@@ -139,13 +139,14 @@ def chart(gs: list[dict[str, Any]], path: Path) -> None:
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.4), sharey=True)
     y, ysd = "held_out_conditions_adversarial_rate", "held_out_conditions_adversarial_rate_sd"
     for ax, x in zip(axes, ("tv", "nps")):
-        for g in gs:
+        for i, g in enumerate(gs):
             if g.get(y) is None:
                 continue
             marker = "o" if g["attack"] == "pgd" else "s"
             filled = g["gamut"] != "none"
-            ax.errorbar(g[x], g[y], xerr=g.get(f"{x}_sd", 0), yerr=g.get(ysd, 0), fmt=marker,
-                        mfc=None if filled else "white", capsize=3, label=label(g))
+            colour = plt.cm.tab20(i % 20)  # tab10's 10 colours would repeat past 10 settings
+            ax.errorbar(g[x], g[y], xerr=g.get(f"{x}_sd", 0), yerr=g.get(ysd, 0), fmt=marker, color=colour,
+                        mfc=colour if filled else "white", capsize=3, label=label(g))
         ax.set_xlabel({"tv": "total variation of the texture (Thys et al.)",
                        "nps": "non-printability (mean distance to the printable palette, sRGB)"}[x])
         ax.grid(alpha=0.3)
