@@ -3,8 +3,8 @@
 Follows the authors' reference code (fra31/auto-attack,
 ``autoattack/autopgd_base.py``, ``APGDAttack.attack_single_run``, L∞ branch):
 
-- step size η starts at ``2ε`` (``attack.step_size`` sets another η₀: with a regulariser, a first
-  step of 2ε makes the texture so rough that no later point scores above the start); the first step is plain projected sign ascent,
+- step size η starts at ``2ε`` (``attack.step_size``, when given, sets another η₀); the first step
+  is plain projected sign ascent,
   ``x_1 = P(x_0 + η·sign ∇f(x_0))``; later ones add momentum α = 0.75:
   ``z = P(x_k + η·sign ∇f(x_k))``,
   ``x_{k+1} = P(x_k + α(z − x_k) + (1 − α)(x_k − x_{k−1}))``;
@@ -42,7 +42,10 @@ Deliberate differences from the reference code:
   holds 0, so its decision depends on the sign of the loss. Here adding a
   constant to the loss never changes an iterate;
 - one texture, not a batch: the loss is a scalar (the frames' mean);
-- no early stop on success (the farm's metrics judge success), no restarts.
+- no early stop on success (the farm's metrics judge success), no restarts;
+- ``attack.step_size`` as η₀, an option the reference lacks. With a smoothness term a first step of
+  2ε makes the texture so rough that no later point scores above the start; on the stop-sign job a
+  first step of PGD's size fared no better (docs/results.md, "Smooth and printable textures").
 
 The loss is the one the victim computes (CE or DLR, :mod:`undream.victims.losses`).
 With a minibatch of frames the loss comparisons mix frame subsets: use all
