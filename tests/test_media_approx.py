@@ -68,8 +68,10 @@ def test_with_the_base_texture_the_composite_is_the_base(scene_dir, victim_dir):
 
 
 def test_the_map_changes_only_what_the_texture_reaches(scene_dir, victim_dir):
-    """Outside the pixels the texture reaches, the mapped frame is the base: the exact volpath render
-    of another texture at the base's seed equals the base there too, up to the light the object throws."""
+    """Outside the pixels the texture reaches, the mapped frame is the base, up to the last float bits
+    of the gradient scene's film (its parallel atomics sum in either order: the same render repeats
+    only to ~1e-7 there, docs/runs.md "Reproducibility"); the exact volpath render of another texture
+    at the base's seed equals the base there too, up to the light the object throws."""
     ctx = _context(scene_dir, victim_dir)
     texture = np.random.default_rng(0).random((8, 16, 3)).astype(np.float32)
     base = ctx.crops.base(0, 4)
@@ -79,7 +81,10 @@ def test_the_map_changes_only_what_the_texture_reaches(scene_dir, victim_dir):
     reached = _reached(ctx, 0, model)
     assert 0 < reached.mean() < 0.8, reached.mean()  # the sphere and its rim, not the ground around it
     far[model.rendered.slices] = ~reached
-    assert np.array_equal(frame[far], base[far])
+    repeat = np.abs(render_linear(ctx.scenes, 0, ctx.crops._texture(), 4, model.seed, kind="grad",
+                                  window=model.rendered) - model.g_base).max()
+    assert repeat <= 1e-6, repeat  # the summation order's noise, not a change
+    assert np.abs(frame - base)[far].max() <= 1e-6 * max(1.0, float(model.alpha.max()))
     exact = render_linear(ctx.scenes, 0, texture, 4, frame_seed(BASE_SEED, BASE_ITERATION, 0))
     outside = np.ones(frame.shape[:2], bool)
     outside[model.rendered.slices] = False
