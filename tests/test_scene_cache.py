@@ -173,3 +173,43 @@ def test_registered_shapes_do_not_grow_with_the_sequence(long_orbit, sharing):
         assert out["loaded"] == 2
     else:
         assert max(counts) > 2 * per_scene, counts
+
+
+# A cache collected by the garbage collector while another cache records its render: the collector
+# runs __del__ wherever Python allocates, and the next test's init render was such a place (a CI
+# worker died of it: "RecordThreadState::enqueue_host_func(): this function cannot be recorded!").
+_COLLECTED_WHILE_RECORDING = """
+import sys
+import numpy as np
+from undream.variant import mitsuba
+import undream.render.differentiable as differentiable
+from undream.render.differentiable import render_linear
+from undream.render.scene_cache import SceneCache
+
+mi = mitsuba()
+tex = np.full((4, 8, 3), 0.5, np.float32)
+old = SceneCache(sys.argv[1], mi)
+render_linear(old, 0, tex, spp=1, seed=1)
+render_linear(old, 0, tex, spp=1, seed=2)  # recorded and replayed: it holds a recording
+assert old._frozen
+plain_render = differentiable._render
+
+def render_and_collect(*args):
+    global old
+    if old is not None:
+        old.__del__()  # what the collector does to an unreachable cache here
+        old = None
+    return plain_render(*args)
+
+differentiable._render = render_and_collect
+new = SceneCache(sys.argv[1], mi)
+img = render_linear(new, 0, tex, spp=1, seed=3)  # its first call records, and collects the old cache
+print("rendered", float(img.mean()) > 0)
+"""
+
+
+def test_a_cache_collected_while_another_records_does_not_kill_the_process(long_orbit):
+    res = subprocess.run([sys.executable, "-c", _COLLECTED_WHILE_RECORDING, str(long_orbit)],
+                         capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1], timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert res.stdout.strip().splitlines()[-1] == "rendered True"

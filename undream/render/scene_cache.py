@@ -131,8 +131,16 @@ class SceneCache:
         self._lru.clear()
 
     def __del__(self) -> None:
+        # The garbage collector runs this wherever Python allocates, also inside another cache's
+        # frozen recording (a test's cache collected during the next test's init render): clearing
+        # recordings there made Dr.Jit terminate the process ("RecordThreadState::enqueue_host_func():
+        # this function cannot be recorded!"). There the recordings and scenes are only let go,
+        # which Dr.Jit allows; close() is for everywhere else.
         try:
-            self.close()
+            import drjit as dr
+
+            if not dr.flag(dr.JitFlag.FreezingScope):
+                self.close()
         except Exception:  # interpreter shutdown: modules may already be gone
             pass
 
