@@ -41,26 +41,35 @@ def barycentric(tri: np.ndarray, xs: np.ndarray, ys: np.ndarray):
 
 
 def rasterise(tris_px: np.ndarray, tris_z: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """Z-buffer (H,W) of triangles given in pixel coordinates (T,3,2) with depths (T,3)."""
+    """Z-buffer (H,W) of triangles given in pixel coordinates (T,3,2) with depths (T,3): every pixel
+    centre of a triangle's bounding box tested at once (one array of (triangle, pixel) pairs)."""
     w, h = size
     zbuf = np.full((h, w), np.inf)
-    for tri, z in zip(tris_px, tris_z):
-        if np.any(z < 1e-3):
-            continue
-        x0, y0 = np.floor(tri.min(axis=0)).astype(int)
-        x1, y1 = np.ceil(tri.max(axis=0)).astype(int)
-        x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, w - 1), min(y1, h - 1)
-        if x0 > x1 or y0 > y1:
-            continue
-        xs, ys = np.meshgrid(np.arange(x0, x1 + 1) + 0.5, np.arange(y0, y1 + 1) + 0.5)
-        bary = barycentric(tri, xs, ys)
-        if bary is None:
-            continue
-        l0, l1, l2 = bary
-        inside = (l0 >= 0) & (l1 >= 0) & (l2 >= 0)
-        depth = 1.0 / (l0 / z[0] + l1 / z[1] + l2 / z[2])  # perspective-correct
-        sub = zbuf[y0:y1 + 1, x0:x1 + 1]
-        np.copyto(sub, np.minimum(sub, np.where(inside, depth, np.inf)))
+    tris_px, tris_z = np.asarray(tris_px, float), np.asarray(tris_z, float)
+    lo, hi = np.floor(tris_px.min(axis=1)).astype(int), np.ceil(tris_px.max(axis=1)).astype(int)
+    x0, y0 = np.maximum(lo[:, 0], 0), np.maximum(lo[:, 1], 0)
+    x1, y1 = np.minimum(hi[:, 0], w - 1), np.minimum(hi[:, 1], h - 1)
+    a, b, c = tris_px[:, 0], tris_px[:, 1], tris_px[:, 2]
+    den = (b[:, 1] - c[:, 1]) * (a[:, 0] - c[:, 0]) + (c[:, 0] - b[:, 0]) * (a[:, 1] - c[:, 1])
+    keep = (tris_z >= 1e-3).all(axis=1) & (x0 <= x1) & (y0 <= y1) & (np.abs(den) >= 1e-15)
+    t = np.flatnonzero(keep)
+    if t.size == 0:
+        return zbuf
+    bw, bh = x1[t] - x0[t] + 1, y1[t] - y0[t] + 1
+    counts = bw * bh
+    pair_t = np.repeat(t, counts)  # each triangle once per pixel of its box
+    k = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)  # index inside the box
+    bw_p = np.repeat(bw, counts)
+    xs, ys = x0[pair_t] + k % bw_p, y0[pair_t] + k // bw_p
+    px, py = xs + 0.5, ys + 0.5
+    a, b, c, d = a[pair_t], b[pair_t], c[pair_t], den[pair_t]
+    l0 = ((b[:, 1] - c[:, 1]) * (px - c[:, 0]) + (c[:, 0] - b[:, 0]) * (py - c[:, 1])) / d
+    l1 = ((c[:, 1] - a[:, 1]) * (px - c[:, 0]) + (a[:, 0] - c[:, 0]) * (py - c[:, 1])) / d
+    l2 = 1 - l0 - l1
+    inside = (l0 >= 0) & (l1 >= 0) & (l2 >= 0)
+    z = tris_z[pair_t[inside]]
+    depth = 1.0 / (l0[inside] / z[:, 0] + l1[inside] / z[:, 1] + l2[inside] / z[:, 2])  # perspective-correct
+    np.minimum.at(zbuf, (ys[inside], xs[inside]), depth)
     return zbuf
 
 
