@@ -15,9 +15,9 @@ each (a :class:`FarmView`, :func:`workers.health.farm_view`):
 
 A quiet run neither held nor waiting is *stalled*: its start, its jobs or its
 callback are nowhere (lost with a restarted broker, or with a worker that was
-killed or stopped: its announcement lapses :data:`workers.presence.TTL_S`
-after its last), or its callback found nothing to do. Where the broker cannot
-say (its Redis unreachable, restarted less than ``TTL_S`` ago so that not
+killed or stopped: its announcement lapses three ``worker_beat`` after its
+last, :func:`workers.presence.ttl_of`), or its callback found nothing to do. Where the broker cannot
+say (its Redis unreachable, restarted less than those three beats ago so that not
 every worker has announced itself again, or a queue too long to read), the
 rule falls back on time alone: a run is stalled only after ``visibility_timeout``
 more (the broker would have delivered a lost worker's job again by then).

@@ -161,7 +161,7 @@ def test_the_stall_rule_says_why_and_leaves_held_waiting_and_recent_runs_alone()
 
 
 def test_where_the_broker_cannot_say_the_stall_rule_falls_back_on_time():
-    """Announcements unknown (Redis restarted less than TTL_S ago) or a queue unread: a started job,
+    """Announcements unknown (Redis restarted less than three worker beats ago) or a queue unread: a started job,
     or next work whose queue may hold it, is left alone for visibility_timeout more."""
     blind = FarmView.blind("Redis unreachable")
     assert stall_reason(_health(unfinished=3, started=1), NOW, RULE, blind) is None
@@ -226,7 +226,7 @@ def test_a_pass_heals_only_the_runs_both_its_looks_find_stalled(tmp_path):
 
 def test_the_farm_view_reads_the_queues_across_priorities_and_the_workers_announcements():
     from workers.health import farm_view
-    from workers.presence import PRIORITY_SEP, SINCE_KEY, TTL_S, announce
+    from workers.presence import PRIORITY_SEP, SINCE_KEY, announce, ttl_of
     from workers.queues import CONTROL_QUEUE, FRAMES_QUEUE, QUEUES
     from workers.app import create_celery_app
 
@@ -248,8 +248,8 @@ def test_the_farm_view_reads_the_queues_across_priorities_and_the_workers_announ
         try:
             view = farm_view(settings)
             assert view.waiting == {"run-a", "run-b", "run-c"} and view.unread == frozenset()
-            assert view.held is None and "announced" in view.why  # the announcements are younger than TTL_S
-            client.set(SINCE_KEY, time.time() - TTL_S - 1)
+            assert view.held is None and "announced" in view.why  # the announcements are younger than three beats
+            client.set(SINCE_KEY, time.time() - ttl_of(settings) - 1)
             assert farm_view(settings).held == {"run-d"}
         finally:
             withdraw()
@@ -358,6 +358,35 @@ def test_a_stalled_run_is_healed_once_with_an_event_and_finishes(tiny, tmp_path)
     np.testing.assert_array_equal(store.final_texture(run_id), _reference(tiny, tmp_path))
 
 
+
+def test_an_announcement_lapses_three_worker_beats_after_the_last():
+    """``worker_beat`` sets how often a worker announces itself and when a silent one is gone: the key's
+    expiry is three beats, renewed every beat; the announcements are complete three beats after Redis
+    started empty."""
+    from farm_support import redis_client
+    from workers.presence import PREFIX, SINCE_KEY, announce, presence, ttl_of
+    from workers.queues import QUEUES
+
+    if (reason := redis_up()) is not None:
+        service_missing(reason)
+    db = free_db()
+    try:
+        settings = load_settings(env={"UNDREAM_BROKER_URL": f"redis://127.0.0.1:6379/{db}", "UNDREAM_WORKER_BEAT": "1"})
+        assert ttl_of(settings) == 3.0 and ttl_of(load_settings(env={})) == 30.0
+        client = redis_client(db)
+        withdraw = announce(settings, "w1@host", QUEUES)
+        try:
+            assert 2 <= client.ttl(PREFIX + "w1@host") <= 3
+            time.sleep(2.5)  # past two beats: renewed, never lapsed
+            assert client.ttl(PREFIX + "w1@host") >= 2 and presence(settings).queues
+            since = float(client.get(SINCE_KEY))
+            assert not presence(settings, now=since + 2.9).complete and presence(settings, now=since + 3.01).complete
+        finally:
+            withdraw()
+        assert client.get(PREFIX + "w1@host") is None
+    finally:
+        release_db(db)
+
 # -- workers heal by themselves ------------------------------------------------------------------
 
 
@@ -374,7 +403,8 @@ def test_a_worker_heals_a_run_whose_broker_lost_everything(farm_tiny):
     so, and the run ends with the undisturbed run's texture."""
     from scheduler.local import run_local
 
-    farm = Farm(farm_tiny["root"] / "heal", heal_after=4, heal_interval=1)
+    # a worker beat of 2 s: the new worker's announcements are complete after 6 s instead of 30 s
+    farm = Farm(farm_tiny["root"] / "heal", heal_after=4, heal_interval=1, worker_beat=2)
     farm.root.mkdir()
     # 16 steps: a loaded machine's polling loop (it shares the cores with the worker) must still find
     # the run mid-way; with 6 it once first saw the run after its last step
@@ -419,14 +449,14 @@ def _final(farm: Farm, run) -> np.ndarray:
 @pytest.mark.slow
 def test_a_killed_workers_job_is_sent_again_by_the_healer_not_after_the_visibility_timeout(farm_tiny):
     """Issue 41: with the default visibility timeout a SIGKILLed worker's job came back after an hour.
-    Now its announcement lapses (30 s), nothing else holds the run, and the healer sends the job
-    again: the run finishes with the undisturbed run's texture, no person involved, the broker's
-    copy of the job still an hour away."""
+    Now its announcement lapses (three worker beats: 30 s by default, 6 s here), nothing else holds
+    the run, and the healer sends the job again: the run finishes with the undisturbed run's
+    texture, no person involved, the broker's copy of the job still an hour away."""
     from scheduler.local import run_local
-    from workers.presence import TTL_S
+    from workers.presence import ttl_of
 
     farm = Farm(farm_tiny["root"] / "killed", heal_after=3, heal_interval=1, visibility_timeout=3600,
-                frames_per_task=1)
+                frames_per_task=1, worker_beat=2)
     farm.root.mkdir()
     cfg = run_config(farm_tiny["scene"], farm_tiny["victim"], name="killed", steps=4, sim_spp=256, grad_spp=16)
     try:
@@ -440,7 +470,7 @@ def test_a_killed_workers_job_is_sent_again_by_the_healer_not_after_the_visibili
         run = farm.wait_status(run_id, timeout=90)
         took = time.monotonic() - killed
         # the announcement's lapse, heal_after, a pass interval, the confirming look, the rest of the run
-        assert took < TTL_S + 3 + 1 + 2 + 25, took
+        assert took < ttl_of(farm.settings()) + 3 + 1 + 2 + 25, took
         again = next(j for j in farm.store.jobs(run_id, job.k) if j.frame == job.frame)
         assert again.status == "succeeded" and again.attempts == 2 and run.failures == 0  # attempts kept
         healed = [e.line for e in farm.store.events(run_id)]

@@ -67,6 +67,8 @@ def test_settings_precedence_and_errors_name_their_source(tmp_path):
         load_settings(env={"UNDREAM_CONCURRENCY": "many"})
     with pytest.raises(SettingsError, match="UNDREAM_FAILURE_BUDGET: must be an integer >= 0, got -1"):
         load_settings(env={"UNDREAM_FAILURE_BUDGET": "-1"})
+    with pytest.raises(SettingsError, match="UNDREAM_WORKER_BEAT: must be an integer >= 1, got 0"):
+        load_settings(env={"UNDREAM_WORKER_BEAT": "0"})
     with pytest.raises(SettingsError, match=r"farm.yaml: brokr_url: unknown setting"):
         load_settings(write_yaml(tmp_path / "farm.yaml", {"brokr_url": "x"}), env={})
     with pytest.raises(SettingsError, match="--concurrency: must be an integer >= 1, got 0"):

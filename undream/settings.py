@@ -102,6 +102,9 @@ class Settings:
     restore_interval: int = 10  # s between sweeps that re-deliver jobs of lost workers
     heal_after: int = 30  # s a farm run held by no live worker may make no progress before it is sent again (0: never)
     heal_interval: int = 15  # s between the workers' checks for such runs (one worker checks at a time)
+    # s between a worker's announcements in Redis; a worker silent 3x this long is taken for gone and
+    # its work sent again by the healer. Every process of a farm must use the same value.
+    worker_beat: int = 10
     scene_cache: int = 2  # scene directories whose Mitsuba scenes a worker process keeps loaded
     connect_timeout: float = 5.0  # s to reach the broker before giving up (CLI commands)
     dashboard_token: str | None = field(default=None, repr=False)  # cancel/resume need it; None: none
@@ -131,7 +134,7 @@ class Settings:
                             ("max_attempts", 1), ("failure_budget", 0), ("store_retries", 0),
                             ("visibility_timeout", 1),
                             ("restore_interval", 1), ("scene_cache", 1), ("transport_cache_mb", 0),
-                            ("heal_after", 0), ("heal_interval", 1)):
+                            ("heal_after", 0), ("heal_interval", 1), ("worker_beat", 1)):
             _check_int(name, getattr(self, name), least)
         for name in ("drjit_threads", "frames_per_task"):
             if getattr(self, name) is not None:
@@ -171,7 +174,7 @@ def _check_int(name: str, value: Any, least: int) -> None:
 _FIELDS = {f.name: f for f in fields(Settings)}
 _INTS = {"concurrency", "drjit_threads", "torch_threads", "frames_per_task", "farm_slots",
          "max_attempts", "failure_budget", "store_retries", "visibility_timeout", "restore_interval",
-         "scene_cache", "transport_cache_mb", "heal_after", "heal_interval"}
+         "scene_cache", "transport_cache_mb", "heal_after", "heal_interval", "worker_beat"}
 _OPTIONAL = {"result_backend", "database_url", "drjit_threads", "frames_per_task", "dashboard_token",
              "s3_endpoint_url", "s3_region", "s3_access_key_id", "s3_secret_access_key"}
 # The usual AWS variables, read where no UNDREAM_S3_* variable sets the setting (first one set wins).

@@ -30,7 +30,7 @@ from scheduler.heal import BLIND, FarmView, StallRule, stalled
 from scheduler.options import FarmOptions
 from undream.redact import redact_text
 from undream.store import mask_url
-from workers.presence import TTL_S, live_queues, presence, queued_runs
+from workers.presence import live_queues, presence, queued_runs, ttl_of
 from workers.queues import CONTROL_QUEUE, FRAMES_QUEUE
 
 if TYPE_CHECKING:
@@ -91,7 +91,7 @@ def farm_view(settings: "Settings") -> FarmView:
     try:
         seen = presence(settings)
         held = seen.runs if seen.complete else None
-        why = "" if seen.complete else f"not every worker has announced itself yet (Redis started < {TTL_S:g} s ago)"
+        why = "" if seen.complete else f"not every worker has announced itself yet (Redis started < {ttl_of(settings):g} s ago)"
     except Exception as exc:  # redis-py's ConnectionError, TimeoutError, a URL that is not Redis
         held, why = None, f"cannot read the workers' announcements: {one_line(str(exc) or type(exc).__name__)}"
     try:

@@ -2,13 +2,14 @@
 
 Each ``undream worker`` (its parent process, from the moment it is ready)
 sets ``undream:worker:<node name>`` in the result backend's Redis (always
-Redis: see :class:`undream.settings.Settings`) every :data:`BEAT_S` seconds,
-holding the queues it consumes, with an expiry of :data:`TTL_S`; it deletes
+Redis: see :class:`undream.settings.Settings`) every ``worker_beat`` seconds (the
+setting, 10 by default), holding the queues it consumes, with an expiry of three
+beats (:func:`ttl_of`); it deletes
 the key when it shuts down. :func:`live_queues` reads every such key in one
 round trip or two, so a command learns which queues have a live consumer in
 milliseconds, where Celery's remote control (``inspect().active_queues()``)
 waits its whole timeout for answers however many workers there are. A worker
-killed with SIGKILL stays listed until its key expires (at most ``TTL_S``).
+killed with SIGKILL stays listed until its key expires (at most three beats).
 
 An announcement also names the runs of the tasks the worker holds (running,
 prefetched, or waiting out a retry's countdown: Celery's ``worker.state``
@@ -19,7 +20,7 @@ holds. Its absence from every announcement means something only once every
 live worker has announced itself since Redis last started empty: each
 announcement also sets :data:`SINCE_KEY` where absent (no expiry), and
 :func:`presence` calls the announcements complete once that key is
-``TTL_S`` old.
+three beats old.
 """
 from __future__ import annotations
 
@@ -41,10 +42,15 @@ log = logging.getLogger(__name__)
 PREFIX = "undream:worker:"
 # kombu's Redis transport keeps a queue as one list per priority step: the name, then name + SEP + step
 PRIORITY_SEP, PRIORITY_STEPS = "\x06\x16", (0, 3, 6, 9)
-BEAT_S = 10.0  # s between a worker's announcements
-TTL_S = 3 * BEAT_S  # s a key outlives its last announcement: a worker silent this long is not live
+BEATS_TO_LAPSE = 3  # a key outlives its last announcement by this many beats: a worker silent so long is not live
 NUDGE_S = 1.0  # s at least between two announcements (a task's arrival announces at once, then waits this)
 SINCE_KEY = "undream:presence:since"  # when the first announcement since Redis started empty was made (epoch s)
+
+
+def ttl_of(settings: "Settings") -> float:
+    """Seconds an announcement outlives its worker's last beat (three ``worker_beat``): a worker
+    silent this long is not live."""
+    return float(BEATS_TO_LAPSE * settings.worker_beat)
 
 
 def _client(settings: "Settings") -> redis.Redis:
@@ -52,13 +58,16 @@ def _client(settings: "Settings") -> redis.Redis:
                                 socket_timeout=settings.connect_timeout)
 
 
-def announce(settings: "Settings", node: str, queues: Sequence[str], beat_s: float = BEAT_S,
-             ttl_s: float = TTL_S, holds: Callable[[], Iterable[str]] = tuple,
+def announce(settings: "Settings", node: str, queues: Sequence[str], beat_s: float | None = None,
+             ttl_s: float | None = None, holds: Callable[[], Iterable[str]] = tuple,
              nudge: threading.Event | None = None) -> Callable[[], None]:
     """Announce worker ``node`` as consuming ``queues`` and holding tasks of the runs ``holds()``
-    now and every ``beat_s`` seconds, and at once (``NUDGE_S`` apart at most) when ``nudge`` is
+    now and every ``beat_s`` seconds (None: the ``worker_beat`` setting; ``ttl_s`` None: three of
+    them), and at once (``NUDGE_S`` apart at most) when ``nudge`` is
     set, from a daemon thread; returns the function that stops announcing and deletes the key. A
     failed announcement (Redis away a moment) is logged and tried again at the next beat."""
+    beat_s = float(settings.worker_beat) if beat_s is None else beat_s
+    ttl_s = ttl_of(settings) if ttl_s is None else ttl_s
     client, key, stop = _client(settings), PREFIX + node, threading.Event()
     woken = nudge or threading.Event()
 
@@ -103,7 +112,7 @@ def announce(settings: "Settings", node: str, queues: Sequence[str], beat_s: flo
 class Presence:
     """The live workers' announcements: queue → the nodes consuming it; ``runs``: the runs whose
     tasks they hold; ``complete``: every live worker has announced itself since Redis last started
-    empty (:data:`SINCE_KEY` at least ``TTL_S`` old), so a run in no announcement is held by none."""
+    empty (:data:`SINCE_KEY` at least :func:`ttl_of` old), so a run in no announcement is held by none."""
 
     queues: dict[str, tuple[str, ...]]
     runs: frozenset[str]
@@ -139,7 +148,7 @@ def presence(settings: "Settings", now: float | None = None) -> Presence:
     except ValueError:
         age = -1.0
     return Presence({q: tuple(sorted(nodes)) for q, nodes in sorted(queues.items())}, frozenset(runs),
-                    age >= TTL_S)
+                    age >= ttl_of(settings))
 
 
 def live_queues(settings: "Settings") -> dict[str, tuple[str, ...]]:
