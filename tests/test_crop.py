@@ -58,7 +58,7 @@ def victim_dir(tmp_path_factory):
 def _config(scene_dir, victim_dir, **kw):
     return RunConfig(**{"scene": str(scene_dir), "name": "crop", "victim": victim_dir, "loss": "ce",
                         "attack": {"name": "pgd", "eps": 64.0, "steps": 2}, "sim_spp": 4, "grad_spp": 4,
-                        "eval_spp": 4, "seed": 3, "holdout": "none", **kw})
+                        "crop_min_pixels": 0, "eval_spp": 4, "seed": 3, "holdout": "none", **kw})
 
 
 def test_window_is_the_mask_box_grown_and_clipped():
@@ -162,7 +162,8 @@ def test_a_run_renders_windows_in_its_iterations_and_whole_frames_in_its_evaluat
     assert np.allclose(again["loss_per_iteration"], res["loss_per_iteration"], rtol=1e-6, atol=0)
 
 
-@pytest.mark.parametrize("extra", [{"crop": "off"}, {"eot": {"camera_turn_deg": 2.0}}], ids=["off", "eot"])
+@pytest.mark.parametrize("extra", [{"crop": "off"}, {"eot": {"camera_turn_deg": 2.0}}, {"crop_min_pixels": 10**6}],
+                         ids=["off", "eot", "frames-below-crop_min_pixels"])
 def test_crop_off_and_eot_render_whole_frames(scene_dir, victim_dir, tmp_path, monkeypatch, extra):
     from scheduler.local import run_local
 
@@ -178,3 +179,6 @@ def test_bad_crop_settings_are_refused_naming_the_field(scene_dir):
         RunConfig(scene=str(scene_dir), crop="on")
     with pytest.raises(SpecError, match="crop_margin"):
         RunConfig(scene=str(scene_dir), crop_margin=-1)
+    with pytest.raises(SpecError, match="crop_min_pixels"):
+        RunConfig(scene=str(scene_dir), crop_min_pixels=-1)
+    assert RunConfig(scene=str(scene_dir)).crop_min_pixels == 128 * 128  # 64-px frames are rendered whole

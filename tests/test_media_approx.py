@@ -44,7 +44,7 @@ def victim_dir(tmp_path_factory):
 def _context(scene_dir, victim_dir, **kw):
     cfg = RunConfig(**{"scene": str(scene_dir), "name": "media", "victim": victim_dir, "loss": "ce",
                        "attack": {"name": "pgd", "eps": 64.0, "steps": 2}, "sim_spp": 4, "grad_spp": 4,
-                       "eval_spp": 4, "seed": 3, "holdout": "none", **kw})
+                       "crop_min_pixels": 0, "eval_spp": 4, "seed": 3, "holdout": "none", **kw})
     return build_context(cfg, scene_dir)
 
 

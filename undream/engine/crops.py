@@ -3,9 +3,10 @@
 ``crop: auto`` (the default) renders each iteration's frame as the object's
 window (:mod:`undream.render.crop`) pasted on the frame's base, where that can
 hold: the embedded Mitsuba simulator, no EOT conditions moving the camera or
-light in this render, the object in the frame's mask, a window over at most
-half the frame. Elsewhere, and with ``crop: off``, the frame is rendered whole
-as before. The final evaluation always renders whole frames.
+light in this render, a frame of at least ``crop_min_pixels`` pixels (128², by
+default: on 64-px frames a window's base and first recording cost what its
+uses saved), the object in the frame's mask, a window over at most half the
+frame. Elsewhere, and with ``crop: off``, the frame is rendered whole as before. The final evaluation always renders whole frames.
 
 ``media: auto`` (the default) renders the window of a frame whose simulation
 scene holds a medium (fog, rain's and snow's haze) without it, through the
@@ -53,7 +54,8 @@ class CropFrames:
         """Frame ``index``'s window, or None where it is rendered whole."""
         if index not in self._windows:
             mask = read_mask(self.ctx.scene_dir, index)
-            self._windows[index] = crop_window(mask, self.ctx.config.crop_margin)
+            small = mask.size < self.ctx.config.crop_min_pixels
+            self._windows[index] = None if small else crop_window(mask, self.ctx.config.crop_margin)
         return self._windows[index]
 
     def render(self, index: int, texture: np.ndarray, spp: int, seed: int, conditions: Any = None) -> np.ndarray:

@@ -89,6 +89,9 @@ class RunConfig:
     transport_refresh: int = 5
     crop: str = "auto"  # auto | off: an iteration renders the object's window on a base (undream.engine.crops)
     crop_margin: float = 0.25  # the window: the object's box grown by this × its longer side on every side
+    # frames of fewer pixels are rendered whole by ``crop: auto`` (0: every frame with a window): at 64 px
+    # a window's base and first recording cost what its uses save (docs/performance.md, Crop rendering)
+    crop_min_pixels: int = 128 * 128
     media: str = "auto"  # auto | exact: a window in fog, rain or snow rendered clear and mapped (undream.render.media)
     holdout: Any = "auto"  # frames the attack never sees, evaluated apart: see split_frames
     eot: Mapping[str, float] | None = None  # camera and light jitter per iteration: see EOT_FIELDS
@@ -124,6 +127,7 @@ class RunConfig:
         c.choice("gradient", self.gradient, ("auto", "transport", "prb"))
         c.integer("transport_refresh", self.transport_refresh, 1, 10**6)
         c.choice("crop", self.crop, ("auto", "off"))
+        c.integer("crop_min_pixels", self.crop_min_pixels, 0, 10**9)
         c.choice("media", self.media, ("auto", "exact"))
         if not 0.0 <= c.finite("crop_margin", self.crop_margin) <= 4.0:
             raise c.fail("crop_margin", self.crop_margin, "must be between 0 and 4 (× the object's box)")
