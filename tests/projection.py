@@ -29,15 +29,25 @@ def project(points_world: np.ndarray, cam: dict) -> tuple[np.ndarray, np.ndarray
     return np.c_[col, row], z
 
 
+def _den(a, b, c):
+    """Twice the signed area of the triangle(s) ``a, b, c`` (each (..., 2))."""
+    return (b[..., 1] - c[..., 1]) * (a[..., 0] - c[..., 0]) + (c[..., 0] - b[..., 0]) * (a[..., 1] - c[..., 1])
+
+
+def _weights(a, b, c, den, xs, ys):
+    """Barycentric coordinates (l0, l1, l2) of points (xs, ys) in the triangle(s) ``a, b, c``."""
+    l0 = ((b[..., 1] - c[..., 1]) * (xs - c[..., 0]) + (c[..., 0] - b[..., 0]) * (ys - c[..., 1])) / den
+    l1 = ((c[..., 1] - a[..., 1]) * (xs - c[..., 0]) + (a[..., 0] - c[..., 0]) * (ys - c[..., 1])) / den
+    return l0, l1, 1 - l0 - l1
+
+
 def barycentric(tri: np.ndarray, xs: np.ndarray, ys: np.ndarray):
     """Barycentric coordinates (l0, l1, l2) of points (xs, ys) in a 2-D triangle (3,2); None if degenerate."""
     a, b, c = tri
-    den = (b[1] - c[1]) * (a[0] - c[0]) + (c[0] - b[0]) * (a[1] - c[1])
+    den = _den(a, b, c)
     if abs(den) < 1e-15:
         return None
-    l0 = ((b[1] - c[1]) * (xs - c[0]) + (c[0] - b[0]) * (ys - c[1])) / den
-    l1 = ((c[1] - a[1]) * (xs - c[0]) + (a[0] - c[0]) * (ys - c[1])) / den
-    return l0, l1, 1 - l0 - l1
+    return _weights(a, b, c, den, xs, ys)
 
 
 def rasterise(tris_px: np.ndarray, tris_z: np.ndarray, size: tuple[int, int]) -> np.ndarray:
@@ -50,7 +60,7 @@ def rasterise(tris_px: np.ndarray, tris_z: np.ndarray, size: tuple[int, int]) ->
     x0, y0 = np.maximum(lo[:, 0], 0), np.maximum(lo[:, 1], 0)
     x1, y1 = np.minimum(hi[:, 0], w - 1), np.minimum(hi[:, 1], h - 1)
     a, b, c = tris_px[:, 0], tris_px[:, 1], tris_px[:, 2]
-    den = (b[:, 1] - c[:, 1]) * (a[:, 0] - c[:, 0]) + (c[:, 0] - b[:, 0]) * (a[:, 1] - c[:, 1])
+    den = _den(a, b, c)
     keep = (tris_z >= 1e-3).all(axis=1) & (x0 <= x1) & (y0 <= y1) & (np.abs(den) >= 1e-15)
     t = np.flatnonzero(keep)
     if t.size == 0:
@@ -61,11 +71,7 @@ def rasterise(tris_px: np.ndarray, tris_z: np.ndarray, size: tuple[int, int]) ->
     k = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)  # index inside the box
     bw_p = np.repeat(bw, counts)
     xs, ys = x0[pair_t] + k % bw_p, y0[pair_t] + k // bw_p
-    px, py = xs + 0.5, ys + 0.5
-    a, b, c, d = a[pair_t], b[pair_t], c[pair_t], den[pair_t]
-    l0 = ((b[:, 1] - c[:, 1]) * (px - c[:, 0]) + (c[:, 0] - b[:, 0]) * (py - c[:, 1])) / d
-    l1 = ((c[:, 1] - a[:, 1]) * (px - c[:, 0]) + (a[:, 0] - c[:, 0]) * (py - c[:, 1])) / d
-    l2 = 1 - l0 - l1
+    l0, l1, l2 = _weights(a[pair_t], b[pair_t], c[pair_t], den[pair_t], xs + 0.5, ys + 0.5)
     inside = (l0 >= 0) & (l1 >= 0) & (l2 >= 0)
     z = tris_z[pair_t[inside]]
     depth = 1.0 / (l0[inside] / z[:, 0] + l1[inside] / z[:, 1] + l2[inside] / z[:, 2])  # perspective-correct

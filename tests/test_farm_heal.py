@@ -358,7 +358,6 @@ def test_a_stalled_run_is_healed_once_with_an_event_and_finishes(tiny, tmp_path)
     np.testing.assert_array_equal(store.final_texture(run_id), _reference(tiny, tmp_path))
 
 
-
 def test_an_announcement_lapses_three_worker_beats_after_the_last():
     """``worker_beat`` sets how often a worker announces itself and when a silent one is gone: the key's
     expiry is three beats, renewed every beat; the announcements are complete three beats after Redis
@@ -386,6 +385,7 @@ def test_an_announcement_lapses_three_worker_beats_after_the_last():
         assert client.get(PREFIX + "w1@host") is None
     finally:
         release_db(db)
+
 
 # -- workers heal by themselves ------------------------------------------------------------------
 

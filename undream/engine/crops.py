@@ -6,7 +6,8 @@ hold: the embedded Mitsuba simulator, no EOT conditions moving the camera or
 light in this render, a frame of at least ``crop_min_pixels`` pixels (128², by
 default: on 64-px frames a window's base and first recording cost what its
 uses saved), the object in the frame's mask, a window over at most half the
-frame. Elsewhere, and with ``crop: off``, the frame is rendered whole as before. The final evaluation always renders whole frames.
+frame. Elsewhere, and with ``crop: off``, the frame is rendered whole as before.
+The final evaluation always renders whole frames.
 
 ``media: auto`` (the default) renders the window of a frame whose simulation
 scene holds a medium (fog, rain's and snow's haze) without it, through the
