@@ -11,14 +11,13 @@ import logging
 import shutil
 from collections import deque
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from scheduler import stages
 from scheduler.options import attacked_positions
 from scheduler.preflight import (check_output_folder, claim_output, is_run_output, is_scene, preflight, scene_source,
                                  scene_sources)
 from undream import interrupts
-from undream.engine.context import RunContext, build_context
 from undream.scenedir.conditions import conditions_sequence
 from undream.scenedir.init import InitOptions, init_scene
 from undream.settings import LocalSettings
@@ -26,6 +25,9 @@ from undream.errors import SpecError, UndreamError
 from undream.progress import progress as progress_bar
 from undream.spec.io import join_against
 from undream.spec.run import RunConfig
+
+if TYPE_CHECKING:  # torch and Mitsuba load once the checks have passed: a refusal is quick
+    from undream.engine.context import RunContext
 
 log = logging.getLogger(__name__)
 
@@ -123,6 +125,8 @@ def run_local(config: RunConfig, out: str | Path, base_dir: Path | None = None, 
     check_output_folder(out, scene_source(config, base_dir), force, inputs=(source, *scene_sources(config, base_dir)[1:]))  # cheap refusals first
     replace = out.exists() and any(out.iterdir())  # as checked: --force and a folder `undream run` wrote
     victim = preflight(config, base_dir, source, local).victim  # nothing written or deleted before this passes
+    from undream.engine.context import build_context  # torch and Mitsuba: after the checks, so a refusal is quick
+
     if replace:
         shutil.rmtree(out)
     claim_output(out, config)  # atomic: a run that claimed a new --out since the check keeps it whole
@@ -176,6 +180,8 @@ def resume_local(config: RunConfig, out: Path, base_dir: Path, progress: bool = 
         raise SpecError(f"--out {out}: --resume continues a run that `undream run` started there, "
                         "and this folder has none (no metadata.json of a run)")
     victim = preflight(config, base_dir, source, local).victim
+    from undream.engine.context import build_context  # torch and Mitsuba: after the checks
+
     store = open_store(config.store, out / "store")
     run = _recorded_run(store, config, out)
     expire_stale(store, [run])

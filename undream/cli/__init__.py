@@ -88,11 +88,12 @@ UNSEEN_NOT_CHECKED = ("whether a frame (of each condition) shows the object is c
 @one_line_errors
 def run_cmd(run_yaml: Path, out: Path, force: bool, resume: bool, check: bool, progress: bool) -> None:
     """Run the attack of RUN_YAML in this process (embedded defaults: Mitsuba, SQLite)."""
-    from scheduler.local import check_run, run_local
-    from scheduler.preflight import is_scene, scene_source
     from undream.spec.run import load_run_config
 
-    config = load_run_config(run_yaml)
+    config = load_run_config(run_yaml)  # a malformed config is one line before torch and Mitsuba load
+    from scheduler.local import check_run, run_local
+    from scheduler.preflight import is_scene, scene_source
+
     local = local_settings()
     if check:
         estimate = check_run(config, out, base_dir=run_yaml.parent, force=force, source=run_yaml, local=local)

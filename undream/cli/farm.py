@@ -120,12 +120,13 @@ def _cell(value: Any) -> str:
 @one_line_errors
 def submit_cmd(run_yaml: Path, out: Path | None, check: bool, settings: Callable[..., "Settings"]) -> None:
     """Validate RUN_YAML, then queue it on the farm; prints the run id (--check: validate only)."""
-    from scheduler.preflight import scene_sources
-    from scheduler.submit import Validator, dispatch_starts, record
     from undream.spec.run import load_run_config
 
     cfg = settings()
-    config = load_run_config(run_yaml)
+    config = load_run_config(run_yaml)  # a malformed config is one line before torch and Mitsuba load
+    from scheduler.preflight import scene_sources
+    from scheduler.submit import Validator, dispatch_starts, record
+
     if out is not None:
         _check_farm_out(out, scene_sources(config, run_yaml.parent), run_yaml, "undream submit")
     with tempfile.TemporaryDirectory(prefix="undream-submit-") as tmp:
@@ -403,11 +404,12 @@ def sweep_cmd(sweep_yaml: Path, out: Path | None, max_runs: int | None, check: b
               settings: Callable[..., "Settings"]) -> None:
     """Expand SWEEP_YAML's grid into runs, validate them all, then queue them; prints the sweep id
     (--check: validate only)."""
-    from scheduler.submit import dispatch_starts, record_sweep
     from scheduler.sweep import load_sweep
 
     cfg = settings()
     sweep = load_sweep(sweep_yaml) if max_runs is None else load_sweep(sweep_yaml, max_runs)
+    from scheduler.submit import dispatch_starts, record_sweep  # torch and Mitsuba: after the sweep parsed
+
     if out is not None:
         from scheduler.preflight import scene_sources
 
