@@ -83,11 +83,6 @@ def preflight(config: RunConfig, base_dir: Path, source: str | Path | None = Non
 
 
 def _preflight(config: RunConfig, base_dir: Path, local: LocalSettings) -> Checked:
-    from undream.attacks import make_attack
-    from undream.engine.context import class_ids, task_of
-    from undream.victims import load_victim
-
-    make_attack(config.attack)
     check_simulator(config.sim, local)
     resolve_gamut(config.gamut, local.undream_cache)  # the printer's profile is there and a CMYK one
     if config.store:
@@ -102,6 +97,12 @@ def _preflight(config: RunConfig, base_dir: Path, local: LocalSettings) -> Check
         seq = _sequence(scene_source(config, base_dir), local.memory_limit, local.undream_cache)
     check_frames(config, seq)
     estimate = run_estimate(seq, config, limit=local.memory_limit)
+    # torch from here on: a run refused for its scene, conditions or frames was refused without it
+    from undream.attacks import make_attack
+    from undream.engine.context import class_ids, task_of
+    from undream.victims import load_victim
+
+    make_attack(config.attack)
     victim = load_victim(config.victim, device=config.device, task=task_of(config), offline=local.hf_offline,
                          cache_home=local.cache_home)
     class_ids(config, seq, victim)

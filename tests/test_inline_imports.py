@@ -197,21 +197,25 @@ except SystemExit as exit:
     (["run", "{bad}", "--out", "{tmp}/out"], "bogus: unknown field"),
     (["submit", "{bad}", "--broker", "redis://127.0.0.1:1/0"], "bogus: unknown field"),
     (["sweep", "{sweep}", "--broker", "redis://127.0.0.1:1/0"], "bogus: unknown field"),
-    (["run", "{good}", "--out", "{tmp}/theirs", "--force"], "--force only replaces a folder that `undream run` wrote")],
-    ids=["run-malformed", "submit-malformed", "sweep-malformed", "run-force-on-a-foreign-folder"])
+    (["run", "{good}", "--out", "{tmp}/theirs", "--force"], "--force only replaces a folder that `undream run` wrote"),
+    (["run", "{unknown}", "--out", "{tmp}/out"], "conditions.holdout: 'weather_fog' is not a condition")],
+    ids=["run-malformed", "submit-malformed", "sweep-malformed", "run-force-on-a-foreign-folder",
+         "run-holdout-not-a-condition"])
 def test_a_refused_command_loads_no_torch(tmp_path, command, says):
-    """A config refused for its fields, or an --out that `undream run` may not replace, is one line
-    before torch and the victims' libraries load: 0.2 s here for a malformed config, 1.7 s for the
-    folder, where each took 2–3 s (Mitsuba's variant is still chosen at the edge:
+    """A config refused for its fields, an --out that `undream run` may not replace, or conditions
+    that do not fit the scene, is one line before torch and the victims' libraries load: 0.2 s here
+    for a malformed config, 1.4–1.7 s for the folder or the conditions, where each took 2–3 s (Mitsuba's variant is still chosen at the edge:
     ``undream.cli.options.local_settings``)."""
     good = {"name": "quick", "scene": str(ROOT / "examples" / "bin_orbit.yaml"), "victim": "bundled:classifier-v3"}
     (tmp_path / "good.yaml").write_text(yaml.safe_dump(good))
     (tmp_path / "bad.yaml").write_text(yaml.safe_dump({**good, "bogus": 1}))
+    (tmp_path / "unknown.yaml").write_text(yaml.safe_dump({**good, "conditions": {
+        "grid": {"environment.weather": ["clear", "snow"]}, "holdout": ["weather_fog"]}}))
     (tmp_path / "sweep.yaml").write_text(yaml.safe_dump({"name": "seeds", "run": "bad.yaml", "grid": {"seed": [0, 1]}}))
     (tmp_path / "theirs").mkdir()
     (tmp_path / "theirs" / "notes.txt").write_text("a user's file")
     args = [a.format(bad=tmp_path / "bad.yaml", good=tmp_path / "good.yaml", sweep=tmp_path / "sweep.yaml",
-                     tmp=tmp_path) for a in command]
+                     unknown=tmp_path / "unknown.yaml", tmp=tmp_path) for a in command]
     out = subprocess.run([sys.executable, "-c", _REFUSED, *args], cwd=ROOT, capture_output=True, text=True)
     assert out.stdout.split("\n")[0] == "2 []", (out.stdout, out.stderr)
     assert len(out.stderr.strip().splitlines()) == 1 and says in out.stderr, out.stderr
