@@ -27,7 +27,6 @@ from undream.errors import AssetError, SpecError, UndreamError
 from undream.scene.builtin import asset_mesh
 from undream.scene.layout import SEQUENCE_FILE
 from undream.scene.sources import sequence_from_file
-from undream.scene.trajectory import sequence_from_trajectory
 from undream.spec import Condition, Sequence, load_sequence
 from undream.spec.io import join_against, read_yaml
 from undream.spec.run import RunConfig, plain_grid_value
@@ -78,6 +77,8 @@ def grid_sequences(spec_file: Path, grid: Mapping[str, tuple[Any, ...]],
     spec = read_yaml(spec_file)
     if not isinstance(spec, dict):
         raise SpecError(f"{spec_file}: a spec must be a mapping")
+    from undream.scene.trajectory import sequence_from_trajectory  # scipy: only where a grid is expanded
+
     out = []
     for values in itertools.product(*grid.values()):
         point = dict(zip(grid, values))
