@@ -4,18 +4,19 @@
     .venv/bin/python benchmarks/bench_frame_cost.py --scene build/bc/scene --spp 16 32
 
 ``--scene``: a scene directory (``undream run`` leaves one in ``OUT/scene``; the README's
-16-condition job's holds clear and snow frames). ``--frames`` per weather (default 3: the
-first frames of each weather the sequence holds) are rendered whole with the scene's own
-texture (or ``--texture``, an ``.npy`` of sRGB values such as a run's ``texture_final.npy``)
-through the simulator an attack iteration and the evaluation use
-(:class:`undream.sim.mitsuba.MitsubaSimulator`): one untimed render per frame (kernels,
-recordings), then ``--repeats`` renders with other seeds; the table gives each frame's median in
-milliseconds and each weather's median against clear's. Run it alone: the load average is printed.
+16-condition job's holds clear and snow frames). ``--frames`` per weather (default 3: the first
+frames of each weather the sequence holds) are rendered whole with the scene's own texture (or
+``--texture``, an ``.npy`` of sRGB values such as a run's ``texture_final.npy``) through the
+simulator an attack iteration and the evaluation use
+(:class:`undream.sim.mitsuba.MitsubaSimulator`): three untimed renders per frame (kernels,
+recordings), then ``--repeats`` renders of each frame in a row with other seeds (the first one or
+two after a switch from another weather's frames are slower again: keep ``--repeats`` ≥ 5); the
+table gives each frame's median in milliseconds and each weather's median against clear's. Run it
+alone: the load average is printed.
 """
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import time
@@ -43,21 +44,22 @@ def main(argv: list[str] | None = None) -> None:
     from undream.variant import mitsuba
 
     scene = Path(args.scene)
-    frames = json.loads((scene / "sequence.json").read_text())["frames"]
+    sequence = load_sequence(scene / "sequence.json")
     by_weather: dict[str, list[int]] = {}
-    for f in frames:
-        chosen = by_weather.setdefault(f["environment"]["weather"], [])
+    for f in sequence.frames:
+        chosen = by_weather.setdefault(f.environment.weather, [])
         if len(chosen) < args.frames:
-            chosen.append(f["index"])
+            chosen.append(f.index)
     mi = mitsuba(load_local().mi_variant)
     sim = MitsubaSimulator(scene)
-    own = scene / "textures" / f"{load_sequence(scene / 'sequence.json').texture.name}.exr"
+    own = scene / "textures" / f"{sequence.texture.name}.exr"
     texture = np.load(args.texture) if args.texture else read_texture_srgb(mi, own)
     print(f"load average before: {os.getloadavg()[0]:.2f}; {scene}: "
           + ", ".join(f"{w} frames {v}" for w, v in by_weather.items()))
     for indices in by_weather.values():
         for index in indices:
-            sim.render(index, texture, args.spp[0], 1)  # kernels and recordings, untimed
+            for seed in (1, 2, 3):  # untimed: a frame's first 2–3 renders are slower (kernels, recordings)
+                sim.render(index, texture, args.spp[0], seed)
     print("| weather | spp | frame: median ms | weather median ms | against clear |")
     print("|---|---:|---|---:|---:|")
     for spp in args.spp:

@@ -26,7 +26,7 @@ from undream.progress import progress as progress_bar
 from undream.spec.io import join_against
 from undream.spec.run import RunConfig
 
-if TYPE_CHECKING:  # torch and Mitsuba load once the checks have passed: a refusal is quick
+if TYPE_CHECKING:  # torch loads once the checks have passed: a refusal is quick
     from undream.engine.context import RunContext
 
 log = logging.getLogger(__name__)
@@ -125,7 +125,7 @@ def run_local(config: RunConfig, out: str | Path, base_dir: Path | None = None, 
     check_output_folder(out, scene_source(config, base_dir), force, inputs=(source, *scene_sources(config, base_dir)[1:]))  # cheap refusals first
     replace = out.exists() and any(out.iterdir())  # as checked: --force and a folder `undream run` wrote
     victim = preflight(config, base_dir, source, local).victim  # nothing written or deleted before this passes
-    from undream.engine.context import build_context  # torch and Mitsuba: after the checks, so a refusal is quick
+    from undream.engine.context import build_context  # torch: after the checks, so a refusal is quick
 
     if replace:
         shutil.rmtree(out)
@@ -180,7 +180,7 @@ def resume_local(config: RunConfig, out: Path, base_dir: Path, progress: bool = 
         raise SpecError(f"--out {out}: --resume continues a run that `undream run` started there, "
                         "and this folder has none (no metadata.json of a run)")
     victim = preflight(config, base_dir, source, local).victim
-    from undream.engine.context import build_context  # torch and Mitsuba: after the checks
+    from undream.engine.context import build_context  # torch: after the checks
 
     store = open_store(config.store, out / "store")
     run = _recorded_run(store, config, out)

@@ -204,8 +204,8 @@ except SystemExit as exit:
 def test_a_refused_command_loads_no_torch(tmp_path, command, says):
     """A config refused for its fields, an --out that `undream run` may not replace, or conditions
     that do not fit the scene, is one line before torch and the victims' libraries load: 0.2 s here
-    for a malformed config, 1.4–1.7 s for the folder or the conditions, where each took 2–3 s (Mitsuba's variant is still chosen at the edge:
-    ``undream.cli.options.local_settings``)."""
+    for a malformed config, 1.4–1.7 s for the folder or the conditions, where each took 2–3 s
+    (Mitsuba's variant is still chosen at the edge: ``undream.cli.options.local_settings``)."""
     good = {"name": "quick", "scene": str(ROOT / "examples" / "bin_orbit.yaml"), "victim": "bundled:classifier-v3"}
     (tmp_path / "good.yaml").write_text(yaml.safe_dump(good))
     (tmp_path / "bad.yaml").write_text(yaml.safe_dump({**good, "bogus": 1}))

@@ -90,7 +90,7 @@ def run_cmd(run_yaml: Path, out: Path, force: bool, resume: bool, check: bool, p
     """Run the attack of RUN_YAML in this process (embedded defaults: Mitsuba, SQLite)."""
     from undream.spec.run import load_run_config
 
-    config = load_run_config(run_yaml)  # a malformed config is one line before torch and Mitsuba load
+    config = load_run_config(run_yaml)  # a malformed config is one line before the farm's modules and torch load
     from scheduler.local import check_run, run_local
     from scheduler.preflight import is_scene, scene_source
 

@@ -123,7 +123,7 @@ def submit_cmd(run_yaml: Path, out: Path | None, check: bool, settings: Callable
     from undream.spec.run import load_run_config
 
     cfg = settings()
-    config = load_run_config(run_yaml)  # a malformed config is one line before torch and Mitsuba load
+    config = load_run_config(run_yaml)  # a malformed config is one line before the farm's modules load
     from scheduler.preflight import scene_sources
     from scheduler.submit import Validator, dispatch_starts, record
 
@@ -408,7 +408,7 @@ def sweep_cmd(sweep_yaml: Path, out: Path | None, max_runs: int | None, check: b
 
     cfg = settings()
     sweep = load_sweep(sweep_yaml) if max_runs is None else load_sweep(sweep_yaml, max_runs)
-    from scheduler.submit import dispatch_starts, record_sweep  # torch and Mitsuba: after the sweep parsed
+    from scheduler.submit import dispatch_starts, record_sweep  # the farm's modules: after the sweep parsed
 
     if out is not None:
         from scheduler.preflight import scene_sources
