@@ -103,6 +103,9 @@ def test_mask_box_of_a_saved_mask(example_scenes):
 
 
 def test_every_xml_loads(example_scenes, mi):
+    from undream.render.haze import register
+
+    register(mi)  # frames in fog, rain or snow name undream's own integrator (docs/scenes.md)
     for name, d in example_scenes.items():
         for xml in sorted((d / "frames").glob("*.xml")):
             scene = mi.load_file(str(xml), spp=1)

@@ -9,6 +9,7 @@ import numpy as np
 
 from undream.color import linear_to_srgb
 from undream.errors import RenderError
+from undream.render.haze import register as register_haze
 from undream.scene.mitsuba_scene import OBJECT_ID
 
 
@@ -24,8 +25,10 @@ def load_scene(mi: ModuleType, xml: Path, spp: int, merge: bool = True) -> Any:
     """``mi.load_file`` with errors as one :class:`RenderError` line naming the file.
 
     ``merge=False`` keeps every shape apart under its own id (Mitsuba otherwise
-    merges meshes sharing a BSDF into one named after a memory address).
+    merges meshes sharing a BSDF into one named after a memory address). The ``haze``
+    integrator a scene in fog, rain or snow names is registered first.
     """
+    register_haze(mi)
     try:
         return mi.load_file(str(xml), optimize=merge, spp=spp)
     except Exception as err:  # Mitsuba raises plain RuntimeError / ValueError

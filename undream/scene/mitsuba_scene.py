@@ -4,7 +4,8 @@ Three views of a frame share one sensor and one object node:
 
 - ``sim``: everything the simulator shows (environment, fog, ground, props,
   object, actors), path traced (``volpath`` in fog and in the haze of rain
-  and snow);
+  and snow; scene directories hold it in :func:`with_haze`'s form, for the
+  ``haze`` integrator, which computes volpath's estimate at about path's cost);
 - ``grad``: no more than the object's appearance needs: the object, the
   emitters, and what can shadow or hide it (ground, actors), for ``prb``
   with direct light only (``max_depth`` 2), so a texel reaches the image only
@@ -131,6 +132,22 @@ def scene_dict(seq: Sequence, frame: Frame, paths: ScenePaths, kind: str) -> dic
                     "bsdf": {"type": "diffuse", "reflectance": _rgb(p.colour)}}
             d[f"prop_{i:02d}"] = _occluder(node, kind)
     return d
+
+
+def with_haze(d: dict[str, Any]) -> dict[str, Any]:
+    """``d`` with its medium rendered by the ``haze`` integrator (:mod:`undream.render.haze`), as scene
+    directories hold it: the fog's medium, its null sphere and the sensor's medium become the
+    integrator's parameters (volpath's light transport at about path's cost). ``d`` without a medium
+    is returned as it is; Blender's adapter reads the medium from :func:`scene_dict` itself."""
+    if "fog" not in d:
+        return d
+    fog, volume = d["fog"], d["fog_volume"]
+    out = {k: v for k, v in d.items() if k not in ("fog", "fog_volume")}
+    out["sensor"] = {k: v for k, v in d["sensor"].items() if k != "medium"}
+    out["integrator"] = {"type": "haze", "max_depth": d["integrator"]["max_depth"],
+                         "sigma_t": float(fog["sigma_t"]) * float(fog.get("scale", 1.0)), "albedo": fog["albedo"],
+                         "center": list(volume["center"]), "radius": float(volume["radius"])}
+    return out
 
 
 def _actor_poses(seq: Sequence, frame: Frame):

@@ -93,7 +93,7 @@ _TAGS = {
 def _category(value: Mapping[str, Any], key: str) -> str:
     t = value["type"]
     table = {
-        "path": "integrator", "volpath": "integrator", "prb": "integrator", "direct": "integrator",
+        "path": "integrator", "volpath": "integrator", "haze": "integrator", "prb": "integrator", "direct": "integrator",
         "aov": "integrator", "perspective": "sensor", "hdrfilm": "film", "independent": "sampler",
         "box": "rfilter", "gaussian": "rfilter", "tent": "rfilter",
         "constant": "emitter", "envmap": "emitter", "directional": "emitter", "point": "emitter", "area": "emitter",

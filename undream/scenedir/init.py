@@ -36,7 +36,7 @@ from undream.render.budget import Estimate, init_estimate
 from undream.scene.builtin import asset_mesh
 from undream.scene.layout import frame_name, frame_xml, mask_png, mesh_name
 from undream.scene.mesh import Mesh, write_ply
-from undream.scene.mitsuba_scene import OBJECT_ID, ScenePaths, scene_dict
+from undream.scene.mitsuba_scene import OBJECT_ID, ScenePaths, scene_dict, with_haze
 from undream.scene.texture_file import read_image_rgb
 from undream.scene.sources import sequence_from_file
 from undream.scene.xml import to_xml
@@ -233,7 +233,8 @@ def _write(checked: CheckedSource, root: Path, opt: InitOptions) -> None:
     for frame in seq.frames:  # the mask scenes only while the frames are verified
         for kind in ("sim", "grad", "mask"):
             with naming(frame_xml(root, kind, frame.index)):
-                frame_xml(root, kind, frame.index).write_text(to_xml(scene_dict(seq, frame, rel, kind), defaults))
+                d = with_haze(scene_dict(seq, frame, rel, kind))
+                frame_xml(root, kind, frame.index).write_text(to_xml(d, defaults))
     tiles = []
     indices = [frame.index for frame in seq.frames]
     renders = render_frames(mi, root, indices, opt.verify_spp, opt.frozen)

@@ -1,0 +1,175 @@
+"""The ``haze`` integrator: volpath's light transport for one homogeneous medium in a sphere, at path's cost.
+
+The simulation scene of a frame in fog, rain or snow holds one homogeneous,
+isotropic, grey medium filling a sphere around the camera and the object
+(:mod:`undream.scene.mitsuba_scene`). Mitsuba's ``volpath`` renders it through a
+null-surfaced sphere shape and the medium's plugin: on the CPU every bounce then
+pays for the medium's virtual calls and the boundary's extra intersections, and a
+frame in snow's light haze cost 2.7–3.5× a clear one (docs/performance.md, "Media").
+
+``haze`` computes the same estimator with the medium written out: the sphere is
+intersected analytically (no shape, so shadow rays do not stop at it), the
+free-flight distance is sampled from ``σt`` directly, and the transmittance
+along a shadow ray is ``exp(−σt · length inside the sphere)`` (volpath's
+delta-tracking estimate of it has this expectation). Everything else is as
+volpath does it: next-event estimation at surfaces and in the medium with MIS
+against the BSDF and the isotropic phase function, emitters hit by BSDF or phase
+sampling weighted by MIS, Russian roulette after ``rr_depth`` and ``max_depth``
+counted over surface and medium scattering alike. Its images have volpath's
+expectation (tests/test_haze.py compares them pixel by pixel); their noise differs.
+
+Parameters (the scene adapter writes them): ``sigma_t`` (1/m), ``albedo`` (RGB,
+``σs/σt``), ``center`` and ``radius`` (m) of the medium's sphere, ``max_depth``,
+``rr_depth``. The camera may be inside or outside the sphere.
+"""
+from __future__ import annotations
+
+import math
+from types import ModuleType
+
+NAME = "haze"
+INV_FOUR_PI = 1.0 / (4.0 * math.pi)  # the isotropic phase function's value and pdf
+_classes: dict[str, type] = {}  # the integrator's class per Mitsuba variant it is registered in
+
+
+def register(mi: ModuleType) -> None:
+    """Register the ``haze`` integrator with ``mi``'s current variant (once per variant)."""
+    variant = mi.variant()
+    if variant is None or variant in _classes:
+        return
+    cls = _classes[variant] = _integrator_class(mi)
+    mi.register_integrator(NAME, lambda props: cls(props))
+
+
+def _integrator_class(mi: ModuleType) -> type:
+    import drjit as dr
+    from mitsuba.ad.integrators.common import mis_weight
+
+    # @dr.syntax compiles ``sample`` again from its source, with this module's globals and no closure:
+    # the names it uses must be found there
+    globals().update(mi=mi, dr=dr, mis_weight=mis_weight)
+
+    class HazeIntegrator(mi.SamplingIntegrator):  # type: ignore[misc, name-defined]
+        def __init__(self, props):
+            super().__init__(props)
+            self.max_depth = props.get("max_depth", 6)
+            self.rr_depth = props.get("rr_depth", 5)
+            if self.max_depth < 0:
+                self.max_depth = 2**31 - 1
+            sigma_t, radius = float(props.get("sigma_t")), float(props.get("radius"))
+            if not (sigma_t > 0.0 and radius > 0.0):
+                raise ValueError(f"haze: sigma_t and radius must be > 0, got {sigma_t} and {radius}")
+            # Dr.Jit values, traversed: a scene cache writes another frame's medium into them
+            self.sigma_t = mi.Float(sigma_t)
+            self.albedo = mi.Color3f(props.get("albedo"))
+            self.center = mi.Point3f(props.get("center"))
+            self.radius = mi.Float(radius)
+
+        def traverse(self, callback):
+            for name in ("sigma_t", "albedo", "center", "radius"):
+                callback.put(name, getattr(self, name), mi.ParamFlags.NonDifferentiable)
+
+        def parameters_changed(self, keys):
+            pass  # read when a render is traced: nothing is derived from them
+
+        def _segment(self, o, d):
+            """Whether the line o + t·d meets the sphere, and where inside it (t ≥ 0); ``d`` unit."""
+            oc = o - self.center
+            b = dr.dot(oc, d)
+            disc = b * b - (dr.squared_norm(oc) - self.radius * self.radius)
+            s = dr.safe_sqrt(disc)
+            return disc > 0.0, dr.maximum(-b - s, 0.0), -b + s
+
+        def _transmittance(self, ray):
+            meets, enter, leave = self._segment(ray.o, ray.d)
+            inside = dr.maximum(dr.minimum(leave, ray.maxt) - enter, 0.0)
+            return dr.select(meets, dr.exp(-self.sigma_t * inside), 1.0)
+
+        @dr.syntax
+        def sample(self, scene, sampler, ray_, medium=None, active=True):
+            ray = mi.Ray3f(ray_)
+            active = mi.Bool(active)
+            depth = mi.UInt32(0)
+            throughput = mi.Spectrum(1.0)
+            result = mi.Spectrum(0.0)
+            specular_chain = mi.Bool(active)
+            last_event = dr.zeros(mi.Interaction3f)
+            last_pdf = mi.Float(1.0)
+            valid_ray = mi.Bool(scene.environment() is not None)
+            ctx = mi.BSDFContext()
+            while active:
+                # Russian roulette and the depth limit, where volpath has them
+                q = dr.minimum(dr.max(throughput), 0.95)
+                roulette = depth > self.rr_depth
+                active &= (sampler.next_1d(active) < q) | ~roulette
+                throughput[roulette] *= dr.rcp(q)
+                active &= depth < self.max_depth
+
+                # a free flight through the medium up to the next surface (or out of the sphere)
+                si = scene.ray_intersect(ray, active)
+                meets, enter, leave = self._segment(ray.o, ray.d)
+                leave = dr.minimum(leave, dr.select(si.is_valid(), si.t, dr.inf))
+                crossing = active & meets & (leave > enter)
+                t = enter - dr.log(1.0 - sampler.next_1d(crossing)) / self.sigma_t
+                scatter = crossing & (t < leave)
+                depth[scatter] += 1
+                active &= depth < self.max_depth
+                surface = active & ~scatter
+                scatter &= active
+
+                # scattering in the medium: the light sampled, then a direction from the phase function
+                it = dr.zeros(mi.Interaction3f)
+                it.p = ray(t)
+                it.t = t
+                it.time = ray.time
+                it.wavelengths = ray.wavelengths
+                throughput[scatter] *= self.albedo
+                ds_m, emitted_m = scene.sample_emitter_direction(it, sampler.next_2d(scatter), False, scatter)
+                shadow_m = it.spawn_ray_to(ds_m.p)
+                lit_m = scatter & (ds_m.pdf > 0.0)
+                lit_m &= ~scene.ray_test(shadow_m, lit_m)
+                w_m = mis_weight(ds_m.pdf, dr.select(ds_m.delta, 0.0, INV_FOUR_PI))
+                result[lit_m] += throughput * INV_FOUR_PI * emitted_m * self._transmittance(shadow_m) * w_m
+                ray[scatter] = it.spawn_ray(mi.warp.square_to_uniform_sphere(sampler.next_2d(scatter)))
+                last_event[scatter] = it
+                last_pdf[scatter] = INV_FOUR_PI
+                specular_chain &= ~scatter
+                valid_ray |= scatter
+
+                # an emitter hit (the sky on a miss), weighted against next-event estimation
+                count_direct = (depth == 0) | specular_chain
+                emitter = si.emitter(scene)
+                hit_e = surface & (emitter != None)  # noqa: E711 (a Dr.Jit pointer array compares element-wise)
+                ds = mi.DirectionSample3f(scene, si, last_event)
+                emitter_pdf = scene.pdf_emitter_direction(last_event, ds, hit_e & ~count_direct)
+                weight = dr.select(count_direct, 1.0, mis_weight(last_pdf, emitter_pdf))
+                result[hit_e] += throughput * emitter.eval(si, hit_e) * weight
+
+                # a surface: next-event estimation, then a BSDF sample
+                surface &= si.is_valid()
+                bsdf = si.bsdf(ray)
+                nee = surface & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth) & (depth + 1 < self.max_depth)
+                ds_s, emitted_s = scene.sample_emitter_direction(si, sampler.next_2d(nee), False, nee)
+                shadow = si.spawn_ray_to(ds_s.p)
+                lit = nee & (ds_s.pdf > 0.0)
+                lit &= ~scene.ray_test(shadow, lit)
+                bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(ds_s.d), lit)
+                w_s = mis_weight(ds_s.pdf, dr.select(ds_s.delta, 0.0, bsdf_pdf))
+                result[lit] += throughput * bsdf_val * emitted_s * self._transmittance(shadow) * w_s
+
+                bs, bsdf_weight = bsdf.sample(ctx, si, sampler.next_1d(surface), sampler.next_2d(surface), surface)
+                throughput[surface] *= bsdf_weight
+                ray[surface] = si.spawn_ray(si.to_world(bs.wo))
+                depth[surface] += 1
+                last_event[surface] = si
+                last_pdf[surface] = bs.pdf
+                valid_ray |= surface
+                specular_chain |= surface & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+                specular_chain &= ~(surface & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Smooth))
+                active &= (surface | scatter) & dr.any(throughput != 0.0)
+            return result, valid_ray, []
+
+        def to_string(self):
+            return f"HazeIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}]"
+
+    return HazeIntegrator
