@@ -42,6 +42,7 @@ def _parse(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--config", default="examples/runs/bin_orbit_pgd.yaml")
     p.add_argument("--seeds", type=int, nargs="+", default=[0])
     p.add_argument("--device", help="the victim's torch device (the config's `device`), e.g. cuda")
+    p.add_argument("--keep", type=Path, help="keep the run folders under this folder (BEFORE_OR_AFTER SEED)")
     return p.parse_args(argv)
 
 
@@ -105,7 +106,7 @@ def main(argv: list[str] | None = None) -> None:
                 config = seeded(args.config, seed, args.device)
                 try:
                     for name, tree in trees.items():
-                        runs[name].append(run_once(tree, config, Path(tmp) / f"{name}{seed}"))
+                        runs[name].append(run_once(tree, config, (args.keep or Path(tmp)) / f"{name}{seed}"))
                         print(f"  {name} seed {seed}: {runs[name][-1]['results']['wall_time_seconds']['wall']:.1f} s",
                               flush=True)
                 finally:

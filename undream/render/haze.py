@@ -1,11 +1,12 @@
-"""The ``haze`` integrator: volpath's light transport for one homogeneous medium in a sphere, at path's cost.
+"""The ``haze`` integrator: volpath's light transport for one homogeneous medium in a sphere, without its overhead.
 
 The simulation scene of a frame in fog, rain or snow holds one homogeneous,
 isotropic, grey medium filling a sphere around the camera and the object
 (:mod:`undream.scene.mitsuba_scene`). Mitsuba's ``volpath`` renders it through a
 null-surfaced sphere shape and the medium's plugin: on the CPU every bounce then
-pays for the medium's virtual calls and the boundary's extra intersections, and a
-frame in snow's light haze cost 2.7–3.5× a clear one (docs/performance.md, "Media").
+pays for the medium's virtual calls and the boundary's extra intersections: on the same
+frame with no medium at all ``volpath`` cost 2.7× ``path`` (docs/performance.md, "Media: the haze
+integrator").
 
 ``haze`` computes the same estimator with the medium written out: the sphere is
 intersected analytically (no shape, so shadow rays do not stop at it), the
@@ -16,7 +17,9 @@ volpath does it: next-event estimation at surfaces and in the medium with MIS
 against the BSDF and the isotropic phase function, emitters hit by BSDF or phase
 sampling weighted by MIS, Russian roulette after ``rr_depth`` and ``max_depth``
 counted over surface and medium scattering alike. Its images have volpath's
-expectation (tests/test_haze.py compares them pixel by pixel); their noise differs.
+expectation (tests/test_haze.py compares them pixel by pixel); their noise differs. A frame in haze
+still costs more than a clear one: most of its sky pixels' rays scatter in the medium and go on
+bouncing, where a clear frame's end at the sky.
 
 Parameters (the scene adapter writes them): ``sigma_t`` (1/m), ``albedo`` (RGB,
 ``σs/σt``), ``center`` and ``radius`` (m) of the medium's sphere, ``max_depth``,

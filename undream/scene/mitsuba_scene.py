@@ -5,7 +5,7 @@ Three views of a frame share one sensor and one object node:
 - ``sim``: everything the simulator shows (environment, fog, ground, props,
   object, actors), path traced (``volpath`` in fog and in the haze of rain
   and snow; scene directories hold it in :func:`with_haze`'s form, for the
-  ``haze`` integrator, which computes volpath's estimate at about path's cost);
+  ``haze`` integrator, which computes volpath's estimate at about half its cost);
 - ``grad``: no more than the object's appearance needs: the object, the
   emitters, and what can shadow or hide it (ground, actors), for ``prb``
   with direct light only (``max_depth`` 2), so a texel reaches the image only
@@ -137,7 +137,7 @@ def scene_dict(seq: Sequence, frame: Frame, paths: ScenePaths, kind: str) -> dic
 def with_haze(d: dict[str, Any]) -> dict[str, Any]:
     """``d`` with its medium rendered by the ``haze`` integrator (:mod:`undream.render.haze`), as scene
     directories hold it: the fog's medium, its null sphere and the sensor's medium become the
-    integrator's parameters (volpath's light transport at about path's cost). ``d`` without a medium
+    integrator's parameters (volpath's light transport at about half its cost). ``d`` without a medium
     is returned as it is; Blender's adapter reads the medium from :func:`scene_dict` itself."""
     if "fog" not in d:
         return d
