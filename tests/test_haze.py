@@ -125,3 +125,21 @@ def test_bad_haze_parameters_are_refused(mi):
     for bad in ({"sigma_t": 0.0, "radius": 10.0}, {"sigma_t": 0.1, "radius": -1.0}):
         with pytest.raises(Exception, match="sigma_t and radius must be > 0"):
             mi.load_dict({"type": "scene", "integrator": {**base, **bad}})
+
+
+def test_the_check_scripts_twin_holds_volpath_frames(tmp_path, mi):
+    """scripts/haze_check.py judges a scene against a twin whose frames in a medium are volpath's."""
+    import sys
+
+    from undream.scene.layout import frame_xml
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+    import haze_check
+
+    root = _scene_dir(tmp_path, "snow")
+    twin = haze_check.volpath_twin(root, tmp_path / "check")
+    for index in (0, 1):
+        text = frame_xml(twin, "sim", index).read_text()
+        assert 'type="volpath"' in text and "fog_volume" in text and 'type="haze"' not in text
+        assert frame_xml(twin, "grad", index).read_text() == frame_xml(root, "grad", index).read_text()
+    assert 'type="haze"' in frame_xml(root, "sim", 0).read_text()  # the scene itself untouched
