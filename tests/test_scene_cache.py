@@ -208,6 +208,49 @@ print("rendered", float(img.mean()) > 0)
 """
 
 
+# A dropped cache left to the collector (its LRU refers back to it, so nothing else frees it), and a
+# collection at an allocation inside another cache's recording: the whole suite's run lost a test
+# process to it. The collector must not run there; where it does, this script dies as that process did.
+_COLLECTOR_INSIDE_A_RECORDING = """
+import gc, sys
+import numpy as np
+from undream.variant import mitsuba
+import undream.render.differentiable as differentiable
+from undream.render.differentiable import render_linear
+from undream.render.scene_cache import SceneCache
+
+mi = mitsuba()
+tex = np.full((4, 8, 3), 0.5, np.float32)
+gc.disable()  # keep the dropped cache for the collection below
+old = SceneCache(sys.argv[1], mi)
+render_linear(old, 0, tex, spp=1, seed=1)
+render_linear(old, 0, tex, spp=1, seed=2)
+del old
+gc.enable()
+plain_render = differentiable._render
+seen = []
+
+def render_where_the_collector_may_run(*args):
+    seen.append(gc.isenabled())
+    if gc.isenabled():
+        gc.collect()  # what the collector does at the next allocation when it is on
+    return plain_render(*args)
+
+differentiable._render = render_where_the_collector_may_run
+new = SceneCache(sys.argv[1], mi)
+img = render_linear(new, 0, tex, spp=1, seed=3)
+print("collector on inside the recording:", any(seen), "rendered", float(img.mean()) > 0, "on after:", gc.isenabled())
+"""
+
+
+def test_the_collector_never_runs_inside_a_recording(long_orbit):
+    res = subprocess.run([sys.executable, "-c", _COLLECTOR_INSIDE_A_RECORDING, str(long_orbit)],
+                         capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1], timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    last = res.stdout.strip().splitlines()[-1]
+    assert last == "collector on inside the recording: False rendered True on after: True"
+
+
 def test_a_cache_collected_while_another_records_does_not_kill_the_process(long_orbit):
     res = subprocess.run([sys.executable, "-c", _COLLECTED_WHILE_RECORDING, str(long_orbit)],
                          capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1], timeout=300)

@@ -17,11 +17,13 @@ names or differs in a host-side (non-JIT) parameter starts a group of its own.
 """
 from __future__ import annotations
 
+import gc
 import re
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import ModuleType
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 
@@ -158,7 +160,10 @@ class SceneCache:
         A SIGTERM, SIGHUP or Ctrl-C arriving while it records or replays is raised when the call ends
         (:func:`undream.interrupts.held`): raised inside the recording, Dr.Jit turned its exception
         into a RuntimeError ("error encountered while recording a frozen function") and the command
-        printed 65 lines and exited 1 instead of ending as Ctrl-C does (exit 143 for SIGTERM)."""
+        printed 65 lines and exited 1 instead of ending as Ctrl-C does (exit 143 for SIGTERM).
+
+        Python's garbage collector is paused while it records or replays
+        (:func:`collector_paused`)."""
         import drjit as dr
 
         key = (name, None if scene is None else id(scene))
@@ -168,7 +173,7 @@ class SceneCache:
             # examples/runs/stop_sign_main.yaml (10 conditions) recorded its render 12 times, and
             # the default warning after 10 printed a paragraph into the main job's output.
             self._frozen[key] = dr.freeze(fn, warn_after=FROZEN_WARN_AFTER)
-        with interrupts.held():
+        with interrupts.held(), collector_paused():
             return self._frozen[key](*args)
 
     def group_count(self, kind: str) -> int:
@@ -309,6 +314,25 @@ class SceneCache:
             active.params[key] = value
         update_params(active.params)
         group.applied = set(state.values)
+
+
+@contextmanager
+def collector_paused() -> Iterator[None]:
+    """Python's garbage collector off for the block (on again after it if it was on).
+
+    A scene cache is garbage only the collector frees (its LRU calls back into it), and the
+    collector runs wherever Python allocates: inside a Dr.Jit recording, freeing a dropped cache's
+    scenes and recordings there made Dr.Jit terminate the process ("RecordThreadState::
+    enqueue_host_func(): this function cannot be recorded!"): a test process of the whole suite died
+    of it, and a worker whose cache dropped scenes could have. What is unreachable meanwhile is
+    freed at the next collection after the block."""
+    was_on = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was_on:
+            gc.enable()
 
 
 def update_params(params: Any) -> None:
