@@ -243,6 +243,44 @@ print("collector on inside the recording:", any(seen), "rendered", float(img.mea
 """
 
 
+_DROPPED_CACHE = """
+import gc, sys
+import numpy as np
+import drjit as dr
+from undream.variant import mitsuba
+from undream.render.differentiable import render_linear
+from undream.render.scene_cache import SceneCache
+
+mi = mitsuba()
+
+def live_shapes():
+    probe = mi.load_dict({"type": "scene", "s": {"type": "sphere"}})
+    n = int(np.array(dr.reinterpret_array(mi.UInt32, probe.shapes_dr())).max())
+    del probe
+    return n - 1
+
+gc.disable()  # what happens without the collector's help
+before = live_shapes()
+cache = SceneCache(sys.argv[1], mi, max_loaded=1)
+tex = np.full((4, 8, 3), 0.5, np.float32)
+render_linear(cache, 0, tex, spp=1, seed=1)
+render_linear(cache, 0, tex, spp=1, seed=2, kind="grad")  # evicts the sim scene through the LRU
+loaded = live_shapes()
+del cache
+print(before, loaded, live_shapes())
+"""
+
+
+def test_a_dropped_cache_frees_its_scenes_at_once(long_orbit):
+    """Its scenes leave Dr.Jit's registry when the cache is dropped, not at the collector's next full
+    pass: until then every render in the process traced over their shapes too."""
+    res = subprocess.run([sys.executable, "-c", _DROPPED_CACHE, str(long_orbit)],
+                         capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1], timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    before, loaded, after = map(int, res.stdout.split())
+    assert loaded > before and after == before, (before, loaded, after)
+
+
 def test_the_collector_never_runs_inside_a_recording(long_orbit):
     res = subprocess.run([sys.executable, "-c", _COLLECTOR_INSIDE_A_RECORDING, str(long_orbit)],
                          capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1], timeout=300)

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import gc
 import re
+import weakref
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -119,7 +120,12 @@ class SceneCache:
         self._groups: dict[tuple[str, tuple[str, int]], _Group] = {}
         self._states: dict[tuple[str, int], _FrameState] = {}
         # the loaded groups; _make_room drops the least recently used before a load, so put() drops none
-        self._lru: LRU[tuple[str, tuple[str, int]], _Group] = LRU(max(1, max_loaded), on_evict=self._unload)
+        # the LRU calls back through a weak reference: with a bound method the cache referred to itself,
+        # and a dropped cache kept its scenes registered (every render in the process tracing over
+        # their shapes) until the collector's rare full pass, then was freed wherever that ran
+        unload = weakref.WeakMethod(self._unload)
+        self._lru: LRU[tuple[str, tuple[str, int]], _Group] = LRU(
+            max(1, max_loaded), on_evict=lambda key, group: _call_alive(unload, key, group))
 
     def close(self) -> None:
         """Drop the frozen recordings, then the loaded scenes (in that order: recordings refer to scenes)."""
@@ -316,16 +322,24 @@ class SceneCache:
         group.applied = set(state.values)
 
 
+def _call_alive(method: weakref.WeakMethod, *args: Any) -> None:
+    """``method(*args)`` if its object still lives."""
+    bound = method()
+    if bound is not None:
+        bound(*args)
+
+
 @contextmanager
 def collector_paused() -> Iterator[None]:
     """Python's garbage collector off for the block (on again after it if it was on).
 
-    A scene cache is garbage only the collector frees (its LRU calls back into it), and the
+    A dropped scene cache was garbage only the collector freed (its LRU called back into it), and the
     collector runs wherever Python allocates: inside a Dr.Jit recording, freeing a dropped cache's
     scenes and recordings there made Dr.Jit terminate the process ("RecordThreadState::
     enqueue_host_func(): this function cannot be recorded!"): a test process of the whole suite died
-    of it, and a worker whose cache dropped scenes could have. What is unreachable meanwhile is
-    freed at the next collection after the block."""
+    of it, and a worker whose cache dropped scenes could have. Caches are freed when dropped now, but
+    other garbage may hold one. What is unreachable meanwhile is freed at the next collection after
+    the block."""
     was_on = gc.isenabled()
     gc.disable()
     try:
