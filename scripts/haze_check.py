@@ -51,7 +51,7 @@ def _parse(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def volpath_twin(scene: Path, out: Path) -> Path:
-    """``scene`` with its frames in a medium written in volpath's form (the rest linked or copied)."""
+    """A copy of ``scene`` under ``out`` whose frames in a medium are written in volpath's form."""
     from undream.scene.layout import frame_xml
     from undream.scene.mitsuba_scene import ScenePaths, scene_dict
     from undream.scene.xml import to_xml
@@ -77,18 +77,27 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
     return float("inf") if mse == 0 else 10 * np.log10(1.0 / mse)
 
 
-def measure(scene: Path, twin: Path, texture: np.ndarray | None, spp: int, every: int) -> list[dict]:
-    from undream.render.loading import load_scene, read_texture_srgb
-    from undream.render.scene_cache import SceneCache
-    from undream.render.differentiable import render_frozen
+def own_texture(scene: Path) -> np.ndarray:
+    """The scene directory's own texture (sRGB H×W×3)."""
+    from undream.render.loading import read_texture_srgb
+    from undream.spec import load_sequence
+    from undream.variant import mitsuba
+
+    seq = load_sequence(scene / "sequence.json")
+    return read_texture_srgb(mitsuba(), scene / "textures" / f"{seq.texture.name}.exr")
+
+
+def measure(scene: Path, twin: Path, texture: np.ndarray, spp: int, every: int) -> list[dict]:
+    """Per frame in a medium (every ``every``-th): the costs, PSNRs and mean difference of the table."""
     from undream.color import srgb_to_linear
+    from undream.render.differentiable import render_frozen
+    from undream.render.scene_cache import SceneCache
     from undream.spec import load_sequence
     from undream.variant import mitsuba
 
     mi = mitsuba()
     seq = load_sequence(scene / "sequence.json")
-    tex = texture if texture is not None else read_texture_srgb(mi, scene / "textures" / f"{seq.texture.name}.exr")
-    tensor = mi.TensorXf(srgb_to_linear(tex.astype(np.float32)))
+    tensor = mi.TensorXf(srgb_to_linear(texture.astype(np.float32)))
     caches = {"haze": SceneCache(scene, mi), "volpath": SceneCache(twin, mi)}
     medium = [f for f in seq.frames if f.environment.weather in ("fog", "rain", "snow")][::every]
     clear = [f for f in seq.frames if f.environment.weather == "clear"][::every][:len(medium)]
@@ -122,23 +131,17 @@ def measure(scene: Path, twin: Path, texture: np.ndarray | None, spp: int, every
     return rows
 
 
-def verdicts(texture: np.ndarray | None, scene: Path, twin: Path, victim: str, spp: int, out: Path,
+def verdicts(own: np.ndarray, texture: np.ndarray, scene: Path, twin: Path, victim: str, spp: int, out: Path,
              blends: list[float]) -> list[tuple[float, int, int, int]]:
-    """``undream evaluate`` on both twins of the scene's own texture moved BLEND of the way to ``texture``
-    (each of ``blends``; the own texture's verdicts come with each), and on the volpath twin again at
-    ``spp + 1`` (other samples: the noise floor): per blend (frames, frames whose verdicts differ
-    haze against volpath, volpath against volpath at spp + 1)."""
-    from undream.render.loading import read_texture_srgb
-    from undream.spec import load_sequence
-    from undream.variant import mitsuba
-
-    seq = load_sequence(scene / "sequence.json")
-    own = read_texture_srgb(mitsuba(), scene / "textures" / f"{seq.texture.name}.exr")
+    """``undream evaluate`` on both twins of the scene's own texture ``own`` moved BLEND of the way to
+    ``texture`` (each of ``blends``; the own texture's verdicts come with each), and on the volpath twin
+    again at ``spp + 1`` (other samples: the noise floor): per blend (frames, frames whose verdicts
+    differ haze against volpath, volpath against volpath at spp + 1)."""
     cli = Path(sys.executable).with_name("undream")
     rows = []
     for blend in blends:
         judged = out / f"texture_blend{blend:g}.npy"
-        np.save(judged, own if texture is None else np.clip(own + blend * (texture - own), 0, 1).astype(np.float32))
+        np.save(judged, np.clip(own + blend * (texture - own), 0, 1).astype(np.float32))
         got = {}
         for name, folder, n in (("haze", scene, spp), ("volpath", twin, spp), ("volpath_more", twin, spp + 1)):
             csv_path = out / f"frames_{name}_blend{blend:g}.csv"
@@ -146,13 +149,15 @@ def verdicts(texture: np.ndarray | None, scene: Path, twin: Path, victim: str, s
                             "--frames-csv", str(csv_path)], check=True, stdout=subprocess.DEVNULL)
             with csv_path.open() as fh:
                 got[name] = {r["frame"]: r for r in csv.DictReader(fh)}
-        keys = [k for k in next(iter(got["haze"].values())) if k.endswith(("_label", "_correct", "_detected"))]
-        frames = sorted(got["haze"], key=int)
-        def differ(a: str, b: str) -> int:
-            return sum(any(got[a][f][k] != got[b][f][k] for k in keys) for f in frames)
-
-        rows.append((blend, len(frames), differ("haze", "volpath"), differ("volpath_more", "volpath")))
+        rows.append((blend, len(got["haze"]), _differing(got["haze"], got["volpath"]),
+                     _differing(got["volpath_more"], got["volpath"])))
     return rows
+
+
+def _differing(a: dict[str, dict], b: dict[str, dict]) -> int:
+    """How many frames of two ``--frames-csv`` tables (by frame) have a verdict column that differs."""
+    keys = [k for k in next(iter(a.values())) if k.endswith(("_label", "_correct", "_detected"))]
+    return sum(any(a[f][k] != b[f][k] for k in keys) for f in a)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -160,7 +165,8 @@ def main(argv: list[str] | None = None) -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     print(f"load average before: {os.getloadavg()[0]:.2f}", flush=True)
     twin = volpath_twin(args.scene, args.out)
-    texture = np.load(args.texture) if args.texture else None
+    own = own_texture(args.scene)
+    texture = np.load(args.texture) if args.texture else own
     rows = measure(args.scene, twin, texture, args.spp, args.every)
     by = {}
     for r in rows:
@@ -183,7 +189,8 @@ def main(argv: list[str] | None = None) -> None:
     if args.victim:
         print(f"\n| texture (own + blend × (texture − own)), judged with the own texture | frames | verdicts haze ≠ "
               f"volpath at {args.spp} spp | volpath at {args.spp + 1} ≠ {args.spp} spp (noise) |\n|---|---:|---:|---:|")
-        for blend, n, k, floor in verdicts(texture, args.scene, twin, args.victim, args.spp, args.out, args.blends):
+        for blend, n, k, floor in verdicts(own, texture, args.scene, twin, args.victim, args.spp, args.out,
+                                           args.blends):
             print(f"| blend {blend:g} | {n} | {k} | {floor} |")
     print(f"load average after: {os.getloadavg()[0]:.2f}")
 

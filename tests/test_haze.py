@@ -1,17 +1,25 @@
 """The ``haze`` integrator renders what volpath renders (undream/render/haze.py).
 
 A scene directory holds a frame in fog, rain or snow in ``with_haze``'s form; the same frame in its
-volpath form (the medium and its null sphere, as ``scene_dict`` describes it) is written beside it.
+volpath form (the medium and its null sphere, as ``scene_dict`` describes it) is in a twin of it
+(scripts/haze_check.py's).
 Both are rendered at many samples with independent seeds: an unbiased ``haze`` leaves per-pixel
 differences from volpath of the size of the two renders' own noise, and a medium twice as thin (the
 negative control) does not.
 """
 from __future__ import annotations
 
+import importlib.util
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+_SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "haze_check.py"
+_spec = importlib.util.spec_from_file_location("haze_check", _SCRIPT)
+haze_check = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(haze_check)
+volpath_twin = haze_check.volpath_twin  # the volpath form of a scene directory's frames in a medium
 
 SPEC = """name: haze_{weather}
 seed: 0
@@ -42,19 +50,6 @@ def _scene_dir(tmp_path: Path, weather: str, extra: str = "", radius: float = 3.
     return init_scene(spec, tmp_path / weather, InitOptions(verify_spp=4, progress=False))
 
 
-def _volpath_file(root: Path, index: int = 0) -> Path:
-    """Frame ``index`` of ``root`` as volpath renders it, written beside the scene's own files."""
-    from undream.scene.mitsuba_scene import ScenePaths, scene_dict
-    from undream.scene.xml import to_xml
-    from undream.spec import load_sequence
-
-    seq = load_sequence(root / "sequence.json")
-    frame = next(f for f in seq.frames if f.index == index)
-    path = root / "frames" / f"volpath_{index:04d}.xml"
-    path.write_text(to_xml(scene_dict(seq, frame, ScenePaths(".."), "sim"), {"spp": SPP}))
-    return path
-
-
 def _render(mi, scene, seed: int) -> np.ndarray:
     return np.array(mi.render(scene, spp=SPP, seed=seed), dtype=np.float64)
 
@@ -74,7 +69,7 @@ def test_haze_renders_what_volpath_renders(tmp_path, mi, weather, extra):
     text = frame_xml(root, "sim", 0).read_text()
     assert 'type="haze"' in text and "fog_volume" not in text and "volpath" not in text
     haze = load_scene(mi, frame_xml(root, "sim", 0), SPP)
-    vol = load_scene(mi, _volpath_file(root), SPP)
+    vol = load_scene(mi, frame_xml(volpath_twin(root, tmp_path / "check"), "sim", 0), SPP)
     assert 0.6 < _excess(mi, haze, vol) < 1.4
 
     params = mi.traverse(haze)  # the negative control: a medium half as dense is told apart
@@ -128,16 +123,12 @@ def test_bad_haze_parameters_are_refused(mi):
 
 
 def test_the_check_scripts_twin_holds_volpath_frames(tmp_path, mi):
-    """scripts/haze_check.py judges a scene against a twin whose frames in a medium are volpath's."""
-    import sys
-
+    """scripts/haze_check.py (and the first test here) judge a scene against a twin whose frames in a
+    medium are volpath's."""
     from undream.scene.layout import frame_xml
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
-    import haze_check
-
     root = _scene_dir(tmp_path, "snow")
-    twin = haze_check.volpath_twin(root, tmp_path / "check")
+    twin = volpath_twin(root, tmp_path / "check")
     for index in (0, 1):
         text = frame_xml(twin, "sim", index).read_text()
         assert 'type="volpath"' in text and "fog_volume" in text and 'type="haze"' not in text

@@ -93,8 +93,8 @@ _TAGS = {
 def _category(value: Mapping[str, Any], key: str) -> str:
     t = value["type"]
     table = {
-        "path": "integrator", "volpath": "integrator", "haze": "integrator", "prb": "integrator", "direct": "integrator",
-        "aov": "integrator", "perspective": "sensor", "hdrfilm": "film", "independent": "sampler",
+        "path": "integrator", "volpath": "integrator", "haze": "integrator", "prb": "integrator",
+        "direct": "integrator", "aov": "integrator", "perspective": "sensor", "hdrfilm": "film", "independent": "sampler",
         "box": "rfilter", "gaussian": "rfilter", "tent": "rfilter",
         "constant": "emitter", "envmap": "emitter", "directional": "emitter", "point": "emitter", "area": "emitter",
         "spot": "emitter", "diffuse": "bsdf", "null": "bsdf", "twosided": "bsdf",
