@@ -17,9 +17,12 @@ volpath does it: next-event estimation at surfaces and in the medium with MIS
 against the BSDF and the isotropic phase function, emitters hit by BSDF or phase
 sampling weighted by MIS, Russian roulette after ``rr_depth`` and ``max_depth``
 counted over surface and medium scattering alike. Its images have volpath's
-expectation (tests/test_haze.py compares them pixel by pixel); their noise differs. A frame in haze
+expectation (tests/test_haze.py compares them pixel by pixel); their noise differs. Each vertex of a
+path, in the medium or on a surface, draws one light sample and traces one shadow ray: a vectorised
+loop pays for both branches of every iteration, so two (one per kind of vertex) cost 15–18 % more
+kernel time on a snow frame for the same samples (docs/performance.md). A frame in haze
 still costs more than a clear one: most of its sky pixels' rays scatter in the medium and go on
-bouncing, where a clear frame's end at the sky.
+bouncing, where a clear frame's end at the sky (4.3 vertices a path against 2.0).
 
 Parameters (the scene adapter writes them): ``sigma_t`` (1/m), ``albedo`` (RGB,
 ``σs/σt``), ``center`` and ``radius`` (m) of the medium's sphere, ``max_depth``,
@@ -120,25 +123,6 @@ def _integrator_class(mi: ModuleType) -> type:
                 surface = active & ~scatter
                 scatter &= active
 
-                # scattering in the medium: the light sampled, then a direction from the phase function
-                it = dr.zeros(mi.Interaction3f)
-                it.p = ray(t)
-                it.t = t
-                it.time = ray.time
-                it.wavelengths = ray.wavelengths
-                throughput[scatter] *= self.albedo
-                ds_m, emitted_m = scene.sample_emitter_direction(it, sampler.next_2d(scatter), False, scatter)
-                shadow_m = it.spawn_ray_to(ds_m.p)
-                lit_m = scatter & (ds_m.pdf > 0.0)
-                lit_m &= ~scene.ray_test(shadow_m, lit_m)
-                w_m = mis_weight(ds_m.pdf, dr.select(ds_m.delta, 0.0, INV_FOUR_PI))
-                result[lit_m] += throughput * INV_FOUR_PI * emitted_m * self._transmittance(shadow_m) * w_m
-                ray[scatter] = it.spawn_ray(mi.warp.square_to_uniform_sphere(sampler.next_2d(scatter)))
-                last_event[scatter] = it
-                last_pdf[scatter] = INV_FOUR_PI
-                specular_chain &= ~scatter
-                valid_ray |= scatter
-
                 # an emitter hit (the sky on a miss), weighted against next-event estimation
                 count_direct = (depth == 0) | specular_chain
                 emitter = si.emitter(scene)
@@ -148,25 +132,39 @@ def _integrator_class(mi: ModuleType) -> type:
                 weight = dr.select(count_direct, 1.0, mis_weight(last_pdf, emitter_pdf))
                 result[hit_e] += throughput * emitter.eval(si, hit_e) * weight
 
-                # a surface: next-event estimation, then a BSDF sample
+                # the vertex: a surface or a point of the medium (no normal: its rays are not offset).
+                # One light sample and one shadow ray serve either, where volpath pays for both
                 surface &= si.is_valid()
+                throughput[scatter] *= self.albedo
+                vertex = mi.Interaction3f(si)
+                vertex.p = dr.select(scatter, ray(t), si.p)
+                vertex.n = dr.select(scatter, 0.0, si.n)
+                vertex.t = dr.select(scatter, t, si.t)
+                vertex.time, vertex.wavelengths = ray.time, ray.wavelengths
                 bsdf = si.bsdf(ray)
-                nee = surface & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth) & (depth + 1 < self.max_depth)
-                ds_s, emitted_s = scene.sample_emitter_direction(si, sampler.next_2d(nee), False, nee)
-                shadow = si.spawn_ray_to(ds_s.p)
-                lit = nee & (ds_s.pdf > 0.0)
+                nee = scatter | (surface & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+                                 & (depth + 1 < self.max_depth))
+                ds_e, emitted = scene.sample_emitter_direction(vertex, sampler.next_2d(nee), False, nee)
+                shadow = vertex.spawn_ray_to(ds_e.p)
+                lit = nee & (ds_e.pdf > 0.0)
                 lit &= ~scene.ray_test(shadow, lit)
-                bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(ds_s.d), lit)
-                w_s = mis_weight(ds_s.pdf, dr.select(ds_s.delta, 0.0, bsdf_pdf))
-                result[lit] += throughput * bsdf_val * emitted_s * self._transmittance(shadow) * w_s
+                bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(ds_e.d), lit & surface)
+                f_val = dr.select(scatter, INV_FOUR_PI, bsdf_val)
+                f_pdf = dr.select(scatter, INV_FOUR_PI, bsdf_pdf)
+                w_e = mis_weight(ds_e.pdf, dr.select(ds_e.delta, 0.0, f_pdf))
+                result[lit] += throughput * f_val * emitted * self._transmittance(shadow) * w_e
 
+                # the next direction: from the isotropic phase function or from the BSDF
                 bs, bsdf_weight = bsdf.sample(ctx, si, sampler.next_1d(surface), sampler.next_2d(surface), surface)
+                phase_d = mi.warp.square_to_uniform_sphere(sampler.next_2d(scatter))
                 throughput[surface] *= bsdf_weight
-                ray[surface] = si.spawn_ray(si.to_world(bs.wo))
+                moving = surface | scatter
+                ray[moving] = vertex.spawn_ray(dr.select(scatter, phase_d, si.to_world(bs.wo)))
                 depth[surface] += 1
-                last_event[surface] = si
-                last_pdf[surface] = bs.pdf
-                valid_ray |= surface
+                last_event[moving] = vertex
+                last_pdf[moving] = dr.select(scatter, INV_FOUR_PI, bs.pdf)
+                valid_ray |= moving
+                specular_chain &= ~scatter
                 specular_chain |= surface & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
                 specular_chain &= ~(surface & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Smooth))
                 active &= (surface | scatter) & dr.any(throughput != 0.0)
