@@ -19,8 +19,8 @@ sampling weighted by MIS, Russian roulette after ``rr_depth`` and ``max_depth``
 counted over surface and medium scattering alike. Its images have volpath's
 expectation (tests/test_haze.py compares them pixel by pixel); their noise differs. Each vertex of a
 path, in the medium or on a surface, draws one light sample and traces one shadow ray: a vectorised
-loop pays for both branches of every iteration, so two (one per kind of vertex) cost 15–18 % more
-kernel time on a snow frame for the same samples (docs/performance.md). A frame in haze
+loop pays for both branches of every iteration, so two (one per kind of vertex) cost 11–22 % more
+kernel time on the 16-condition job's snow frames for the same samples (docs/performance.md). A frame in haze
 still costs more than a clear one: most of its sky pixels' rays scatter in the medium and go on
 bouncing, where a clear frame's end at the sky (4.3 vertices a path against 2.0).
 
