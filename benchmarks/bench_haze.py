@@ -112,7 +112,8 @@ def _register_length(mi: ModuleType) -> None:
     source = source.replace("            while active:\n",
                             "            length = mi.Float(0.0)\n            while active:\n"
                             "                length += dr.select(active, 1.0, 0.0)\n", 1)
-    source = source.replace("            return result, valid_ray, []", "            return mi.Spectrum(length), valid_ray, []")
+    source = source.replace("            return result, valid_ray, []",
+                            "            return mi.Spectrum(length), valid_ray, []")
     with tempfile.NamedTemporaryFile("w", suffix=".py", delete=False) as f:
         f.write(source)
     try:
