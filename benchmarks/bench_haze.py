@@ -89,16 +89,17 @@ def kernel_ms(mi: ModuleType, scene, spp: int, seed: int) -> tuple[float, np.nda
     return sum(k.get("execution_time", 0.0) for k in dr.kernel_history()), image
 
 
-def _timed(mi, scenes: dict, spp: int, repeats: int) -> dict:
+def _timed(mi, scenes: dict, spp: int, repeats: int) -> tuple[dict, dict]:
+    """Each scene's median kernel milliseconds and its timed images (seeds 3, 4, …), the scenes taking
+    turns; the first three renders of each (seeds 0–2) untimed."""
     times: dict = {k: [] for k in scenes}
-    images: dict = {}
+    images: dict = {k: [] for k in scenes}
     for r in range(repeats + 3):
         for key, scene in scenes.items():
             ms, image = kernel_ms(mi, scene, spp, r)
             if r >= 3:
                 times[key].append(ms)
-            if r == 3:
-                images[key] = image
+                images[key].append(image)
     return {k: statistics.median(v) for k, v in times.items()}, images
 
 
@@ -142,7 +143,7 @@ def main(argv: list[str] | None = None) -> None:
 
     print("\n| frame | clear (path) | haze | haze / clear |"
           + (" haze_before | haze / haze_before | largest difference, same seed |" if before else ""))
-    print("|---:|---:|---:|---:|" + ("---:|---:|---|" if before else ""))
+    print("|---:|---:|---:|---:|" + ("---:|---:|---:|" if before else ""))
     for index in args.frames:
         scenes = {"clear": mi.load_file(str(frames.dir / f"sim_{index - args.offset:04d}.xml")),
                   "haze": frames.load(index)}
@@ -151,7 +152,7 @@ def main(argv: list[str] | None = None) -> None:
         t, images = _timed(mi, scenes, args.spp, args.repeats)
         row = f"| {index} | {t['clear']:.1f} ms | {t['haze']:.1f} ms | {t['haze'] / t['clear']:.2f}× |"
         if before is not None:
-            largest = float(np.abs(images["haze"] - images["before"]).max())
+            largest = float(np.abs(images["haze"][0] - images["before"][0]).max())
             row += f" {t['before']:.1f} ms | {t['haze'] / t['before']:.2f} | {largest:.2g} |"
         print(row)
 
@@ -171,16 +172,8 @@ def main(argv: list[str] | None = None) -> None:
         scenes = {"clear": clear}
         scenes.update({rr: frames.load(index, extra=f'<integer name="rr_depth" value="{rr}"/>')
                        for rr in args.rr_depths})
-        times: dict = {k: [] for k in scenes}
-        errors: dict = {k: [] for k in scenes}
-        for r in range(args.repeats + 3):
-            for key, scene in scenes.items():
-                ms, image = kernel_ms(mi, scene, args.spp, r)
-                if r >= 3:
-                    times[key].append(ms)
-                    errors[key].append(float(((image - reference) ** 2).mean()))
-        t = {k: statistics.median(v) for k, v in times.items()}
-        e = {k: float(np.mean(v)) for k, v in errors.items()}
+        t, images = _timed(mi, scenes, args.spp, args.repeats)
+        e = {k: float(np.mean([((image - reference) ** 2).mean() for image in v])) for k, v in images.items()}
         first = args.rr_depths[0]
         for rr in args.rr_depths:
             print(f"| {index} | {rr} | {t[rr]:.1f} ms | {t[rr] / t['clear']:.2f}× | {e[rr]:.3g} "
