@@ -49,6 +49,14 @@ def _parse(argv: list[str] | None = None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
+def _replace_once(text: str, old: str, new: str, where: str) -> str:
+    """``text`` with its first ``old`` replaced; exits naming ``where`` when ``old`` is not there (a
+    patch that silently missed would time or measure the unpatched thing)."""
+    if old not in text:
+        raise SystemExit(f"bench_haze: {where} has no {old.strip()!r}")
+    return text.replace(old, new, 1)
+
+
 def _module_from(path: str, name: str) -> ModuleType:
     spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
@@ -64,13 +72,17 @@ class Frames:
         self.mi, self.dir = mi, scene / "frames"
 
     def load(self, index: int, integrator: str | None = None, extra: str = "", sigma_t: str | None = None):
-        xml = (self.dir / f"sim_{index:04d}.xml").read_text()
+        path = self.dir / f"sim_{index:04d}.xml"
+        xml = path.read_text()
         if integrator is not None:
-            xml = xml.replace('type="haze"', f'type="{integrator}"', 1)
+            xml = _replace_once(xml, 'type="haze"', f'type="{integrator}"', f"{path} (a frame in a medium?)")
         if extra:
-            xml = xml.replace('<integer name="max_depth"', extra + '<integer name="max_depth"', 1)
+            xml = _replace_once(xml, '<integer name="max_depth"', extra + '<integer name="max_depth"', str(path))
         if sigma_t is not None:
-            xml = re.sub(r'<float name="sigma_t" value="[^"]*"/>', f'<float name="sigma_t" value="{sigma_t}"/>', xml)
+            xml, n = re.subn(r'<float name="sigma_t" value="[^"]*"/>',
+                             f'<float name="sigma_t" value="{sigma_t}"/>', xml)
+            if n == 0:
+                raise SystemExit(f"bench_haze: {path} has no sigma_t (a frame in a medium?)")
         # written beside the frame's own file: its relative paths (meshes, textures) resolve
         with tempfile.NamedTemporaryFile("w", suffix=".xml", dir=self.dir, delete=False) as f:
             f.write(xml)
@@ -78,6 +90,10 @@ class Frames:
             return self.mi.load_file(f.name)
         finally:
             os.unlink(f.name)
+
+    def clear_twin(self, index: int, offset: int):
+        """The clear frame ``offset`` frames before ``index``, loaded from its own file."""
+        return self.mi.load_file(str(self.dir / f"sim_{index - offset:04d}.xml"))
 
 
 def kernel_ms(mi: ModuleType, scene, spp: int, seed: int) -> tuple[float, np.ndarray]:
@@ -108,13 +124,14 @@ def _register_length(mi: ModuleType) -> None:
     registered as ``haze_length`` (its source must exist while the class is made: @dr.syntax reads it)."""
     import undream.render.haze as haze
 
-    source = Path(haze.__file__).read_text()
-    source = source.replace('NAME = "haze"', 'NAME = "haze_length"')
-    source = source.replace("            while active:\n",
-                            "            length = mi.Float(0.0)\n            while active:\n"
-                            "                length += dr.select(active, 1.0, 0.0)\n", 1)
-    source = source.replace("            return result, valid_ray, []",
-                            "            return mi.Spectrum(length), valid_ray, []")
+    where = haze.__file__
+    source = Path(where).read_text()
+    source = _replace_once(source, 'NAME = "haze"', 'NAME = "haze_length"', where)
+    source = _replace_once(source, "            while active:\n",
+                           "            length = mi.Float(0.0)\n            while active:\n"
+                           "                length += dr.select(active, 1.0, 0.0)\n", where)
+    source = _replace_once(source, "            return result, valid_ray, []",
+                           "            return mi.Spectrum(length), valid_ray, []", where)
     with tempfile.NamedTemporaryFile("w", suffix=".py", delete=False) as f:
         f.write(source)
     try:
@@ -145,8 +162,7 @@ def main(argv: list[str] | None = None) -> None:
           + (" haze_before | haze / haze_before | largest difference, same seed |" if before else ""))
     print("|---:|---:|---:|---:|" + ("---:|---:|---:|" if before else ""))
     for index in args.frames:
-        scenes = {"clear": mi.load_file(str(frames.dir / f"sim_{index - args.offset:04d}.xml")),
-                  "haze": frames.load(index)}
+        scenes = {"clear": frames.clear_twin(index, args.offset), "haze": frames.load(index)}
         if before is not None:
             scenes["before"] = frames.load(index, "haze_before")
         t, images = _timed(mi, scenes, args.spp, args.repeats)
@@ -168,8 +184,7 @@ def main(argv: list[str] | None = None) -> None:
     print("|---:|---:|---:|---:|---:|---:|")
     for index in args.frames:
         reference = np.array(mi.render(frames.load(index), spp=args.reference_spp, seed=10_000))
-        clear = mi.load_file(str(frames.dir / f"sim_{index - args.offset:04d}.xml"))
-        scenes = {"clear": clear}
+        scenes = {"clear": frames.clear_twin(index, args.offset)}
         scenes.update({rr: frames.load(index, extra=f'<integer name="rr_depth" value="{rr}"/>')
                        for rr in args.rr_depths})
         t, images = _timed(mi, scenes, args.spp, args.repeats)

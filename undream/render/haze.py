@@ -167,7 +167,7 @@ def _integrator_class(mi: ModuleType) -> type:
                 specular_chain &= ~scatter
                 specular_chain |= surface & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
                 specular_chain &= ~(surface & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Smooth))
-                active &= (surface | scatter) & dr.any(throughput != 0.0)
+                active &= moving & dr.any(throughput != 0.0)
             return result, valid_ray, []
 
         def to_string(self):
